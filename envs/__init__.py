@@ -1,0 +1,94 @@
+"""Environments: gymnasium ids -> TorchRL envs with the standard transforms.
+
+``make_env`` is the one door: it resolves the tutorials' ids (``MinitaurBulletEnv-v0`` names our
+gymnasium-native Minitaur), rejects unknown ids with the closest valid ones, and returns a plain
+TorchRL ``TransformedEnv`` that a user can hand to any TorchRL collector.
+
+Importing this package registers ``rlpipe/MinitaurBullet-v0`` with gymnasium.
+"""
+
+from __future__ import annotations
+
+import difflib
+
+import gymnasium
+from torchrl.envs import (
+    Compose,
+    DoubleToFloat,
+    GymEnv,
+    InitTracker,
+    RewardSum,
+    StepCounter,
+    TransformedEnv,
+)
+from torchrl.data import Categorical, OneHot
+
+__all__ = ["EnvError", "make_env", "resolve_env_id", "is_discrete", "MINITAUR_ID"]
+
+MINITAUR_ID = "rlpipe/MinitaurBullet-v0"
+
+if MINITAUR_ID not in gymnasium.registry:
+    gymnasium.register(
+        id=MINITAUR_ID,
+        entry_point="rlpipe.envs.minitaur:MinitaurBulletEnv",
+        max_episode_steps=1000,
+        reward_threshold=15.0,
+    )
+
+# The tutorials' ids that name something else here.
+_ALIASES = {"MinitaurBulletEnv-v0": MINITAUR_ID}
+
+
+class EnvError(ValueError):
+    """An env id or env that cannot serve the request; the message says what is expected."""
+
+
+def resolve_env_id(env_id: str) -> str:
+    """Return the gymnasium id that ``env_id`` names, or raise ``EnvError`` with close matches."""
+    env_id = _ALIASES.get(env_id, env_id)
+    if env_id in gymnasium.registry:
+        return env_id
+    known = list(gymnasium.registry) + list(_ALIASES)
+    close = difflib.get_close_matches(env_id, known, n=3, cutoff=0.5)
+    hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else "; expected a gymnasium id such as 'CartPole-v1'"
+    raise EnvError(f"unknown env id {env_id!r}{hint}")
+
+
+def make_env(
+    env_id: str,
+    *,
+    seed: int | None = None,
+    device: str = "cpu",
+    render_mode: str | None = None,
+    **gym_kwargs,
+) -> TransformedEnv:
+    """A TorchRL env for ``env_id`` with ``StepCounter``, ``RewardSum``, ``InitTracker`` and ``DoubleToFloat``.
+
+    Discrete actions are integer indices (``categorical_action_encoding``), as in gymnasium, so an
+    exported policy's action goes straight into ``gymnasium.Env.step``. Extra keywords go to
+    ``gymnasium.make`` (for example Minitaur's ``env_randomizer=None``).
+    """
+    gym_id = resolve_env_id(env_id)
+    if render_mode is not None:
+        gym_kwargs["render_mode"] = render_mode
+    base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
+    env = TransformedEnv(
+        base,
+        Compose(StepCounter(), RewardSum(), InitTracker(), DoubleToFloat()),
+    )
+    if seed is not None:
+        env.set_seed(seed)
+    return env
+
+
+def is_discrete(env) -> bool:
+    """Whether ``env``'s action space is a finite set of choices (what DQN needs)."""
+    return isinstance(env.action_spec, (Categorical, OneHot))
+
+
+def describe_action_space(env) -> str:
+    """A short phrase for error messages, e.g. 'continuous Box of shape (1,)'."""
+    spec = env.action_spec
+    if is_discrete(env):
+        return f"discrete with {spec.space.n} actions"
+    return f"continuous Box of shape {tuple(spec.shape)}"

@@ -1,0 +1,31 @@
+"""Q-networks for discrete actions, as TorchRL ``QValueActor``s.
+
+``make_qvalue_actor`` is TF-Agents' ``QNetwork`` (fully connected layers, one output per action)
+wrapped so that it writes ``action_value``, ``chosen_action_value`` and a greedy ``action``:
+exactly what TorchRL's ``DQNLoss`` and collectors expect.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from torch import nn
+from torchrl.modules import MLP, QValueActor
+
+__all__ = ["make_qvalue_actor"]
+
+
+def make_qvalue_actor(
+    observation_dim: int,
+    action_spec,
+    hidden_sizes: Sequence[int] = (100,),
+    activation: type[nn.Module] = nn.ReLU,
+) -> QValueActor:
+    """Greedy Q-value policy over an MLP: ``observation`` -> ``action`` (an integer index)."""
+    net = MLP(
+        in_features=observation_dim,
+        out_features=action_spec.space.n,
+        num_cells=list(hidden_sizes),
+        activation_class=activation,
+    )
+    return QValueActor(net, in_keys=["observation"], spec=action_spec, action_space="categorical")

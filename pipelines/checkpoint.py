@@ -1,0 +1,102 @@
+"""Checkpoints that resume a run exactly: modules, optimisers, replay buffer, counters, RNG states.
+
+TorchRL's replay buffer saves itself (``ReplayBuffer.dumps``/``loads``); the rest is one
+``torch.save`` of tensors and plain data, read back with ``weights_only=True`` so a checkpoint file
+can never run code. Each checkpoint is written into a temporary folder and renamed into place, and
+the ``latest`` pointer is replaced atomically: a crash mid-save leaves the previous one intact.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import random
+import shutil
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from rlpipe.pipelines.errors import InputError
+
+__all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state"]
+
+FORMAT = "rlpipe-checkpoint/1"
+KEEP = 2
+
+
+def rng_state() -> dict[str, Any]:
+    np_state = np.random.get_state()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": {"key": torch.from_numpy(np_state[1].astype(np.int64)), "pos": int(np_state[2]),
+                  "has_gauss": int(np_state[3]), "cached": float(np_state[4])},
+        "python": random.getstate(),
+    }
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    n = state["numpy"]
+    np.random.set_state(("MT19937", n["key"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"]))
+    py = state["python"]
+    random.setstate((py[0], tuple(py[1]), py[2]))
+
+
+def save_checkpoint(folder: Path, step: int, state: dict[str, Any], replay_buffer=None) -> Path:
+    """Write checkpoint ``step`` under ``folder`` atomically; keep the newest ``KEEP``."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    final = folder / f"step_{step:010d}"
+    tmp = Path(tempfile.mkdtemp(dir=folder, prefix=".tmp-"))
+    try:
+        torch.save({"format": FORMAT, "step": step, **state}, tmp / "state.pt")
+        if replay_buffer is not None:
+            replay_buffer.dumps(tmp / "replay_buffer")
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    pointer_tmp = folder / ".latest.tmp"
+    pointer_tmp.write_text(final.name + "\n")
+    os.replace(pointer_tmp, folder / "latest")
+    for old in sorted(p for p in folder.glob("step_*") if p.is_dir())[:-KEEP]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def latest_checkpoint(folder: Path) -> Path:
+    folder = Path(folder)
+    pointer = folder / "latest"
+    if not pointer.exists():
+        raise InputError(f"{folder}: no checkpoint to resume from (no 'latest'); expected a run that saved one")
+    path = folder / pointer.read_text().strip()
+    if not (path / "state.pt").exists():
+        raise InputError(f"{path}: checkpoint is missing its state.pt; expected a complete checkpoint folder")
+    return path
+
+
+def load_checkpoint(path: Path, algo: str, env_id: str, replay_buffer=None) -> dict[str, Any]:
+    """Read a checkpoint written by ``save_checkpoint`` for the same pipeline and env."""
+    path = Path(path)
+    try:
+        state = torch.load(path / "state.pt", weights_only=True, map_location="cpu")
+    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise InputError(f"{path / 'state.pt'}: corrupt or not an rlpipe checkpoint ({type(exc).__name__})") from exc
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise InputError(f"{path / 'state.pt'}: not an rlpipe checkpoint (expected format {FORMAT!r})")
+    if state.get("algo") != algo or state.get("env") != env_id:
+        raise InputError(
+            f"{path}: checkpoint is for {state.get('algo')} on {state.get('env')}; expected {algo} on {env_id}"
+        )
+    if replay_buffer is not None:
+        rb_path = path / "replay_buffer"
+        if not rb_path.exists():
+            raise InputError(f"{rb_path}: missing from checkpoint; expected the replay buffer's saved contents")
+        replay_buffer.loads(rb_path)
+    return state

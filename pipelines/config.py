@@ -1,0 +1,249 @@
+"""Typed configs shared by every pipeline, ``key=value`` overrides, and the one place that validates.
+
+Keys keep the TF-Agents tutorials' names where they mean the same thing (``num_iterations``,
+``initial_collect_steps``, ``collect_steps_per_iteration``, ``replay_buffer_capacity``, ...), so a
+reader of the tutorials finds them. Each field's docstring is its help text (``rlpipe train X --help``).
+
+Overrides are parsed and type-checked by OmegaConf's structured configs; what OmegaConf cannot know
+(positive sizes, ranges, choices) is checked in ``validate``.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import difflib
+import inspect
+import json
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from rlpipe.pipelines.errors import InputError
+
+__all__ = [
+    "CollectorConfig",
+    "TrainConfig",
+    "apply_overrides",
+    "config_to_dict",
+    "config_from_dict",
+    "field_docs",
+    "flat_keys",
+    "validate",
+]
+
+
+@dataclass
+class CollectorConfig:
+    """How env steps are gathered: TorchRL collectors in place of TF-Agents' actor processes."""
+
+    workers: int = 1
+    """collector processes; 1 with sync=true steps the env in the learner's process (TorchRL `Collector`)"""
+    sync: bool = True
+    """true: `MultiSyncCollector` (workers step in lock-step); false: `MultiAsyncCollector` (collection overlaps learning)"""
+    frames_per_batch: int = 50
+    """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
+    weight_sync_interval: int = 1
+    """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container)"""
+
+
+@dataclass
+class TrainConfig:
+    """What every off-policy pipeline shares. Intervals count iterations (train steps)."""
+
+    env: str = "CartPole-v0"
+    """gymnasium env id (the tutorials' ids work too, e.g. MinitaurBulletEnv-v0)"""
+    seed: int = 0
+    """seed for networks, replay sampling, exploration and envs; worker seeds derive from it"""
+    num_iterations: int = 20_000
+    """training iterations after the initial collect; each collects `collect_steps_per_iteration` env steps and makes one update"""
+    initial_collect_steps: int = 1000
+    """env steps taken with a uniformly random policy before the collect policy takes over"""
+    collect_steps_per_iteration: int = 1
+    """env steps per iteration (per update): the inverse of the update-to-data ratio"""
+    learning_starts: Optional[int] = None
+    """env steps collected before updates begin; each later step pays for 1/`collect_steps_per_iteration` updates (null: `initial_collect_steps`, as TF-Agents does)"""
+    replay_buffer_capacity: int = 100_000
+    """transitions kept; the oldest are evicted first"""
+    batch_size: int = 64
+    """transitions per update, sampled uniformly"""
+    gamma: float = 0.99
+    """discount factor"""
+    target_update_tau: float = 1.0
+    """target network soft-update factor (1.0 copies the online network)"""
+    target_update_period: int = 1
+    """updates between target network updates"""
+    eval_interval: int = 1000
+    """iterations between evaluations of the deterministic policy (0: only before and after training)"""
+    num_eval_episodes: int = 10
+    """episodes per evaluation; their mean return is AverageReturn"""
+    log_interval: int = 200
+    """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
+    policy_save_interval: int = 5000
+    """iterations between exports of the deterministic policy (the tutorials' saved policy)"""
+    checkpoint_interval: int = 5000
+    """iterations between checkpoints that `--resume` continues from"""
+    compile: bool = False
+    """compile the update with torch.compile (faster per update, ~30 s to compile on CPU)"""
+    device: str = "cpu"
+    """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+
+    @property
+    def total_frames(self) -> int:
+        return self.initial_collect_steps + self.num_iterations * self.collect_steps_per_iteration
+
+    @property
+    def first_update_frame(self) -> int:
+        return self.initial_collect_steps if self.learning_starts is None else self.learning_starts
+
+
+# --- the one place that validates ---------------------------------------------------------------
+
+_POSITIVE = {
+    "num_iterations", "collect_steps_per_iteration", "replay_buffer_capacity", "batch_size",
+    "target_update_period", "num_eval_episodes", "log_interval", "policy_save_interval",
+    "checkpoint_interval", "collector.workers", "collector.frames_per_batch",
+    "collector.weight_sync_interval",
+}
+_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval"}
+
+
+def _get(cfg, dotted: str):
+    for part in dotted.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def validate(cfg) -> None:
+    """Raise ``InputError`` naming the first key whose value cannot work, and what it must be."""
+    for key in flat_keys(type(cfg)):
+        value = _get(cfg, key)
+        leaf = key.rsplit(".", 1)[-1]
+        if value is None:
+            continue
+        if (key in _POSITIVE or leaf in _POSITIVE or leaf.endswith("_interval") and leaf not in _NON_NEGATIVE) and value <= 0:
+            raise InputError(f"{key}={value}: expected a positive integer")
+        if (key in _NON_NEGATIVE or leaf in _NON_NEGATIVE) and value < 0:
+            raise InputError(f"{key}={value}: expected zero or a positive integer")
+        if leaf.endswith("learning_rate") and not value > 0:
+            raise InputError(f"{key}={value}: expected a positive learning rate")
+        if leaf.endswith("layer_params") and (not value or any(v <= 0 for v in value)):
+            raise InputError(f"{key}={value}: expected a non-empty list of positive layer sizes, e.g. [256,256]")
+    if not 0.0 < cfg.gamma <= 1.0:
+        raise InputError(f"gamma={cfg.gamma}: expected a discount in (0, 1]")
+    if not 0.0 < cfg.target_update_tau <= 1.0:
+        raise InputError(f"target_update_tau={cfg.target_update_tau}: expected a value in (0, 1]")
+    if cfg.batch_size > cfg.replay_buffer_capacity:
+        raise InputError(
+            f"batch_size={cfg.batch_size} is larger than replay_buffer_capacity={cfg.replay_buffer_capacity}: "
+            "expected batch_size <= replay_buffer_capacity"
+        )
+    extra = getattr(cfg, "validate_extra", None)
+    if extra is not None:
+        extra()
+
+
+# --- overrides ------------------------------------------------------------------------------------
+
+
+def flat_keys(cls: type, prefix: str = "") -> list[str]:
+    """Every settable key of a config class, nested ones dotted (``collector.workers``)."""
+    keys = []
+    for f in dataclasses.fields(cls):
+        ftype = f.type if not isinstance(f.type, str) else _resolve(cls, f.type)
+        if dataclasses.is_dataclass(ftype):
+            keys += flat_keys(ftype, prefix + f.name + ".")
+        else:
+            keys.append(prefix + f.name)
+    return keys
+
+
+def _resolve(cls: type, annotation: str):
+    module = inspect.getmodule(cls)
+    try:
+        return eval(annotation, vars(module))  # annotations are our own dataclasses' strings
+    except Exception:
+        return annotation
+
+
+def apply_overrides(cfg, overrides: list[str]):
+    """Return a copy of ``cfg`` with ``key=value`` overrides applied, type-checked and validated."""
+    keys = flat_keys(type(cfg))
+    conf = OmegaConf.structured(cfg)
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise InputError(f"override {item!r} is not of the form key=value (e.g. batch_size=128)")
+        if key not in keys:
+            close = difflib.get_close_matches(key, keys, n=3, cutoff=0.5)
+            hint = f"; closest valid keys: {', '.join(close)}" if close else f"; valid keys: {', '.join(keys)}"
+            raise InputError(f"unknown config key {key!r}{hint}")
+        try:
+            conf = OmegaConf.merge(conf, OmegaConf.from_dotlist([f"{key}={value}"]))
+        except OmegaConfBaseException as exc:
+            expected = _describe_type(cfg, key)
+            raise InputError(f"{key}={value!r}: expected {expected}") from exc
+    result = OmegaConf.to_object(conf)
+    validate(result)
+    return result
+
+
+def _describe_type(cfg, key: str) -> str:
+    owner = cfg
+    *parents, leaf = key.split(".")
+    for p in parents:
+        owner = getattr(owner, p)
+    ftype = {f.name: f.type for f in dataclasses.fields(owner)}[leaf]
+    text = str(ftype).replace("typing.", "")
+    names = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
+             "Optional[int]": "an integer or null", "List[int]": "a list of integers such as [256,256]",
+             "list[int]": "a list of integers such as [256,256]"}
+    return names.get(text, text)
+
+
+# --- to and from plain data -----------------------------------------------------------------------
+
+
+def config_to_dict(cfg) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def config_from_dict(cls: type, data: dict[str, Any]):
+    """Rebuild a config from ``config_to_dict`` output (e.g. a run's config.json), type-checked."""
+    try:
+        conf = OmegaConf.merge(OmegaConf.structured(cls), OmegaConf.create(data))
+    except OmegaConfBaseException as exc:
+        raise InputError(f"config does not fit {cls.__name__}: {str(exc).splitlines()[0]}") from exc
+    result = OmegaConf.to_object(conf)
+    validate(result)
+    return result
+
+
+def dumps(cfg) -> str:
+    return json.dumps(config_to_dict(cfg), indent=2, sort_keys=False)
+
+
+def field_docs(cls: type, prefix: str = "") -> dict[str, str]:
+    """The docstring under each dataclass field, keyed by dotted name (CleanRL/tyro style help)."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            tree = ast.parse(inspect.getsource(klass))
+        except (OSError, TypeError):
+            continue
+        body = tree.body[0].body
+        for node, nxt in zip(body, body[1:]):
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                if isinstance(nxt, ast.Expr) and isinstance(getattr(nxt, "value", None), ast.Constant):
+                    docs[prefix + node.target.id] = str(nxt.value.value).strip()
+    for f in dataclasses.fields(cls):
+        ftype = f.type if not isinstance(f.type, str) else _resolve(cls, f.type)
+        if dataclasses.is_dataclass(ftype):
+            docs.update(field_docs(ftype, prefix + f.name + "."))
+    return docs

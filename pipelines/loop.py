@@ -1,0 +1,416 @@
+"""The shared off-policy collect/learn loop with triggers (TF-Agents' Learner, on TorchRL parts).
+
+A pipeline (``dqn``, ``td3``, ``sac``) subclasses ``OffPolicyPipeline`` and supplies only what is
+its own: ``check_env`` (what action space it takes), ``build`` (policy, exploring policy, loss,
+target updater, optimisers), ``update`` (one gradient step) and ``export_module`` (the policy as a
+plain ``nn.Module``). Everything else is here, once:
+
+* a TorchRL collector (``Collector``, ``MultiSyncCollector`` or ``MultiAsyncCollector``) whose first
+  ``initial_collect_steps`` frames come from a random policy;
+* a TorchRL replay buffer (``LazyTensorStorage``: FIFO eviction at capacity, uniform sampling);
+* collection in blocks of ``collector.frames_per_batch`` env steps, each followed by the updates
+  those steps pay for at ``1 / collect_steps_per_iteration`` updates per env step: the tutorials'
+  update-to-data ratio, with far less per-step overhead than one step / one update;
+* triggers at iteration counts: evaluate, log, checkpoint, export; a progress bar;
+* a run directory (see ``rundir``) and resume from its last checkpoint.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.record.loggers import TensorboardLogger
+from tqdm.auto import tqdm
+
+from rlpipe.envs import EnvError, make_env
+from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.config import TrainConfig, config_to_dict, validate
+from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.evaluation import evaluate
+from rlpipe.pipelines.export import export_policy
+from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir, write_json_atomic
+
+__all__ = ["OffPolicyPipeline", "TrainResult", "seed_everything"]
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+@dataclass
+class TrainResult:
+    """What ``train`` hands back: the trained policy, the metrics rows and where the run lives."""
+
+    policy: nn.Module
+    run_dir: Path
+    metrics: list[dict[str, str]]
+    summary: dict[str, Any]
+    evaluations: list[dict[str, Any]] = field(default_factory=list)
+
+
+class OffPolicyPipeline:
+    """Base of every pipeline. Subclasses set ``algo``, ``Config``, ``loss_names`` and the hooks."""
+
+    algo: ClassVar[str]
+    Config: ClassVar[type[TrainConfig]]
+    loss_names: ClassVar[tuple[str, ...]] = ("loss",)
+
+    # set by ``build``
+    policy: nn.Module  # deterministic policy (evaluation, export)
+    collect_policy: nn.Module  # exploring policy (collection)
+    loss_module: nn.Module
+    optimizers: dict[str, torch.optim.Optimizer]
+
+    def __init__(
+        self,
+        config: TrainConfig | None = None,
+        *,
+        env: EnvBase | Callable[[], EnvBase] | None = None,
+        eval_env: EnvBase | None = None,
+    ):
+        cfg = config if config is not None else self.Config()
+        if not isinstance(cfg, self.Config):
+            raise InputError(f"config is a {type(cfg).__name__}; expected {self.Config.__name__} for {self.algo}")
+        validate(cfg)
+        self.config = cfg
+        self.device = torch.device(cfg.device)
+        seed_everything(cfg.seed)
+
+        # An env factory lets collector processes and the evaluator make their own copies.
+        if env is None:
+            self.env_fn: Callable[[], EnvBase] | None = functools.partial(make_env, cfg.env, device="cpu")
+        elif isinstance(env, EnvBase):
+            self.env_fn = None
+        elif callable(env):
+            self.env_fn = env
+        else:
+            raise InputError(f"env is a {type(env).__name__}; expected a TorchRL EnvBase or a function returning one")
+        try:
+            self.env = env if isinstance(env, EnvBase) else self.env_fn()
+        except EnvError as exc:
+            raise InputError(str(exc)) from exc
+        self.env.set_seed(cfg.seed)
+        if eval_env is None and self.env_fn is None:
+            raise InputError("env is an instance: pass eval_env as well, or pass a function that makes the env")
+        self.eval_env = eval_env if eval_env is not None else self.env_fn()
+        self.eval_env.set_seed(cfg.seed + 10_000)
+        if self.env_fn is None and (cfg.collector.workers > 1 or not cfg.collector.sync):
+            raise InputError("collector.workers>1 or collector.sync=false: pass env as a function that makes the env")
+
+        self.check_env(self.env)
+        self.observation_dim = int(self.env.observation_spec["observation"].shape[-1])
+        self.build()
+        self.replay_buffer = self.make_replay_buffer()
+        self.counters: dict[str, Any] = {"frames": 0, "updates": 0, "iteration": 0, "update_credit": 0.0}
+        self._update_fn = torch.compile(self.update) if cfg.compile else self.update
+
+    # --- what a pipeline supplies -------------------------------------------------------------
+
+    def check_env(self, env: EnvBase) -> None:
+        """Raise ``InputError`` if this pipeline cannot act in ``env``."""
+
+    def build(self) -> None:
+        """Make ``policy``, ``collect_policy``, ``loss_module``, ``optimizers`` (and a target updater)."""
+        raise NotImplementedError
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        """One gradient step on ``batch``; returns detached losses named as in ``loss_names``."""
+        raise NotImplementedError
+
+    def after_update(self, updates: int) -> None:
+        """Called after each update with the update count (target network updates go here)."""
+
+    def on_frames(self, frames: int) -> None:
+        """Called after each collected block with its frame count (exploration schedules go here)."""
+
+    def export_module(self) -> nn.Module:
+        """The deterministic policy as a plain module: observations [B, D] -> actions."""
+        raise NotImplementedError
+
+    def export_info(self) -> dict[str, Any]:
+        spec = self.env.action_spec
+        if hasattr(spec.space, "n"):
+            return {"algo": self.algo, "env": self.config.env, "action": "discrete", "num_actions": int(spec.space.n)}
+        return {"algo": self.algo, "env": self.config.env, "action": "continuous",
+                "low": spec.space.low.flatten().tolist(), "high": spec.space.high.flatten().tolist()}
+
+    # --- the parts, as plain TorchRL objects -------------------------------------------------------
+
+    def make_replay_buffer(self) -> ReplayBuffer:
+        cfg = self.config
+        return ReplayBuffer(
+            storage=LazyTensorStorage(cfg.replay_buffer_capacity, device=self.device),
+            batch_size=cfg.batch_size,
+        )
+
+    def make_collector(self, total_frames: int, init_random_frames: int):
+        c = self.config.collector
+        common = dict(
+            frames_per_batch=c.frames_per_batch,
+            total_frames=total_frames,
+            init_random_frames=init_random_frames,
+        )
+        if c.workers == 1 and c.sync:
+            return Collector(self.env, self.collect_policy, **common)
+        cls = MultiSyncCollector if c.sync else MultiAsyncCollector
+        return cls([self.env_fn] * c.workers, self.collect_policy, **common)
+
+    # --- checkpoint state -------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "algo": self.algo,
+            "env": self.config.env,
+            "loss": self.loss_module.state_dict(),
+            "collect_policy": self.collect_policy.state_dict(),
+            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
+            "counters": dict(self.counters),
+            "rng": ckpt.rng_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.loss_module.load_state_dict(state["loss"])
+        self.collect_policy.load_state_dict(state["collect_policy"])
+        for k, opt in self.optimizers.items():
+            opt.load_state_dict(state["optimizers"][k])
+        self.counters = dict(state["counters"])
+        ckpt.set_rng_state(state["rng"])
+
+    # --- the loop ---------------------------------------------------------------------------------
+
+    def train(self, out: str | Path | None = None, *, resume: bool = False, progress: bool = True) -> TrainResult:
+        """Run (or, with ``resume=True``, continue) training; write everything into the run directory."""
+        cfg = self.config
+        if resume:
+            if out is None:
+                raise InputError("resume needs the run directory to continue")
+            run = RunDir.open(out)
+            state = ckpt.load_checkpoint(
+                ckpt.latest_checkpoint(run.checkpoints), self.algo, cfg.env, self.replay_buffer
+            )
+            self.load_state_dict(state)
+            metrics = MetricsCSV(run.metrics_path, list(self.loss_names), resume_after_step=self.counters["iteration"])
+        else:
+            run = RunDir.create(out or default_run_dir(self.algo, cfg.env), self.algo, config_to_dict(cfg))
+            metrics = MetricsCSV(run.metrics_path, list(self.loss_names))
+        self.run_dir = run
+        logger = TensorboardLogger(exp_name="tb", log_dir=str(run.path))
+        c = self.counters
+        frames_left = cfg.total_frames - c["frames"]
+        random_left = max(0, cfg.initial_collect_steps - c["frames"])
+        evaluations: list[dict] = []
+        clock = _Clock()
+        interval_stats = _IntervalStats()
+        eval_return = math.nan
+        bar = tqdm(total=cfg.num_iterations, initial=c["iteration"], unit="it", disable=not progress,
+                   desc=f"{self.algo} {cfg.env}", dynamic_ncols=True)
+
+        def log_row(step_row: dict) -> None:
+            row = {"step": c["iteration"], "frames": c["frames"], "updates": c["updates"], **step_row}
+            metrics.append(row)
+            for key, value in row.items():
+                if key != "step" and isinstance(value, (int, float)) and not math.isnan(value):
+                    logger.log_scalar(key, value, step=c["iteration"])
+
+        def run_eval() -> None:
+            nonlocal eval_return
+            with clock.paused():
+                result = evaluate(self.eval_env, self.policy, cfg.num_eval_episodes)
+            eval_return = result["average_return"]
+            evaluations.append({"step": c["iteration"], "frames": c["frames"], **result})
+            log_row({"average_return": result["average_return"],
+                     "average_episode_length": result["average_episode_length"],
+                     "wall_time": clock.wall()})
+            with clock.paused():
+                self._plot_returns(run, metrics)
+            bar.set_postfix(avg_return=f"{eval_return:.1f}", refresh=False)
+
+        def save() -> None:
+            with clock.paused():
+                ckpt.save_checkpoint(run.checkpoints, c["iteration"], self.state_dict(), self.replay_buffer)
+
+        def export() -> None:
+            with clock.paused():
+                export_policy(self.export_module(), self.observation_dim, run.policy_dir, self.export_info())
+
+        if not resume:
+            run_eval()  # the tutorials evaluate once before training
+        collector = self.make_collector(frames_left, random_left) if frames_left > 0 else None
+        if collector is not None:
+            collector.set_seed(cfg.seed + c["frames"])
+        first_update = cfg.first_update_frame
+        per_frame = 1.0 / cfg.collect_steps_per_iteration
+        clock.start()
+        try:
+            for batch in collector or ():
+                batch = batch.reshape(-1)
+                self.replay_buffer.extend(batch)
+                frames_before = c["frames"]
+                c["frames"] += batch.numel()
+                interval_stats.add_frames(batch)
+                self.on_frames(batch.numel())
+                c["update_credit"] += per_frame * max(0, c["frames"] - max(frames_before, first_update))
+                n_updates = int(c["update_credit"])
+                if n_updates and len(self.replay_buffer) >= cfg.batch_size:
+                    c["update_credit"] -= n_updates
+                    for _ in range(n_updates):
+                        losses = self._update_fn(self.replay_buffer.sample())
+                        c["updates"] += 1
+                        self.after_update(c["updates"])
+                        interval_stats.add_losses(losses)
+                    if collector is not None and c["updates"] % cfg.collector.weight_sync_interval < n_updates:
+                        self._sync_weights(collector)
+                previous = c["iteration"]
+                c["iteration"] = max(0, c["frames"] - cfg.initial_collect_steps) // cfg.collect_steps_per_iteration
+                bar.update(c["iteration"] - previous)
+                now = c["iteration"]
+                if _crossed(previous, now, cfg.log_interval):
+                    log_row(interval_stats.flush(clock))
+                if cfg.eval_interval and _crossed(previous, now, cfg.eval_interval) and now < cfg.num_iterations:
+                    run_eval()
+                if _crossed(previous, now, cfg.policy_save_interval):
+                    export()
+                if _crossed(previous, now, cfg.checkpoint_interval) and now < cfg.num_iterations:
+                    save()
+        except KeyboardInterrupt:
+            save()  # so --resume continues from here
+            raise
+        finally:
+            if collector is not None:
+                collector.shutdown()
+            bar.close()
+        if not evaluations or evaluations[-1]["step"] != c["iteration"]:
+            run_eval()
+        export()
+        save()
+        summary = self._summary(run, evaluations, clock)
+        write_json_atomic(run.summary_path, summary)
+        return TrainResult(policy=self.policy, run_dir=run.path, metrics=metrics.rows(), summary=summary,
+                           evaluations=evaluations)
+
+    # --- helpers ----------------------------------------------------------------------------------
+
+    def _sync_weights(self, collector) -> None:
+        # In-process collection shares the policy's parameters; processes get a push.
+        if not isinstance(collector, Collector):
+            collector.update_policy_weights_()
+
+    def _plot_returns(self, run: RunDir, metrics: MetricsCSV) -> None:
+        from rlpipe.pipelines.analysis import plot_training_returns
+
+        rows = [r for r in metrics.rows() if r.get("average_return") not in ("", None)]
+        plot_training_returns(rows, run.returns_png, title=f"{self.algo} on {self.config.env}")
+
+    def _summary(self, run: RunDir, evaluations: list[dict], clock: "_Clock") -> dict[str, Any]:
+        c = self.counters
+        last = evaluations[-1] if evaluations else {}
+        train_s = clock.train_seconds()
+        return {
+            "algo": self.algo,
+            "env": self.config.env,
+            "seed": self.config.seed,
+            "iterations": c["iteration"],
+            "frames": c["frames"],
+            "updates": c["updates"],
+            "final_average_return": last.get("average_return"),
+            "final_average_episode_length": last.get("average_episode_length"),
+            "wall_time_s": clock.wall(),
+            "train_time_s": train_s,
+            "env_steps_per_s": c["frames"] / train_s if train_s > 0 else None,
+            "updates_per_s": c["updates"] / train_s if train_s > 0 else None,
+        }
+
+
+def _crossed(previous: int, now: int, interval: int) -> bool:
+    """Whether a multiple of ``interval`` lies in (previous, now]."""
+    return interval > 0 and now // interval > previous // interval
+
+
+class _Clock:
+    """Wall time, and training time with evaluations and saving taken out (for steps per second)."""
+
+    def __init__(self):
+        self._t0 = time.perf_counter()
+        self._paused = 0.0
+        self._train_start: float | None = None
+
+    def start(self) -> None:
+        self._train_start = time.perf_counter()
+        self._paused = 0.0
+
+    def wall(self) -> float:
+        return time.perf_counter() - self._t0
+
+    def train_seconds(self) -> float:
+        if self._train_start is None:
+            return 0.0
+        return time.perf_counter() - self._train_start - self._paused
+
+    class _Pause:
+        def __init__(self, clock):
+            self.clock = clock
+
+        def __enter__(self):
+            self.t = time.perf_counter()
+
+        def __exit__(self, *exc):
+            if self.clock._train_start is not None:
+                self.clock._paused += time.perf_counter() - self.t
+
+    def paused(self) -> "_Clock._Pause":
+        return _Clock._Pause(self)
+
+
+class _IntervalStats:
+    """Means of losses, finished training episodes' returns, and speeds since the last log row."""
+
+    def __init__(self):
+        self._reset(0.0, 0, 0)
+
+    def _reset(self, t: float, frames: int, updates: int) -> None:
+        self.loss_sums: dict[str, torch.Tensor] = {}
+        self.loss_count = 0
+        self.episode_returns: list[float] = []
+        self.frames = 0
+        self.updates = 0
+        self.t = t
+
+    def add_frames(self, batch: TensorDictBase) -> None:
+        self.frames += batch.numel()
+        done = batch["next", "done"]
+        if done.any():
+            self.episode_returns += batch["next", "episode_reward"][done].tolist()
+
+    def add_losses(self, losses: dict[str, torch.Tensor]) -> None:
+        self.loss_count += 1
+        self.updates += 1
+        for k, v in losses.items():
+            self.loss_sums[k] = self.loss_sums.get(k, 0.0) + v
+
+    def flush(self, clock: _Clock) -> dict[str, Any]:
+        now = clock.train_seconds()
+        dt = max(now - self.t, 1e-9)
+        row: dict[str, Any] = {f"loss_{k}": float(v) / self.loss_count for k, v in self.loss_sums.items()}
+        if self.episode_returns:
+            row["train_episode_return"] = sum(self.episode_returns) / len(self.episode_returns)
+        row["steps_per_s"] = self.frames / dt
+        row["updates_per_s"] = self.updates / dt
+        row["wall_time"] = clock.wall()
+        self._reset(now, 0, 0)
+        return row
