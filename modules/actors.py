@@ -59,6 +59,8 @@ class TanhBoundedMLP(nn.Module):
             out_features=low.shape[-1],
             num_cells=list(hidden_sizes),
             activation_class=nn.ReLU,
+            # In place: saves an allocation per layer; Linear's backward never needs its output.
+            activation_kwargs={"inplace": True},
         )
         # Buffers, not parameters: they follow .to(device) and are never trained.
         self.register_buffer("center", (high + low) / 2)

@@ -15,6 +15,7 @@ import dataclasses
 import difflib
 import inspect
 import json
+import typing
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -86,7 +87,9 @@ class TrainConfig:
     checkpoint_interval: int = 5000
     """iterations between checkpoints that `--resume` continues from"""
     compile: bool = False
-    """compile the update with torch.compile (faster per update, ~30 s to compile on CPU)"""
+    """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU)"""
+    num_threads: int = 1
+    """torch threads of the learner; 1 keeps a 2-core machine's other core for env stepping (0: torch's default)"""
     device: str = "cpu"
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
     collector: CollectorConfig = field(default_factory=CollectorConfig)
@@ -108,7 +111,7 @@ _POSITIVE = {
     "checkpoint_interval", "collector.workers", "collector.frames_per_batch",
     "collector.weight_sync_interval",
 }
-_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval"}
+_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval", "num_threads"}
 
 
 def _get(cfg, dotted: str):
@@ -152,21 +155,14 @@ def validate(cfg) -> None:
 def flat_keys(cls: type, prefix: str = "") -> list[str]:
     """Every settable key of a config class, nested ones dotted (``collector.workers``)."""
     keys = []
+    hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
-        ftype = f.type if not isinstance(f.type, str) else _resolve(cls, f.type)
+        ftype = hints[f.name]
         if dataclasses.is_dataclass(ftype):
             keys += flat_keys(ftype, prefix + f.name + ".")
         else:
             keys.append(prefix + f.name)
     return keys
-
-
-def _resolve(cls: type, annotation: str):
-    module = inspect.getmodule(cls)
-    try:
-        return eval(annotation, vars(module))  # annotations are our own dataclasses' strings
-    except Exception:
-        return annotation
 
 
 def apply_overrides(cfg, overrides: list[str]):
@@ -197,8 +193,8 @@ def _describe_type(cfg, key: str) -> str:
     *parents, leaf = key.split(".")
     for p in parents:
         owner = getattr(owner, p)
-    ftype = {f.name: f.type for f in dataclasses.fields(owner)}[leaf]
-    text = str(ftype).replace("typing.", "")
+    ftype = typing.get_type_hints(type(owner))[leaf]
+    text = getattr(ftype, "__name__", None) if isinstance(ftype, type) else str(ftype).replace("typing.", "")
     names = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
              "Optional[int]": "an integer or null", "List[int]": "a list of integers such as [256,256]",
              "list[int]": "a list of integers such as [256,256]"}
@@ -242,8 +238,9 @@ def field_docs(cls: type, prefix: str = "") -> dict[str, str]:
             if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
                 if isinstance(nxt, ast.Expr) and isinstance(getattr(nxt, "value", None), ast.Constant):
                     docs[prefix + node.target.id] = str(nxt.value.value).strip()
+    hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
-        ftype = f.type if not isinstance(f.type, str) else _resolve(cls, f.type)
+        ftype = hints[f.name]
         if dataclasses.is_dataclass(ftype):
             docs.update(field_docs(ftype, prefix + f.name + "."))
     return docs

@@ -42,6 +42,7 @@ from rlpipe.pipelines.config import TrainConfig, config_to_dict, validate
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.evaluation import evaluate
 from rlpipe.pipelines.export import export_policy
+from rlpipe.pipelines.rate_limiter import SampleToInsertRatio
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir, write_json_atomic
 
 __all__ = ["OffPolicyPipeline", "TrainResult", "seed_everything"]
@@ -90,6 +91,8 @@ class OffPolicyPipeline:
         validate(cfg)
         self.config = cfg
         self.device = torch.device(cfg.device)
+        if cfg.num_threads:
+            torch.set_num_threads(cfg.num_threads)
         seed_everything(cfg.seed)
 
         # An env factory lets collector processes and the evaluator make their own copies.
@@ -117,7 +120,9 @@ class OffPolicyPipeline:
         self.observation_dim = int(self.env.observation_spec["observation"].shape[-1])
         self.build()
         self.replay_buffer = self.make_replay_buffer()
-        self.counters: dict[str, Any] = {"frames": 0, "updates": 0, "iteration": 0, "update_credit": 0.0}
+        self.counters: dict[str, Any] = {
+            "frames": 0, "updates": 0, "iteration": 0, "limiter": SampleToInsertRatio(1.0).state_dict()
+        }
         self._update_fn = torch.compile(self.update) if cfg.compile else self.update
 
     # --- what a pipeline supplies -------------------------------------------------------------
@@ -254,21 +259,19 @@ class OffPolicyPipeline:
         collector = self.make_collector(frames_left, random_left) if frames_left > 0 else None
         if collector is not None:
             collector.set_seed(cfg.seed + c["frames"])
-        first_update = cfg.first_update_frame
-        per_frame = 1.0 / cfg.collect_steps_per_iteration
+        limiter = SampleToInsertRatio(1.0 / cfg.collect_steps_per_iteration, cfg.first_update_frame)
+        limiter.load_state_dict(c["limiter"])
         clock.start()
         try:
             for batch in collector or ():
                 batch = batch.reshape(-1)
                 self.replay_buffer.extend(batch)
-                frames_before = c["frames"]
                 c["frames"] += batch.numel()
                 interval_stats.add_frames(batch)
                 self.on_frames(batch.numel())
-                c["update_credit"] += per_frame * max(0, c["frames"] - max(frames_before, first_update))
-                n_updates = int(c["update_credit"])
-                if n_updates and len(self.replay_buffer) >= cfg.batch_size:
-                    c["update_credit"] -= n_updates
+                n_updates = limiter.insert(batch.numel())
+                c["limiter"] = limiter.state_dict()
+                if n_updates:
                     for _ in range(n_updates):
                         losses = self._update_fn(self.replay_buffer.sample())
                         c["updates"] += 1

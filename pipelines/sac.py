@@ -1,0 +1,207 @@
+"""SAC on TorchRL parts: TF-Agents' SAC-on-Minitaur tutorial (actor-learner API) as a pipeline.
+
+    from rlpipe.pipelines import sac
+    result = sac.SAC(sac.preset("sac")).train("runs/sac-minitaur")
+
+TF-Agents' actor processes feeding a Reverb table become TorchRL collectors
+(``collector.workers=N``, ``collector.sync=false`` for ``MultiAsyncCollector``) feeding a TorchRL
+replay buffer; its ``SacAgent`` becomes TorchRL's ``SACLoss`` (TanhNormal actor, twin critics,
+learned temperature) with ``SoftUpdate``; its Learner and triggers are the shared loop.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.objectives import SACLoss, SoftUpdate
+
+from rlpipe.envs import describe_action_space, is_discrete
+from rlpipe.modules.actors import make_tanh_normal_actor
+from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.loop import OffPolicyPipeline
+
+__all__ = ["SACConfig", "SAC", "PRESETS", "preset"]
+
+
+@dataclass
+class SACConfig(TrainConfig):
+    """SAC's keys; defaults are the actor-learner tutorial's (``SacAgent`` defaults included)."""
+
+    env: str = "MinitaurBulletEnv-v0"
+    """gymnasium env id with a continuous (Box) action space"""
+    num_iterations: int = 100_000
+    """training iterations after the initial collect (one env step and one update each)"""
+    initial_collect_steps: int = 10_000
+    """env steps taken with a uniformly random policy before the collect policy takes over"""
+    replay_buffer_capacity: int = 10_000
+    """transitions kept; the oldest are evicted first (the tutorial's Reverb table size)"""
+    batch_size: int = 256
+    """transitions per update, sampled uniformly"""
+    actor_learning_rate: float = 3e-4
+    """Adam learning rate of the actor"""
+    critic_learning_rate: float = 3e-4
+    """Adam learning rate of the twin critics"""
+    alpha_learning_rate: float = 3e-4
+    """Adam learning rate of the entropy temperature"""
+    target_update_tau: float = 0.005
+    """target critics' soft-update factor"""
+    target_update_period: int = 1
+    """updates between target critic updates"""
+    gamma: float = 0.99
+    """discount factor"""
+    reward_scale_factor: float = 1.0
+    """rewards are multiplied by this in the critic's target"""
+    actor_fc_layer_params: List[int] = field(default_factory=lambda: [256, 256])
+    """hidden layer sizes of the actor"""
+    critic_joint_fc_layer_params: List[int] = field(default_factory=lambda: [256, 256])
+    """hidden layer sizes of each critic (over observation and action joined)"""
+    initial_alpha: float = 1.0
+    """initial entropy temperature (SacAgent's initial_log_alpha=0)"""
+    target_entropy: Optional[float] = None
+    """entropy target of the temperature (null: -|A|/2, SacAgent's default)"""
+    eval_interval: int = 10_000
+    """iterations between evaluations of the deterministic policy"""
+    num_eval_episodes: int = 20
+    """episodes per evaluation; their mean return is AverageReturn"""
+    log_interval: int = 1000
+    """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
+    policy_save_interval: int = 5000
+    """iterations between exports of the deterministic policy (the tutorial's PolicySavedModelTrigger)"""
+    checkpoint_interval: int = 10_000
+    """iterations between checkpoints that `--resume` continues from"""
+
+    def validate_extra(self) -> None:
+        if self.initial_alpha <= 0:
+            raise InputError(f"initial_alpha={self.initial_alpha}: expected a positive temperature")
+        if self.reward_scale_factor == 0:
+            raise InputError("reward_scale_factor=0: expected a non-zero scale")
+
+
+def _minitaur() -> SACConfig:
+    # The actor-learner tutorial: MinitaurBulletEnv-v0, 100k iterations, 10k random steps,
+    # replay 10k, batch 256, lr 3e-4 x3, tau 0.005, gamma 0.99, eval every 10k over 20 episodes,
+    # policy saved every 5k.
+    return SACConfig()
+
+
+def _halfcheetah() -> SACConfig:
+    # SAC paper (Haarnoja et al. 2018, v2 table): 1M replay, batch 256, lr 3e-4, tau 0.005,
+    # (256, 256) networks, target entropy -|A|, 10k random steps; 1M steps in the paper.
+    return SACConfig(
+        env="HalfCheetah-v5", num_iterations=1_000_000, initial_collect_steps=10_000,
+        replay_buffer_capacity=1_000_000, target_entropy=-6.0, eval_interval=10_000,
+        num_eval_episodes=10, checkpoint_interval=50_000, policy_save_interval=50_000,
+    )
+
+
+def _hopper() -> SACConfig:
+    return SACConfig(
+        env="Hopper-v5", num_iterations=1_000_000, initial_collect_steps=10_000,
+        replay_buffer_capacity=1_000_000, target_entropy=-3.0, eval_interval=10_000,
+        num_eval_episodes=10, checkpoint_interval=50_000, policy_save_interval=50_000,
+    )
+
+
+PRESETS = {"sac": _minitaur, "sac-halfcheetah": _halfcheetah, "sac-hopper": _hopper}
+
+
+def preset(name: str = "sac") -> SACConfig:
+    """A fresh config of the named preset."""
+    if name not in PRESETS:
+        raise InputError(f"unknown SAC preset {name!r}; expected one of {', '.join(PRESETS)}")
+    return PRESETS[name]()
+
+
+class _DeterministicTanhActor(nn.Module):
+    """The exported policy: ``center + radius * tanh(loc)``, TanhNormal's deterministic sample."""
+
+    def __init__(self, net: nn.Module, low: torch.Tensor, high: torch.Tensor):
+        super().__init__()
+        self.net = net
+        self.register_buffer("center", (high + low) / 2)
+        self.register_buffer("radius", (high - low) / 2)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        loc = self.net(observation)[..., : self.center.shape[-1]]
+        return self.center + self.radius * torch.tanh(loc)
+
+
+class SAC(OffPolicyPipeline):
+    """Soft actor-critic with learned temperature: TorchRL's ``SACLoss`` + ``SoftUpdate``."""
+
+    algo = "sac"
+    Config = SACConfig
+    loss_names = ("actor", "qvalue", "alpha", "alpha_value", "entropy")
+
+    def __init__(self, config: SACConfig | None = None, *, env=None, eval_env=None,
+                 actor: nn.Module | None = None, qvalue: nn.Module | None = None):
+        self._given_actor = actor
+        self._given_qvalue = qvalue
+        super().__init__(config, env=env, eval_env=eval_env)
+
+    def check_env(self, env) -> None:
+        if is_discrete(env):
+            raise InputError(
+                f"SAC needs a continuous (Box) action space; env {self.config.env!r} is {describe_action_space(env)} "
+                "(use dqn for discrete actions)"
+            )
+
+    def build(self) -> None:
+        cfg = self.config
+        spec = self.env.action_spec
+        action_dim = int(spec.shape[-1])
+        actor = self._given_actor or make_tanh_normal_actor(self.observation_dim, spec, cfg.actor_fc_layer_params)
+        qvalue = self._given_qvalue or make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_joint_fc_layer_params)
+        # The same module explores (samples) in collection and acts deterministically in evaluation.
+        self.policy = actor.to(self.device)
+        self.collect_policy = self.policy
+        target_entropy = cfg.target_entropy if cfg.target_entropy is not None else -action_dim / 2
+        self.loss_module = SACLoss(
+            actor_network=self.policy,
+            qvalue_network=qvalue.to(self.device),
+            num_qvalue_nets=2,
+            loss_function="l2",
+            alpha_init=cfg.initial_alpha,
+            target_entropy=target_entropy,
+            delay_qvalue=True,
+        )
+        self.loss_module.make_value_estimator(gamma=cfg.gamma)
+        self.target_updater = SoftUpdate(self.loss_module, tau=cfg.target_update_tau)
+        self.optimizers = {
+            "actor": torch.optim.Adam(self.loss_module.actor_network_params.flatten_keys().values(), lr=cfg.actor_learning_rate),
+            "qvalue": torch.optim.Adam(self.loss_module.qvalue_network_params.flatten_keys().values(), lr=cfg.critic_learning_rate),
+            "alpha": torch.optim.Adam([self.loss_module.log_alpha], lr=cfg.alpha_learning_rate),
+        }
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        if self.config.reward_scale_factor != 1.0:
+            batch.set(("next", "reward"), batch.get(("next", "reward")) * self.config.reward_scale_factor)
+        out = self.loss_module(batch)
+        loss = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
+        loss.backward()
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        return {"actor": out["loss_actor"].detach(), "qvalue": out["loss_qvalue"].detach(),
+                "alpha": out["loss_alpha"].detach(), "alpha_value": out["alpha"].detach(),
+                "entropy": out["entropy"].detach()}
+
+    def after_update(self, updates: int) -> None:
+        if updates % self.config.target_update_period == 0:
+            self.target_updater.step()
+
+    def export_module(self) -> nn.Module:
+        spec = self.env.action_spec
+        # actor: ProbabilisticActor -> TensorDictModule(Sequential(MLP, NormalParamExtractor))
+        net = copy.deepcopy(self.policy.module[0].module[0]).cpu()
+        return _DeterministicTanhActor(net, spec.space.low.float().cpu(), spec.space.high.float().cpu())
+
+
+PIPELINE = SAC

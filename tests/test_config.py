@@ -1,0 +1,276 @@
+"""Typed configs, presets and ``key=value`` overrides: what `rlpipe train PRESET key=value` relies on.
+
+Everything here is in-process and fast: no env is stepped, nothing is trained.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+
+import pytest
+
+from rlpipe.pipelines import InputError, presets, resolve_preset
+from rlpipe.pipelines.config import (
+    CollectorConfig,
+    TrainConfig,
+    apply_overrides,
+    config_from_dict,
+    config_to_dict,
+    field_docs,
+    flat_keys,
+    validate,
+)
+from rlpipe.pipelines.dqn import DQNConfig, preset
+
+COLLECTOR_KEYS = {"collector.workers", "collector.sync", "collector.frames_per_batch", "collector.weight_sync_interval"}
+
+
+def _leaf_keys(cls: type, prefix: str = "") -> set[str]:
+    """Every settable dotted key of a config dataclass, computed independently of rlpipe's helper."""
+    hints = typing.get_type_hints(cls)
+    keys: set[str] = set()
+    for f in dataclasses.fields(cls):
+        ftype = hints[f.name]
+        if dataclasses.is_dataclass(ftype):
+            keys |= _leaf_keys(ftype, prefix + f.name + ".")
+        else:
+            keys.add(prefix + f.name)
+    return keys
+
+
+# --- presets -------------------------------------------------------------------------------------
+
+
+def test_dqn_preset_is_the_tf_agents_tutorial():
+    algo, cfg = resolve_preset("dqn")
+    assert algo == "dqn"
+    assert isinstance(cfg, DQNConfig)
+    assert cfg.env == "CartPole-v0"
+    assert cfg.fc_layer_params == [100]
+    assert cfg.learning_rate == pytest.approx(1e-3)
+    assert cfg.batch_size == 64
+    assert cfg.replay_buffer_capacity == 100_000
+    assert cfg.collect_steps_per_iteration == 1
+    assert cfg.initial_collect_steps == 1000
+    assert cfg.num_iterations == 20_000
+    assert cfg.eval_interval == 1000
+    assert cfg.num_eval_episodes == 10
+    assert cfg.epsilon_greedy == pytest.approx(0.1)
+    assert cfg.epsilon_greedy_end is None  # constant epsilon, as DqnAgent
+    assert cfg.gamma == 1.0
+    assert cfg.target_update_tau == 1.0
+    assert cfg.target_update_period == 1
+    assert cfg.td_errors_loss == "l2"  # element-wise squared TD error
+    assert cfg.double_dqn is False
+    assert cfg.compile is False
+    assert cfg.total_frames == 1000 + 20_000
+    validate(cfg)
+
+
+def test_dqn_cartpole_v1_preset_is_valid_and_on_cartpole_v1():
+    algo, cfg = resolve_preset("dqn-cartpole-v1")
+    assert algo == "dqn"
+    assert isinstance(cfg, DQNConfig)
+    assert cfg.env == "CartPole-v1"
+    validate(cfg)
+    assert {"dqn", "dqn-cartpole-v1"} <= set(presets())
+    assert presets()["dqn"] == presets()["dqn-cartpole-v1"] == "dqn"
+
+
+def test_presets_are_fresh_copies():
+    _, a = resolve_preset("dqn")
+    a.fc_layer_params.append(7)
+    a.batch_size = 1
+    _, b = resolve_preset("dqn")
+    assert b.fc_layer_params == [100] and b.batch_size == 64
+    assert preset("dqn") == b
+
+
+def test_unknown_preset_names_the_closest():
+    with pytest.raises(InputError, match="dqn-cartpole-v1"):
+        resolve_preset("dqn-cartpole")
+
+
+# --- overrides -----------------------------------------------------------------------------------
+
+
+def test_overrides_are_typed_and_return_a_copy():
+    base = preset("dqn")
+    cfg = apply_overrides(base, [
+        "batch_size=128", "learning_rate=5e-4", "fc_layer_params=[64,32]", "compile=false",
+        "double_dqn=true", "epsilon_greedy_end=0.01", "learning_starts=null", "env=CartPole-v1",
+        "gamma=0.99",
+    ])
+    assert cfg.batch_size == 128 and type(cfg.batch_size) is int
+    assert cfg.learning_rate == pytest.approx(5e-4) and isinstance(cfg.learning_rate, float)
+    assert cfg.fc_layer_params == [64, 32]
+    assert cfg.double_dqn is True and cfg.compile is False
+    assert cfg.epsilon_greedy_end == pytest.approx(0.01)
+    assert cfg.learning_starts is None
+    assert cfg.env == "CartPole-v1"
+    assert cfg.gamma == pytest.approx(0.99)
+    assert isinstance(cfg, DQNConfig)
+    assert base == preset("dqn"), "apply_overrides must not modify the config it is given"
+
+
+def test_zero_is_accepted_where_it_means_something():
+    cfg = apply_overrides(preset("dqn"), ["eval_interval=0", "initial_collect_steps=0", "learning_starts=0"])
+    assert (cfg.eval_interval, cfg.initial_collect_steps, cfg.learning_starts) == (0, 0, 0)
+
+
+def test_dotted_overrides_on_the_base_config():
+    cfg = apply_overrides(TrainConfig(), ["collector.workers=2", "collector.sync=false", "collector.frames_per_batch=10"])
+    assert cfg.collector == CollectorConfig(workers=2, sync=False, frames_per_batch=10)
+
+
+def test_dotted_overrides_on_the_dqn_config():
+    cfg = apply_overrides(preset("dqn"), ["collector.workers=2", "collector.sync=false"])
+    assert cfg.collector.workers == 2 and cfg.collector.sync is False
+    with pytest.raises(InputError, match=r"collector\.frames_per_batch"):
+        apply_overrides(preset("dqn"), ["collector.frames_per_batch=0"])
+
+
+def test_flat_keys_of_dqn_config_are_every_settable_key():
+    assert set(flat_keys(DQNConfig)) == _leaf_keys(DQNConfig)
+
+
+@pytest.mark.parametrize(
+    "override, closest",
+    [("batchsize=3", "batch_size"), ("learning_rat=0.1", "learning_rate"), ("num_iteration=5", "num_iterations"),
+     ("fc_layers=[3]", "fc_layer_params")],
+)
+def test_unknown_key_names_the_closest_valid_key(override, closest):
+    with pytest.raises(InputError) as info:
+        apply_overrides(preset("dqn"), [override])
+    message = str(info.value)
+    assert override.split("=")[0] in message
+    assert closest in message
+
+
+@pytest.mark.parametrize(
+    "override, expected",
+    [("batch_size=abc", "integer"), ("batch_size=1.5", "integer"), ("seed=x", "integer"),
+     ("gamma=abc", "number"), ("compile=maybe", "true or false"), ("fc_layer_params=abc", "list"),
+     ("fc_layer_params=[a,b]", "list")],
+)
+def test_ill_typed_value_names_key_and_expected_type(override, expected):
+    key = override.split("=")[0]
+    with pytest.raises(InputError) as info:
+        apply_overrides(preset("dqn"), [override])
+    message = str(info.value)
+    assert key in message and expected in message
+    assert "\n" not in message
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [("batch_size=0", "batch_size"), ("num_iterations=-1", "num_iterations"), ("num_iterations=0", "num_iterations"),
+     ("replay_buffer_capacity=0", "replay_buffer_capacity"), ("num_eval_episodes=0", "num_eval_episodes"),
+     ("collect_steps_per_iteration=0", "collect_steps_per_iteration"), ("target_update_period=0", "target_update_period"),
+     ("checkpoint_interval=-5", "checkpoint_interval"), ("log_interval=0", "log_interval"),
+     ("policy_save_interval=0", "policy_save_interval"), ("initial_collect_steps=-1", "initial_collect_steps"),
+     ("eval_interval=-1", "eval_interval"), ("learning_rate=0", "learning_rate"), ("learning_rate=-1e-3", "learning_rate"),
+     ("fc_layer_params=[]", "fc_layer_params"), ("fc_layer_params=[64,0]", "fc_layer_params"),
+     ("gamma=0", "gamma"), ("gamma=1.5", "gamma"), ("target_update_tau=0", "target_update_tau"),
+     ("epsilon_greedy=1.5", "epsilon_greedy"), ("epsilon_decay_steps=0", "epsilon_decay_steps"),
+     ("td_errors_loss=l3", "td_errors_loss")],
+)
+def test_values_that_cannot_work_are_rejected_naming_the_key(override, key):
+    with pytest.raises(InputError) as info:
+        apply_overrides(preset("dqn"), [override])
+    message = str(info.value)
+    assert message.startswith(key + "="), message
+    assert "expected" in message
+
+
+def test_batch_larger_than_replay_is_rejected():
+    with pytest.raises(InputError, match="batch_size"):
+        apply_overrides(preset("dqn"), ["replay_buffer_capacity=32"])
+
+
+@pytest.mark.parametrize("item", ["batch_size", "=3", ""])
+def test_override_without_key_value_form_is_rejected(item):
+    with pytest.raises(InputError, match="key=value"):
+        apply_overrides(preset("dqn"), [item])
+
+
+def test_input_error_is_a_value_error():
+    assert issubclass(InputError, ValueError)
+
+
+def test_validate_checks_a_config_built_in_python():
+    validate(DQNConfig())
+    with pytest.raises(InputError, match="batch_size"):
+        validate(DQNConfig(batch_size=0))
+    with pytest.raises(InputError, match="num_eval_episodes"):
+        validate(DQNConfig(num_eval_episodes=-2))
+
+
+# --- to and from plain data (config.json) --------------------------------------------------------
+
+
+def test_config_round_trips_through_json():
+    cfg = apply_overrides(preset("dqn-cartpole-v1"), ["batch_size=32", "fc_layer_params=[8,8]", "learning_starts=500"])
+    data = json.loads(json.dumps(config_to_dict(cfg)))
+    back = config_from_dict(DQNConfig, data)
+    assert back == cfg
+    assert isinstance(back, DQNConfig) and isinstance(back.collector, CollectorConfig)
+
+
+@pytest.mark.parametrize(
+    "change, key",
+    [({"no_such_key": 1}, "no_such_key"), ({"batch_size": 0}, "batch_size"), ({"batch_size": "abc"}, None)],
+)
+def test_config_from_dict_rejects_bad_data(change, key):
+    data = config_to_dict(preset("dqn"))
+    data.update(change)
+    with pytest.raises(InputError, match=key):
+        config_from_dict(DQNConfig, data)
+
+
+@pytest.mark.xfail(
+    reason="BUG: pipelines/config.py config_from_dict() reports only the first line of the OmegaConf error "
+    "(\"Value 'abc' of type 'str' could not be converted to Integer\"), which does not name the key; "
+    "fix: include exc.full_key and the expected type (as apply_overrides does).",
+    strict=True,
+)
+@pytest.mark.parametrize("change, key", [({"batch_size": "abc"}, "batch_size"), ({"fc_layer_params": "x"}, "fc_layer_params")])
+def test_config_from_dict_names_the_ill_typed_key(change, key):
+    data = config_to_dict(preset("dqn"))
+    data.update(change)
+    with pytest.raises(InputError, match=key):
+        config_from_dict(DQNConfig, data)
+
+
+def test_config_from_dict_validates_the_collector_group():
+    data = config_to_dict(preset("dqn"))
+    data["collector"]["frames_per_batch"] = 0
+    with pytest.raises(InputError, match="frames_per_batch"):
+        config_from_dict(DQNConfig, data)
+
+
+# --- help text -----------------------------------------------------------------------------------
+
+
+def test_field_docs_cover_every_dqn_and_shared_key():
+    docs = field_docs(DQNConfig)
+    own = _leaf_keys(DQNConfig) - COLLECTOR_KEYS
+    missing = [k for k in sorted(own) if not docs.get(k, "").strip()]
+    assert not missing, f"keys without a docstring: {missing}"
+    # a subclass's docstring wins over the base class's for a redefined key
+    assert "1.0" in docs["gamma"]
+    assert docs["fc_layer_params"] and docs["epsilon_greedy"]
+
+
+def test_field_docs_cover_every_key_including_groups():
+    docs = field_docs(DQNConfig)
+    missing = [k for k in sorted(_leaf_keys(DQNConfig)) if not docs.get(k, "").strip()]
+    assert not missing, f"keys without a docstring: {missing}"
+
+
+def test_field_docs_of_the_base_config_cover_the_collector_group():
+    docs = field_docs(TrainConfig)
+    for key in COLLECTOR_KEYS:
+        assert docs.get(key, "").strip(), key

@@ -1,0 +1,105 @@
+"""The env factory: gymnasium ids -> TorchRL envs with the standard transforms, ready for any collector."""
+
+from __future__ import annotations
+
+import gymnasium
+import pytest
+import torch
+from torchrl.collectors import Collector
+from torchrl.envs import DoubleToFloat, InitTracker, RewardSum, StepCounter, TransformedEnv
+
+from rlpipe.envs import MINITAUR_ID, EnvError, is_discrete, make_env, resolve_env_id
+
+
+def _transform_types(env: TransformedEnv) -> list[type]:
+    return [type(t) for t in env.transform]
+
+
+def test_cartpole_has_the_standard_transforms_float_observations_and_integer_actions():
+    env = make_env("CartPole-v0", seed=0)
+    assert isinstance(env, TransformedEnv)
+    types = _transform_types(env)
+    for cls in (StepCounter, RewardSum, InitTracker, DoubleToFloat):
+        assert cls in types, f"{cls.__name__} missing from {types}"
+    assert env.observation_spec["observation"].dtype == torch.float32
+    assert env.observation_spec["observation"].shape == (4,)
+    assert is_discrete(env)
+    assert env.action_spec.space.n == 2
+
+    rollout = env.rollout(50)  # random actions until done
+    assert rollout["observation"].dtype == torch.float32
+    actions = rollout["action"]
+    assert actions.dtype == torch.int64 and actions.shape == rollout.shape  # indices, not one-hot
+    assert set(actions.tolist()) <= {0, 1}
+    # the transforms' outputs are there
+    steps = rollout["next", "step_count"].squeeze(-1)
+    assert steps.tolist() == list(range(1, rollout.shape[0] + 1))
+    assert rollout["next", "episode_reward"][-1].item() == pytest.approx(rollout["next", "reward"].sum().item())
+    assert rollout["is_init"][0].item() is True
+    env.close()
+
+
+def test_double_observations_become_float32():
+    gym_env = gymnasium.make("InvertedPendulum-v5")
+    assert gym_env.observation_space.dtype == "float64"
+    gym_env.close()
+    env = make_env("InvertedPendulum-v5", seed=0)
+    assert env.observation_spec["observation"].dtype == torch.float32
+    assert env.reset()["observation"].dtype == torch.float32
+    assert env.rollout(5)["next", "observation"].dtype == torch.float32
+    assert not is_discrete(env)
+    env.close()
+
+
+def test_same_seed_same_episode():
+    a, b = make_env("CartPole-v1", seed=3), make_env("CartPole-v1", seed=3)
+    torch.testing.assert_close(a.reset()["observation"], b.reset()["observation"])
+    c = make_env("CartPole-v1", seed=4)
+    assert not torch.equal(make_env("CartPole-v1", seed=3).reset()["observation"], c.reset()["observation"])
+
+
+@pytest.mark.parametrize("env_id, discrete", [("CartPole-v0", True), ("Acrobot-v1", True), ("Pendulum-v1", False),
+                                              ("MountainCarContinuous-v0", False)])
+def test_is_discrete(env_id, discrete):
+    env = make_env(env_id)
+    assert is_discrete(env) is discrete
+    env.close()
+
+
+@pytest.mark.parametrize("env_id, close", [("CartPole-v9", "CartPole-v1"), ("CartPol-v0", "CartPole-v0"),
+                                           ("Pendulum-v2", "Pendulum-v1"), ("MinitaurBulletEnv-v1", "MinitaurBulletEnv-v0")])
+def test_unknown_id_names_close_matches(env_id, close):
+    with pytest.raises(EnvError) as info:
+        make_env(env_id)
+    message = str(info.value)
+    assert env_id in message and close in message
+    assert isinstance(info.value, ValueError)
+
+
+def test_unknown_id_without_close_match_says_what_is_expected():
+    with pytest.raises(EnvError, match="gymnasium id"):
+        resolve_env_id("zzzzzzzzzzzzzzzzzzzz")
+
+
+def test_tutorial_minitaur_id_resolves_to_ours():
+    assert resolve_env_id("MinitaurBulletEnv-v0") == MINITAUR_ID == "rlpipe/MinitaurBullet-v0"
+    assert MINITAUR_ID in gymnasium.registry  # importing rlpipe.envs registers it
+    assert resolve_env_id("CartPole-v1") == "CartPole-v1"
+    env = make_env("MinitaurBulletEnv-v0", seed=0)
+    try:
+        assert env.base_env._env.spec.id == MINITAUR_ID
+        assert env.observation_spec["observation"].dtype == torch.float32
+        assert not is_discrete(env)
+    finally:
+        env.close()
+
+
+def test_env_plugs_into_a_torchrl_collector():
+    collector = Collector(make_env("CartPole-v0", seed=0), None, frames_per_batch=32, total_frames=64)
+    batches = list(collector)
+    collector.shutdown()
+    assert len(batches) == 2
+    for batch in batches:
+        assert batch.numel() == 32
+        assert batch["action"].dtype == torch.int64
+        assert batch["next", "observation"].dtype == torch.float32
