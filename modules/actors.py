@@ -169,11 +169,11 @@ def make_exploration_policy(
     action_spec,
     sigma: float = 0.1,
 ) -> TensorDictSequential:
-    """``actor`` followed by TorchRL's ``AdditiveGaussianModule``: the TD3 tutorial's behaviour policy.
+    """``actor`` + TorchRL's ``AdditiveGaussianModule``: the TD3 tutorial's behaviour policy.
 
     The tutorial adds ``randn * (expl_noise / 2) * (max - min)`` and clips to the bounds.
-    ``AdditiveGaussianModule`` adds ``N(mean, std) * sigma`` and projects (clamps) onto the spec, with
-    no scaling by the spec, so passing ``std = (max - min) / 2`` per action dimension and
+    ``AdditiveGaussianModule`` adds ``N(mean, std) * sigma`` and projects (clamps) onto the spec,
+    with no scaling by the spec, so passing ``std = (max - min) / 2`` per action dimension and
     ``sigma = expl_noise`` reproduces the tutorial. ``sigma_end = sigma_init`` keeps the noise
     constant (``.step()`` is then a no-op), as in the tutorial.
     Under ``ExplorationType.DETERMINISTIC`` the noise is skipped and this is ``actor`` itself.

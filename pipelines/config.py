@@ -80,6 +80,8 @@ class TrainConfig:
     """iterations between evaluations of the deterministic policy (0: only before and after training)"""
     num_eval_episodes: int = 10
     """episodes per evaluation; their mean return is AverageReturn"""
+    eval_in_background: bool = False
+    """evaluate in a separate process on a snapshot of the policy while training goes on (TorchRL's `Evaluator`); results land at the iteration they were taken"""
     log_interval: int = 200
     """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
     policy_save_interval: int = 5000

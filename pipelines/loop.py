@@ -17,6 +17,7 @@ plain ``nn.Module``). Everything else is here, once:
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 import random
@@ -176,6 +177,21 @@ class OffPolicyPipeline:
         cls = MultiSyncCollector if c.sync else MultiAsyncCollector
         return cls([self.env_fn] * c.workers, self.collect_policy, **common)
 
+    def make_evaluator(self):
+        """TorchRL's ``Evaluator`` in a child process, fed snapshots of ``policy``'s weights."""
+        if self.env_fn is None:
+            raise InputError("eval_in_background=true: pass env as a function that makes the env")
+        from torchrl.collectors import Evaluator
+
+        return Evaluator(
+            self.env_fn,
+            policy_factory=_PolicyCopy(self.policy),
+            num_trajectories=self.config.num_eval_episodes,
+            max_steps=None,  # our envs end episodes themselves (time limits); StepCounter is set
+            backend="process",
+            busy_policy="queue",
+        )
+
     # --- checkpoint state -------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
@@ -226,25 +242,44 @@ class OffPolicyPipeline:
         bar = tqdm(total=cfg.num_iterations, initial=c["iteration"], unit="it", disable=not progress,
                    desc=f"{self.algo} {cfg.env}", dynamic_ncols=True)
 
-        def log_row(step_row: dict) -> None:
-            row = {"step": c["iteration"], "frames": c["frames"], "updates": c["updates"], **step_row}
+        def log_row(step_row: dict, at: dict | None = None) -> None:
+            at = at or {"step": c["iteration"], "frames": c["frames"], "updates": c["updates"]}
+            row = {**at, **step_row}
             metrics.append(row)
             for key, value in row.items():
                 if key != "step" and isinstance(value, (int, float)) and not math.isnan(value):
-                    logger.log_scalar(key, value, step=c["iteration"])
+                    logger.log_scalar(key, value, step=at["step"])
 
-        def run_eval() -> None:
+        def record_eval(result: dict, at: dict) -> None:
             nonlocal eval_return
-            with clock.paused():
-                result = evaluate(self.eval_env, self.policy, cfg.num_eval_episodes)
             eval_return = result["average_return"]
-            evaluations.append({"step": c["iteration"], "frames": c["frames"], **result})
+            evaluations.append({**at, **result})
             log_row({"average_return": result["average_return"],
                      "average_episode_length": result["average_episode_length"],
-                     "wall_time": clock.wall()})
+                     "wall_time": clock.wall()}, at)
             with clock.paused():
                 self._plot_returns(run, metrics)
             bar.set_postfix(avg_return=f"{eval_return:.1f}", refresh=False)
+
+        def run_eval(background: bool = False) -> None:
+            at = {"step": c["iteration"], "frames": c["frames"], "updates": c["updates"]}
+            if background and evaluator is not None:
+                evaluator.trigger_eval(self.policy, step=c["iteration"])
+                pending[c["iteration"]] = at
+                return
+            with clock.paused():
+                result = evaluate(self.eval_env, self.policy, cfg.num_eval_episodes)
+            record_eval(result, at)
+
+        def collect_background_evals(block: bool = False) -> None:
+            while pending:
+                result = evaluator.wait() if block else evaluator.poll()
+                if result is None:
+                    return
+                at = pending.pop(int(result["eval/step"]))
+                record_eval({"average_return": float(result["eval/reward"]),
+                             "average_episode_length": float(result["eval/episode_length"]),
+                             "returns": None}, at)
 
         def save() -> None:
             with clock.paused():
@@ -254,6 +289,8 @@ class OffPolicyPipeline:
             with clock.paused():
                 export_policy(self.export_module(), self.observation_dim, run.policy_dir, self.export_info())
 
+        evaluator = self.make_evaluator() if cfg.eval_in_background else None
+        pending: dict[int, dict] = {}
         if not resume:
             run_eval()  # the tutorials evaluate once before training
         collector = self.make_collector(frames_left, random_left) if frames_left > 0 else None
@@ -286,7 +323,9 @@ class OffPolicyPipeline:
                 if _crossed(previous, now, cfg.log_interval):
                     log_row(interval_stats.flush(clock))
                 if cfg.eval_interval and _crossed(previous, now, cfg.eval_interval) and now < cfg.num_iterations:
-                    run_eval()
+                    run_eval(background=True)
+                if pending:
+                    collect_background_evals()
                 if _crossed(previous, now, cfg.policy_save_interval):
                     export()
                 if _crossed(previous, now, cfg.checkpoint_interval) and now < cfg.num_iterations:
@@ -297,6 +336,13 @@ class OffPolicyPipeline:
         finally:
             if collector is not None:
                 collector.shutdown()
+            if evaluator is not None:
+                try:
+                    if pending:
+                        with clock.paused():
+                            collect_background_evals(block=True)
+                finally:
+                    evaluator.shutdown()
             bar.close()
         if not evaluations or evaluations[-1]["step"] != c["iteration"]:
             run_eval()
@@ -338,6 +384,16 @@ class OffPolicyPipeline:
             "env_steps_per_s": c["frames"] / train_s if train_s > 0 else None,
             "updates_per_s": c["updates"] / train_s if train_s > 0 else None,
         }
+
+
+class _PolicyCopy:
+    """A picklable policy factory for an evaluator process: a CPU copy of the policy's structure."""
+
+    def __init__(self, policy: nn.Module):
+        self.policy = copy.deepcopy(policy).cpu()
+
+    def __call__(self, env=None) -> nn.Module:
+        return copy.deepcopy(self.policy)
 
 
 def _crossed(previous: int, now: int, interval: int) -> bool:

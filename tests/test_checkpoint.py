@@ -1,0 +1,491 @@
+"""Checkpoints and resume: atomic saves, weights-only loads, bad checkpoints refused, Ctrl-C, --resume.
+
+A run trained once in-process (module fixture) is copied for every case that damages or resumes it.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+import torch
+
+from rlpipe.pipelines import InputError
+from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.config import apply_overrides
+from rlpipe.pipelines.dqn import DQN, preset
+
+BASE = ["initial_collect_steps=100", "eval_interval=100", "num_eval_episodes=2", "log_interval=100",
+        "checkpoint_interval=100", "policy_save_interval=100"]
+N = 200  # iterations of the saved run
+RLPIPE = [sys.executable, "-m", "rlpipe.scripts.cli"]
+
+
+def cfg_with(*extra: str):
+    return apply_overrides(preset("dqn"), BASE + [f"num_iterations={N}"] + list(extra))
+
+
+def rlpipe(*args, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(RLPIPE + [str(a) for a in args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
+
+
+def snapshot(folder: Path) -> dict[str, tuple]:
+    """Every file and folder under ``folder`` with its size, mtime and content hash."""
+    state = {}
+    for path in sorted(folder.rglob("*")):
+        rel = str(path.relative_to(folder))
+        if path.is_dir():
+            state[rel] = ("dir", path.stat().st_mtime_ns)
+        else:
+            st = path.stat()
+            state[rel] = (st.st_size, st.st_mtime_ns, hashlib.sha256(path.read_bytes()).hexdigest())
+    return state
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess, *words: str) -> str:
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, f"exit {proc.returncode}; stderr:\n{proc.stderr}"
+    assert len(lines) == 1, f"expected one line on stderr, got:\n{proc.stderr}"
+    assert lines[0].startswith("rlpipe: error:"), lines[0]
+    for word in words:
+        assert word in lines[0], f"{word!r} not in {lines[0]!r}"
+    return lines[0]
+
+
+def metric_rows(run: Path) -> list[dict]:
+    with (run / "metrics.csv").open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def assert_no_duplicated_steps(rows: list[dict]) -> None:
+    evals = [int(r["step"]) for r in rows if r["average_return"]]
+    logs = [int(r["step"]) for r in rows if r["loss_loss"]]
+    assert len(evals) == len(set(evals)), f"duplicated evaluation steps: {evals}"
+    assert len(logs) == len(set(logs)), f"duplicated log steps: {logs}"
+    steps = [int(r["step"]) for r in rows]
+    assert steps == sorted(steps), steps
+
+
+@pytest.fixture(scope="module")
+def saved_run(tmp_path_factory):
+    """A finished run of N iterations with checkpoints every 100, and its pipeline."""
+    run = tmp_path_factory.mktemp("saved") / "run"
+    pipeline = DQN(cfg_with())
+    result = pipeline.train(run, progress=False)
+    return run, pipeline, result
+
+
+def copy_run(saved_run, dest: Path) -> Path:
+    shutil.copytree(saved_run[0], dest, copy_function=shutil.copy2)
+    return dest
+
+
+# --- writing and reading checkpoints -------------------------------------------------------------
+
+
+def test_checkpoints_keep_counters_and_the_replay_buffer(saved_run):
+    run, pipeline, _ = saved_run
+    latest = ckpt.latest_checkpoint(run / "checkpoints")
+    assert latest.name == f"step_{N:010d}"
+    fresh = DQN(cfg_with())
+    assert len(fresh.replay_buffer) == 0
+    state = ckpt.load_checkpoint(latest, "dqn", "CartPole-v0", fresh.replay_buffer)
+    assert state["counters"]["frames"] == 100 + N and state["counters"]["updates"] == N
+    assert state["counters"]["iteration"] == N
+    assert len(fresh.replay_buffer) == len(pipeline.replay_buffer) == 100 + N
+    n = len(pipeline.replay_buffer)
+    torch.testing.assert_close(fresh.replay_buffer[:n]["observation"], pipeline.replay_buffer[:n]["observation"])
+    torch.testing.assert_close(fresh.replay_buffer[:n]["action"], pipeline.replay_buffer[:n]["action"])
+    fresh.load_state_dict(state)
+    for key, value in pipeline.loss_module.state_dict().items():
+        torch.testing.assert_close(fresh.loss_module.state_dict()[key], value)
+
+
+def test_leftover_tmp_folder_from_a_crash_does_not_break_latest(saved_run, tmp_path):
+    run = copy_run(saved_run, tmp_path / "run")
+    folder = run / "checkpoints"
+    before = ckpt.latest_checkpoint(folder)
+    # a crash mid-save leaves a half-written temporary folder behind
+    junk = folder / ".tmp-crashed"
+    junk.mkdir()
+    (junk / "state.pt").write_bytes(b"half a checkpoint")
+    assert ckpt.latest_checkpoint(folder) == before
+    state = ckpt.load_checkpoint(before, "dqn", "CartPole-v0")
+    assert state["step"] == N
+    # and the next save still works and moves `latest`
+    path = ckpt.save_checkpoint(folder, N + 1, {"algo": "dqn", "env": "CartPole-v0", "x": torch.ones(2)})
+    assert ckpt.latest_checkpoint(folder) == path
+    assert ckpt.load_checkpoint(path, "dqn", "CartPole-v0")["step"] == N + 1
+
+
+def test_a_save_that_fails_midway_leaves_the_previous_checkpoint(saved_run, tmp_path):
+    run = copy_run(saved_run, tmp_path / "run")
+    folder = run / "checkpoints"
+    before = ckpt.latest_checkpoint(folder)
+    listing = sorted(p.name for p in folder.iterdir())
+    with pytest.raises(Exception):
+        # a lambda cannot be pickled: torch.save fails after the temporary folder was made
+        ckpt.save_checkpoint(folder, N + 1, {"algo": "dqn", "env": "CartPole-v0", "bad": lambda: 0})
+    assert ckpt.latest_checkpoint(folder) == before
+    assert sorted(p.name for p in folder.iterdir()) == listing, "the failed save left something behind"
+    assert ckpt.load_checkpoint(before, "dqn", "CartPole-v0")["step"] == N
+
+
+class _RunsCode:
+    """A pickle payload that would create a file if the checkpoint were loaded with full pickle."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def test_loading_never_runs_code_from_a_checkpoint(saved_run, tmp_path):
+    marker = tmp_path / "code-ran"
+    folder = tmp_path / "ck"
+    folder.mkdir()
+    torch.save({"format": ckpt.FORMAT, "algo": "dqn", "env": "CartPole-v0", "x": _RunsCode(marker)}, folder / "state.pt")
+    with pytest.raises(InputError, match="state.pt"):
+        ckpt.load_checkpoint(folder, "dqn", "CartPole-v0")
+    assert not marker.exists(), "loading a checkpoint ran code from it"
+
+
+BUG_RB_PICKLE = (
+    "BUG: pipelines/checkpoint.py load_checkpoint() restores the replay buffer with TorchRL's "
+    "ReplayBuffer.loads(), which pickle.load()s replay_buffer/prefetch.pkl (torchrl/data/replay_buffers/"
+    "replay_buffers/base.py _load_prefetch_state): a crafted checkpoint runs code on --resume although "
+    "state.pt is read with weights_only=True, and a damaged replay-buffer file raises UnpicklingError/TypeError/"
+    "UnicodeDecodeError outside the InputError handling (traceback, exit 1). Fix: save the buffer without the "
+    "pickle (e.g. storage/writer/sampler state through torch.save + weights_only, or delete/refuse prefetch.pkl "
+    "before loads), and wrap replay_buffer.loads() errors in InputError."
+)
+
+
+@pytest.mark.xfail(reason=BUG_RB_PICKLE, strict=True)
+def test_loading_never_runs_code_from_the_saved_replay_buffer(saved_run, tmp_path):
+    import pickle
+
+    marker = tmp_path / "code-ran"
+    checkpoint = tmp_path / "ck"
+    shutil.copytree(ckpt.latest_checkpoint(saved_run[0] / "checkpoints"), checkpoint)
+    payloads = list(checkpoint.rglob("*.pkl"))
+    assert payloads, "expected TorchRL's pickled prefetch state in the saved replay buffer"
+    for path in payloads:
+        path.write_bytes(pickle.dumps(_RunsCode(marker)))
+    try:
+        ckpt.load_checkpoint(checkpoint, "dqn", "CartPole-v0", DQN(cfg_with()).replay_buffer)
+    except InputError:
+        pass
+    assert not marker.exists(), "loading a checkpoint's replay buffer ran code from it"
+
+
+def test_load_refuses_another_algo_or_env(saved_run):
+    latest = ckpt.latest_checkpoint(saved_run[0] / "checkpoints")
+    with pytest.raises(InputError, match="td3"):
+        ckpt.load_checkpoint(latest, "td3", "CartPole-v0")
+    with pytest.raises(InputError, match="CartPole-v1"):
+        ckpt.load_checkpoint(latest, "dqn", "CartPole-v1")
+
+
+def test_missing_checkpoint_is_an_input_error(tmp_path):
+    with pytest.raises(InputError, match="no checkpoint"):
+        ckpt.latest_checkpoint(tmp_path)
+
+
+# --- resume ----------------------------------------------------------------------------------------
+
+
+def test_resume_continues_counters_buffer_and_metrics(saved_run, tmp_path):
+    run = copy_run(saved_run, tmp_path / "run")
+    rows_before = metric_rows(run)
+    pipeline = DQN(cfg_with(f"num_iterations={2 * N}"))
+    result = pipeline.train(run, resume=True, progress=False)
+    s = result.summary
+    assert (s["iterations"], s["frames"], s["updates"]) == (2 * N, 100 + 2 * N, 2 * N)
+    # the saved transitions came back, and the new ones were added to them
+    assert len(pipeline.replay_buffer) == 100 + 2 * N
+    old = saved_run[1].replay_buffer
+    torch.testing.assert_close(pipeline.replay_buffer[: len(old)]["observation"], old[: len(old)]["observation"])
+    rows = metric_rows(run)
+    assert rows[: len(rows_before)] == rows_before, "rows of the first part were changed"
+    new = rows[len(rows_before):]
+    assert new and all(int(r["step"]) > N for r in new), [r["step"] for r in new]
+    assert_no_duplicated_steps(rows)
+    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 100, 200, 300, 400]
+    last = rows[-1]
+    assert (int(last["step"]), int(last["frames"]), int(last["updates"])) == (2 * N, 100 + 2 * N, 2 * N)
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == f"step_{2 * N:010d}"
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="BUG: pipelines/loop.py train(): on resume `evaluations` starts empty, so when no iterations are left "
+    "(resuming a finished run) the closing `if not evaluations or evaluations[-1]['step'] != ...: run_eval()` "
+    "evaluates again and appends a second evaluation row for the same step to metrics.csv (and TensorBoard). "
+    "Fix: on resume, take the last evaluated step from the kept metrics rows (or skip training/eval when "
+    "frames_left <= 0).",
+)
+def test_resuming_a_finished_run_adds_no_duplicated_rows(saved_run, tmp_path):
+    run = copy_run(saved_run, tmp_path / "run")
+    DQN(cfg_with()).train(run, resume=True, progress=False)
+    assert_no_duplicated_steps(metric_rows(run))
+
+
+class _InterruptedDQN(DQN):
+    """Raises KeyboardInterrupt in the middle of a block of updates, as a Ctrl-C landing there does."""
+
+    at = 125
+
+    def update(self, batch):
+        self.calls = getattr(self, "calls", 0) + 1
+        if self.calls == self.at:
+            raise KeyboardInterrupt
+        return super().update(batch)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="BUG: pipelines/loop.py train() stores the rate limiter's state (c['limiter'], which counts all "
+    "updates owed for the block as made) before making them; a Ctrl-C during the block saves a checkpoint "
+    "whose limiter claims updates that never happened, so the resumed run ends with fewer updates "
+    "(274 instead of 300 here). Fix: store the limiter state after the block's updates, or save the "
+    "not-yet-made updates (n_updates - done) in the checkpoint and make them first on resume.",
+)
+def test_ctrl_c_during_updates_loses_no_updates(tmp_path):
+    cfg = apply_overrides(preset("dqn"), ["initial_collect_steps=100", "num_iterations=300", "eval_interval=0",
+                                          "num_eval_episodes=1", "checkpoint_interval=100"])
+    with pytest.raises(KeyboardInterrupt):
+        _InterruptedDQN(cfg).train(tmp_path / "run", progress=False)
+    result = DQN(cfg).train(tmp_path / "run", resume=True, progress=False)
+    assert result.summary["iterations"] == 300
+    assert result.summary["updates"] == 300
+
+
+def test_cli_resume_continues_the_run(saved_run, tmp_path):
+    run = copy_run(saved_run, tmp_path / "run")
+    # overrides before the options, as `rlpipe train PRESET [key=value ...] [--resume DIR]` documents
+    proc = rlpipe("train", "dqn", f"num_iterations={2 * N}", "--resume", run, "--no-progress", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "AverageReturn" in proc.stdout
+    summary = json.loads((run / "summary.json").read_text())
+    assert (summary["iterations"], summary["frames"], summary["updates"]) == (2 * N, 100 + 2 * N, 2 * N)
+    rows = metric_rows(run)
+    assert_no_duplicated_steps(rows)
+    assert max(int(r["step"]) for r in rows) == 2 * N
+
+
+# --- bad checkpoints via `rlpipe train dqn --resume RUN` -----------------------------------------
+
+
+def _state_of(run: Path) -> Path:
+    return ckpt.latest_checkpoint(run / "checkpoints") / "state.pt"
+
+
+def _garbage(run: Path, marker: Path):
+    _state_of(run).write_bytes(os.urandom(4096))
+
+
+def _truncated(run: Path, marker: Path):
+    path = _state_of(run)
+    path.write_bytes(path.read_bytes()[:1000])
+
+
+def _foreign_dict(run: Path, marker: Path):
+    torch.save({"model": {"weight": torch.zeros(3)}, "step": 5}, _state_of(run))
+
+
+def _pickled_class(run: Path, marker: Path):
+    torch.save({"format": ckpt.FORMAT, "algo": "dqn", "env": "CartPole-v0", "x": _RunsCode(marker)}, _state_of(run))
+
+
+def _other_algo(run: Path, marker: Path):
+    path = _state_of(run)
+    state = torch.load(path, weights_only=True)
+    state["algo"] = "sac"
+    torch.save(state, path)
+
+
+def _other_env(run: Path, marker: Path):
+    path = _state_of(run)
+    state = torch.load(path, weights_only=True)
+    state["env"] = "Acrobot-v1"
+    torch.save(state, path)
+
+
+def _garbage_replay_buffer(run: Path, marker: Path):
+    for path in (ckpt.latest_checkpoint(run / "checkpoints") / "replay_buffer").rglob("*"):
+        if path.is_file() and path.suffix in (".pkl", ".json"):
+            path.write_bytes(os.urandom(64))
+
+
+def _no_latest(run: Path, marker: Path):
+    (run / "checkpoints" / "latest").unlink()
+
+
+def _no_checkpoints(run: Path, marker: Path):
+    shutil.rmtree(run / "checkpoints")
+
+
+def _latest_points_nowhere(run: Path, marker: Path):
+    shutil.rmtree(ckpt.latest_checkpoint(run / "checkpoints"))
+
+
+def _format_marker_only(run: Path, marker: Path):
+    torch.save({"format": ckpt.FORMAT, "algo": "dqn", "env": "CartPole-v0", "step": N}, _state_of(run))
+
+
+def _no_change(run: Path, marker: Path):
+    pass
+
+
+BAD_RESUMES = {
+    # name: (damage, extra overrides, words the one-line error names)
+    "garbage-bytes": (_garbage, [], ["state.pt"]),
+    "truncated-file": (_truncated, [], ["state.pt"]),
+    "foreign-dict": (_foreign_dict, [], ["not an rlpipe checkpoint"]),
+    "pickled-class": (_pickled_class, [], ["state.pt"]),
+    "other-algo": (_other_algo, [], ["sac", "dqn"]),
+    "other-env": (_other_env, [], ["Acrobot-v1", "CartPole-v0"]),
+    "env-override": (_no_change, ["env=CartPole-v1"], ["CartPole-v0", "CartPole-v1"]),
+    "garbage-replay-buffer": (_garbage_replay_buffer, [], ["replay_buffer"]),
+    "no-latest": (_no_latest, [], ["checkpoint"]),
+    "no-checkpoints": (_no_checkpoints, [], ["checkpoint"]),
+    "latest-points-nowhere": (_latest_points_nowhere, [], ["state.pt"]),
+    "network-override": (_no_change, ["fc_layer_params=[50]"], ["fc_layer_params"]),
+    "marker-only": (_format_marker_only, [], ["state.pt"]),
+}
+
+BUG_LOAD_STATE = (
+    "BUG: pipelines/loop.py train() calls self.load_state_dict(state) outside any error handling: a checkpoint "
+    "that does not fit the pipeline (resume with fc_layer_params changed, or a state.pt with the format marker "
+    "but missing entries) raises ValueError/KeyError, so `--resume` prints a traceback and exits 1. Fix: wrap "
+    "load_state_dict in train() (or in load_checkpoint) and raise InputError('checkpoint does not fit ...')."
+)
+XFAIL_RESUMES = {"network-override": BUG_LOAD_STATE, "marker-only": BUG_LOAD_STATE,
+                 "garbage-replay-buffer": BUG_RB_PICKLE}
+
+
+def _prepare(saved_run, root: Path, name: str) -> tuple[Path, Path]:
+    damage = BAD_RESUMES[name][0]
+    cwd = root / name
+    cwd.mkdir()
+    run = copy_run(saved_run, cwd / "run")
+    marker = cwd / "code-ran"
+    damage(run, marker)
+    return cwd, marker
+
+
+def _xfail_marked(names):
+    return [pytest.param(n, marks=pytest.mark.xfail(reason=XFAIL_RESUMES[n], strict=True)) if n in XFAIL_RESUMES else n
+            for n in names]
+
+
+@pytest.mark.parametrize("name", _xfail_marked(BAD_RESUMES))
+def test_bad_checkpoint_is_one_line_exit_2_and_touches_nothing(saved_run, tmp_path, monkeypatch, capsys, name):
+    """`rlpipe train dqn [key=value] --resume RUN` through the CLI's main(), in this process (fast)."""
+    from rlpipe.scripts.cli import main
+
+    cwd, marker = _prepare(saved_run, tmp_path, name)
+    monkeypatch.chdir(cwd)
+    before = snapshot(cwd)
+    capsys.readouterr()
+    code = main(["train", "dqn", *BAD_RESUMES[name][1], "--resume", str(cwd / "run"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert not marker.exists(), "resuming ran code stored in the checkpoint"
+    assert_one_line_error(subprocess.CompletedProcess([], code, "", err), *BAD_RESUMES[name][2])
+    assert snapshot(cwd) == before, "the run directory was modified"
+
+
+SUBPROCESS_CASES = ["garbage-bytes", "pickled-class", "other-env"]
+
+
+@pytest.fixture(scope="module")
+def bad_resume_processes(saved_run, tmp_path_factory):
+    """A few bad --resume cases as real processes, two at a time."""
+    root = tmp_path_factory.mktemp("bad-resumes")
+
+    def one(name):
+        cwd, marker = _prepare(saved_run, root, name)
+        before = snapshot(cwd)
+        proc = rlpipe("train", "dqn", *BAD_RESUMES[name][1], "--resume", "run", "--no-progress", cwd=cwd)
+        return name, (proc, before, snapshot(cwd), marker.exists())
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return dict(pool.map(one, SUBPROCESS_CASES))
+
+
+@pytest.mark.parametrize("name", SUBPROCESS_CASES)
+def test_bad_checkpoint_in_a_real_process(bad_resume_processes, name):
+    proc, before, after, code_ran = bad_resume_processes[name]
+    assert not code_ran, "resuming ran code stored in the checkpoint"
+    assert_one_line_error(proc, *BAD_RESUMES[name][2])
+    assert after == before, "the run directory was modified"
+
+
+# --- Ctrl-C ------------------------------------------------------------------------------------------
+
+
+def _session_processes(sid: int) -> list[int]:
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if int(fields[3]) == sid and fields[0] != "Z":  # field 6 of stat: session id
+            pids.append(int(entry.name))
+    return pids
+
+
+def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tmp_path):
+    run = tmp_path / "run"
+    entry_point = Path(sys.executable).parent / "rlpipe"
+    args = ["train", "dqn", "num_iterations=2000", "initial_collect_steps=100", "eval_interval=0",
+            "num_eval_episodes=2", "checkpoint_interval=100", "log_interval=100", "--no-progress"]
+    proc = subprocess.Popen([str(entry_point), *args, "--out", str(run)], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not (run / "checkpoints" / "latest").exists():
+            assert proc.poll() is None, f"training ended before a checkpoint: {proc.communicate()}"
+            assert time.monotonic() < deadline, "no checkpoint within 180 s"
+            time.sleep(0.05)
+        time.sleep(0.3)
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole process group
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, f"exit {proc.returncode}\n{err}"
+    assert "--resume" in err and "Traceback" not in err, err
+    latest = ckpt.latest_checkpoint(run / "checkpoints")
+    state = ckpt.load_checkpoint(latest, "dqn", "CartPole-v0")
+    assert 0 < state["counters"]["iteration"] < 2000
+    assert not list((run / "checkpoints").glob(".tmp-*"))
+    time.sleep(0.5)
+    assert _session_processes(proc.pid) == [], "child processes outlived the interrupted run"
+
+    resumed = subprocess.run([str(entry_point), "train", "dqn", "--resume", str(run), "--no-progress"], cwd=tmp_path,
+                             capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "AverageReturn" in resumed.stdout
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["iterations"] == 2000
+    assert summary["frames"] == 100 + 2000
+    rows = metric_rows(run)
+    assert_no_duplicated_steps(rows)
+    assert int(rows[-1]["step"]) == 2000

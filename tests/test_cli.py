@@ -1,0 +1,299 @@
+"""The `rlpipe` command line, as a user runs it: real processes on one tiny trained run.
+
+Processes cost ~4 s of CPU each (torch + TorchRL imports), so the commands that read the shared run
+run two at a time in one module fixture; the full matrix of bad inputs also goes through the CLI's
+``main()`` in this process, and a representative part of it through real processes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import gymnasium
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import torch
+
+ENTRY_POINT = str(Path(sys.executable).parent / "rlpipe")
+MODULE = [sys.executable, "-m", "rlpipe.scripts.cli"]
+TINY = ["num_iterations=300", "initial_collect_steps=100", "eval_interval=100", "num_eval_episodes=2",
+        "log_interval=100", "checkpoint_interval=100", "policy_save_interval=100"]
+
+
+def run_cli(args, cwd: Path, timeout: float = 300, entry_point: bool = False) -> subprocess.CompletedProcess:
+    command = ([ENTRY_POINT] if entry_point else MODULE) + [str(a) for a in args]
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=timeout)
+
+
+def snapshot(folder: Path) -> dict[str, tuple]:
+    state = {}
+    for path in sorted(Path(folder).rglob("*")):
+        rel = str(path.relative_to(folder))
+        if path.is_dir():
+            state[rel] = ("dir", path.stat().st_mtime_ns)
+        else:
+            st = path.stat()
+            state[rel] = (st.st_size, st.st_mtime_ns, hashlib.sha256(path.read_bytes()).hexdigest())
+    return state
+
+
+def assert_one_line_error(code: int, stderr: str, *words: str) -> None:
+    lines = stderr.strip().splitlines()
+    assert code == 2, f"exit {code}; stderr:\n{stderr}"
+    assert len(lines) == 1, f"expected one line on stderr, got:\n{stderr}"
+    assert lines[0].startswith("rlpipe: error:"), lines[0]
+    for word in words:
+        assert word in lines[0], f"{word!r} not in {lines[0]!r}"
+
+
+def frames_of(path: Path) -> list[np.ndarray]:
+    with imageio.get_reader(path) as reader:
+        return [frame for frame in reader]
+
+
+# --- one trained run, and the commands that read it -------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli")
+    proc = run_cli(["train", "dqn", *TINY, "--out", "run", "--no-progress"], cwd=root, entry_point=True)
+    return root, root / "run", proc
+
+
+@pytest.fixture(scope="module")
+def commands(cli_run):
+    root, run, train = cli_run
+    assert train.returncode == 0, train.stderr
+    other = root / "other-run"
+    shutil.copytree(run, other)
+    jobs = {
+        "eval": ["eval", run, "--episodes", "3", "--json", "--ecdf"],
+        "eval-text": ["eval", run, "--episodes", "2"],
+        "video": ["video", run, "--episodes", "1"],
+        "video-random": ["video", run, "--episodes", "1", "--random", "--out", root / "videos" / "random.mp4"],
+        "plot": ["plot", run, other, "--out", root / "both.png"],
+        "presets": ["presets"],
+        "keys": ["train", "dqn", "--keys"],
+    }
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        results = dict(zip(jobs, pool.map(lambda args: run_cli(args, cwd=root), jobs.values())))
+    return root, run, results
+
+
+def test_train_exits_0_and_prints_average_return(cli_run):
+    root, run, proc = cli_run
+    assert proc.returncode == 0, proc.stderr
+    assert "AverageReturn" in proc.stdout and "AverageEpisodeLength" in proc.stdout
+    assert "Traceback" not in proc.stderr
+    summary = json.loads((run / "summary.json").read_text())
+    assert f"AverageReturn = {summary['final_average_return']:.2f}" in proc.stdout
+    assert (summary["iterations"], summary["frames"], summary["updates"]) == (300, 400, 300)
+    for name in ("config.json", "metrics.csv", "policy/policy.pt2", "returns.png", "checkpoints/latest"):
+        assert (run / name).exists(), name
+    assert not (root / "runs").exists(), "--out was given: nothing goes to the default runs/ folder"
+
+
+def test_eval_prints_json_and_writes_the_ecdf(commands):
+    root, run, results = commands
+    proc = results["eval"]
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert len(data["returns"]) == 3
+    assert data["AverageReturn"] == pytest.approx(sum(data["returns"]) / 3)
+    # CartPole pays 1 per step
+    assert data["AverageEpisodeLength"] == pytest.approx(data["AverageReturn"])
+    assert data["AverageReturn"] > 0
+    assert (run / "ecdf.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_eval_prints_text(commands):
+    proc = commands[2]["eval-text"]
+    assert proc.returncode == 0, proc.stderr
+    assert "AverageReturn = " in proc.stdout and "AverageEpisodeLength = " in proc.stdout
+
+
+def _episode_length(run: Path, seed: int) -> int:
+    """Length of the episode that `rlpipe video` records: the exported policy on gymnasium's CartPole."""
+    policy = torch.export.load(str(run / "policy" / "policy.pt2")).module()
+    env = gymnasium.make("CartPole-v0")
+    obs, _ = env.reset(seed=seed)
+    for t in range(1, 1000):
+        action = int(policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0])
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            return t
+    raise AssertionError("episode did not end")
+
+
+def test_video_of_the_trained_policy(commands):
+    root, run, results = commands
+    proc = results["video"]
+    assert proc.returncode == 0, proc.stderr
+    path = run / "trained-agent.mp4"
+    assert str(path.name) in proc.stdout
+    frames = frames_of(path)
+    assert len(frames) == 1 + _episode_length(run, seed=0), "one frame at reset and one per step"
+    assert len(frames) > 8
+    assert frames[0].shape == (400, 600, 3)
+    assert frames[0].std() > 0, "blank frames"
+
+
+def test_video_of_a_random_policy(commands):
+    root, run, results = commands
+    proc = results["video-random"]
+    assert proc.returncode == 0, proc.stderr
+    frames = frames_of(root / "videos" / "random.mp4")
+    assert len(frames) > 10
+    assert frames[0].shape == (400, 600, 3)
+    assert not list((root / "videos").glob(".video.*")), "temporary file left behind"
+
+
+def test_plot_two_runs(commands):
+    root, _, results = commands
+    proc = results["plot"]
+    assert proc.returncode == 0, proc.stderr
+    png = root / "both.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+
+
+def test_presets_lists_the_dqn_presets(commands):
+    proc = commands[2]["presets"]
+    assert proc.returncode == 0, proc.stderr
+    lines = {line.split()[0]: line for line in proc.stdout.splitlines() if line.strip()}
+    assert "CartPole-v0" in lines["dqn"] and "20000" in lines["dqn"]
+    assert "CartPole-v1" in lines["dqn-cartpole-v1"]
+
+
+def test_keys_lists_every_key_with_value_and_help(commands):
+    from rlpipe.pipelines.config import flat_keys
+    from rlpipe.pipelines.dqn import DQNConfig
+
+    proc = commands[2]["keys"]
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout
+    for key in flat_keys(DQNConfig):
+        assert f"\n{key}=" in "\n" + out, key
+    assert "batch_size=64" in out and "fc_layer_params=[100]" in out and 'env="CartPole-v0"' in out
+    assert "collector.workers=1" in out
+    assert "transitions per update" in out  # batch_size's help
+
+
+# --- bad input: one line, exit 2, nothing written --------------------------------------------------
+
+
+def _damage_policy(run: Path) -> None:
+    (run / "policy" / "policy.pt2").write_bytes(b"PK\x03\x04 not a torch.export archive" * 10)
+
+
+BAD_INPUTS = {
+    # name: (argv with RUN for a copy of the trained run, words the error names, damage to the copy)
+    "unknown-env": (["train", "dqn", "env=CartPol-v0", "--out", "new"], ["CartPol-v0", "CartPole-v0"], None),
+    "continuous-env": (["train", "dqn", "env=Pendulum-v1", "--out", "new"], ["Pendulum-v1", "discrete"], None),
+    "unknown-key": (["train", "dqn", "batchsize=3", "--out", "new"], ["batchsize", "batch_size"], None),
+    "ill-typed": (["train", "dqn", "batch_size=abc", "--out", "new"], ["batch_size", "integer"], None),
+    "zero-batch": (["train", "dqn", "batch_size=0", "--out", "new"], ["batch_size", "positive"], None),
+    "negative-iterations": (["train", "dqn", "num_iterations=-1", "--out", "new"], ["num_iterations", "positive"], None),
+    "unknown-preset": (["train", "dqm", "--out", "new"], ["dqm", "dqn"], None),
+    "out-holds-a-run": (["train", "dqn", *TINY, "--out", "RUN"], ["already holds a run", "--resume"], None),
+    "resume-not-a-run": (["train", "dqn", "--resume", "."], ["not a run directory"], None),
+    "eval-not-a-run": (["eval", ".", "--episodes", "3"], ["not a run directory"], None),
+    "video-not-a-run": (["video", ".", "--episodes", "1"], ["not a run directory"], None),
+    "plot-not-a-run": (["plot", "RUN", ".", "--out", "x.png"], ["not a run directory"], None),
+    "eval-zero-episodes": (["eval", "RUN", "--episodes", "0"], ["--episodes"], None),
+    "eval-corrupt-policy": (["eval", "RUN", "--episodes", "2"], ["policy.pt2"], _damage_policy),
+    "video-corrupt-policy": (["video", "RUN", "--episodes", "1"], ["policy.pt2"], _damage_policy),
+    "bad-device": (["train", "dqn", "device=foo", "--out", "new"], ["device"], None),
+    "override-after-options": (["train", "dqn", "--out", "new", "batch_size=0"], ["batch_size"], None),
+    "argparse-error": (["eval", "RUN", "--episodes", "abc"], ["--episodes"], None),
+}
+XFAIL = {
+    "bad-device": "BUG: pipelines/config.py validate() never checks `device`; pipelines/loop.py __init__ calls "
+    "torch.device('foo'), whose RuntimeError is not an InputError: traceback and exit 1. Fix: in validate(), "
+    "try torch.device(cfg.device) and raise InputError(\"device='foo': expected 'cpu', 'cuda' or 'cuda:N'\").",
+    "override-after-options": "BUG: scripts/cli.py uses parse_args() with `overrides` nargs='*' before the "
+    "options, so key=value after an option (`rlpipe train dqn --out RUN batch_size=0`, or the documented-in-"
+    "the-issue `rlpipe train dqn --resume RUN key=value`) is refused as 'unrecognized arguments'. Fix: "
+    "parse_known_args() and take the leftover key=value items as overrides (or parse_intermixed_args on the "
+    "train subparser).",
+    "argparse-error": "BUG: scripts/cli.py lets argparse report its own errors: a usage line plus "
+    "'rlpipe eval: error: ...' (two lines, not starting with 'rlpipe: error:'). Fix: an ArgumentParser "
+    "subclass whose error() prints one 'rlpipe: error: ...' line and exits 2.",
+}
+SUBPROCESS_CASES = ["unknown-key", "continuous-env", "out-holds-a-run", "eval-corrupt-policy", "video-not-a-run"]
+
+
+def _prepare(cli_run, root: Path, name: str) -> tuple[Path, list[str], list[str]]:
+    """A fresh working folder for one case (with a copy of the run where the case needs one)."""
+    argv, words, damage = BAD_INPUTS[name]
+    cwd = root / name
+    cwd.mkdir(parents=True)
+    if "RUN" in argv:
+        shutil.copytree(cli_run[1], cwd / "RUN")
+        if damage is not None:
+            damage(cwd / "RUN")
+    return cwd, argv, words
+
+
+def _cases(names):
+    return [pytest.param(n, marks=pytest.mark.xfail(reason=XFAIL[n], strict=True)) if n in XFAIL else n for n in names]
+
+
+@pytest.mark.parametrize("name", _cases(BAD_INPUTS))
+def test_bad_input_in_process(cli_run, tmp_path, monkeypatch, capsys, name):
+    """The CLI's main() on each bad input: return 2, one line, the folder unchanged."""
+    from rlpipe.scripts.cli import main
+
+    cwd, argv, words = _prepare(cli_run, tmp_path, name)
+    monkeypatch.chdir(cwd)
+    before = snapshot(cwd)
+    capsys.readouterr()
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse exits by itself
+        code = exc.code
+    assert_one_line_error(code, capsys.readouterr().err, *words)
+    assert snapshot(cwd) == before, "a bad input wrote or changed files"
+
+
+@pytest.fixture(scope="module")
+def bad_processes(cli_run, tmp_path_factory):
+    root = tmp_path_factory.mktemp("bad-inputs")
+
+    def one(name):
+        cwd, argv, _ = _prepare(cli_run, root, name)
+        before = snapshot(cwd)
+        proc = run_cli(argv, cwd=cwd, entry_point=True)
+        return name, (proc, before, snapshot(cwd))
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return dict(pool.map(one, SUBPROCESS_CASES))
+
+
+XFAIL_PROCESS = {
+    "eval-corrupt-policy": "BUG: pipelines/export.py load_policy() calls torch.export.load() on the damaged file; "
+    "torch logs 'Ran into the following error when deserializing' with a full traceback (12 lines, logger "
+    "torch.export, level WARNING) to stderr before rlpipe prints its one-line error, so the user sees a "
+    "traceback (in-process capture misses it: torch's log handler holds the original stderr). Fix: check the "
+    "archive first (zipfile.is_zipfile + expected members) or silence logging.getLogger('torch.export') "
+    "around the load.",
+}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param(n, marks=pytest.mark.xfail(reason=XFAIL_PROCESS[n], strict=True)) if n in XFAIL_PROCESS else n
+     for n in SUBPROCESS_CASES],
+)
+def test_bad_input_in_a_real_process(bad_processes, name):
+    proc, before, after = bad_processes[name]
+    assert_one_line_error(proc.returncode, proc.stderr, *BAD_INPUTS[name][1])
+    assert proc.stdout.strip() == ""
+    assert after == before, "a bad input wrote or changed files"
