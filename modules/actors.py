@@ -22,6 +22,7 @@ __all__ = [
     "make_tanh_normal_actor",
     "make_gaussian_actor",
     "make_exploration_policy",
+    "TanhNormalMode",
 ]
 
 
@@ -192,3 +193,31 @@ def make_exploration_policy(
         std=((high - low) / 2).tolist(),
     )
     return TensorDictSequential(actor, noise)
+
+
+class TanhNormalMode(nn.Module):
+    """A TanhNormal actor's deterministic action as a plain module: ``center + radius * tanh(loc)``.
+
+    This is what ``make_tanh_normal_actor``'s policy returns under ``ExplorationType.DETERMINISTIC``
+    (TanhNormal's ``deterministic_sample``), without TensorDicts, for export.
+    """
+
+    def __init__(self, net: nn.Module, low: torch.Tensor, high: torch.Tensor):
+        super().__init__()
+        self.net = net
+        self.register_buffer("center", (high + low) / 2)
+        self.register_buffer("radius", (high - low) / 2)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        loc = self.net(observation)[..., : self.center.shape[-1]]
+        return self.center + self.radius * torch.tanh(loc)
+
+    @classmethod
+    def from_actor(cls, actor: ProbabilisticActor, action_spec) -> "TanhNormalMode":
+        """A CPU copy of ``actor``'s network (from ``make_tanh_normal_actor`` / ``make_gaussian_actor``)."""
+        import copy
+
+        low, high = _bounds(action_spec)
+        # ProbabilisticActor -> TensorDictModule(Sequential(MLP, NormalParamExtractor)) -> MLP
+        net = copy.deepcopy(actor.module[0].module[0]).cpu()
+        return cls(net, low.cpu(), high.cpu())

@@ -444,7 +444,7 @@ class _IntervalStats:
 
     def _reset(self, t: float, frames: int, updates: int) -> None:
         self.loss_sums: dict[str, torch.Tensor] = {}
-        self.loss_count = 0
+        self.loss_counts: dict[str, int] = {}
         self.episode_returns: list[float] = []
         self.frames = 0
         self.updates = 0
@@ -457,15 +457,15 @@ class _IntervalStats:
             self.episode_returns += batch["next", "episode_reward"][done].tolist()
 
     def add_losses(self, losses: dict[str, torch.Tensor]) -> None:
-        self.loss_count += 1
         self.updates += 1
-        for k, v in losses.items():
+        for k, v in losses.items():  # some losses are not made every update (TD3's delayed actor)
             self.loss_sums[k] = self.loss_sums.get(k, 0.0) + v
+            self.loss_counts[k] = self.loss_counts.get(k, 0) + 1
 
     def flush(self, clock: _Clock) -> dict[str, Any]:
         now = clock.train_seconds()
         dt = max(now - self.t, 1e-9)
-        row: dict[str, Any] = {f"loss_{k}": float(v) / self.loss_count for k, v in self.loss_sums.items()}
+        row: dict[str, Any] = {f"loss_{k}": float(v) / self.loss_counts[k] for k, v in self.loss_sums.items()}
         if self.episode_returns:
             row["train_episode_return"] = sum(self.episode_returns) / len(self.episode_returns)
         row["steps_per_s"] = self.frames / dt

@@ -11,7 +11,6 @@ learned temperature) with ``SoftUpdate``; its Learner and triggers are the share
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass, field
 from typing import List, Optional
 
@@ -21,7 +20,7 @@ from torch import nn
 from torchrl.objectives import SACLoss, SoftUpdate
 
 from rlpipe.envs import describe_action_space, is_discrete
-from rlpipe.modules.actors import make_tanh_normal_actor
+from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
 from rlpipe.modules.critics import make_qvalue_critic
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
@@ -119,20 +118,6 @@ def preset(name: str = "sac") -> SACConfig:
     return PRESETS[name]()
 
 
-class _DeterministicTanhActor(nn.Module):
-    """The exported policy: ``center + radius * tanh(loc)``, TanhNormal's deterministic sample."""
-
-    def __init__(self, net: nn.Module, low: torch.Tensor, high: torch.Tensor):
-        super().__init__()
-        self.net = net
-        self.register_buffer("center", (high + low) / 2)
-        self.register_buffer("radius", (high - low) / 2)
-
-    def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        loc = self.net(observation)[..., : self.center.shape[-1]]
-        return self.center + self.radius * torch.tanh(loc)
-
-
 class SAC(OffPolicyPipeline):
     """Soft actor-critic with learned temperature: TorchRL's ``SACLoss`` + ``SoftUpdate``."""
 
@@ -198,10 +183,7 @@ class SAC(OffPolicyPipeline):
             self.target_updater.step()
 
     def export_module(self) -> nn.Module:
-        spec = self.env.action_spec
-        # actor: ProbabilisticActor -> TensorDictModule(Sequential(MLP, NormalParamExtractor))
-        net = copy.deepcopy(self.policy.module[0].module[0]).cpu()
-        return _DeterministicTanhActor(net, spec.space.low.float().cpu(), spec.space.high.float().cpu())
+        return TanhNormalMode.from_actor(self.policy, self.env.action_spec)
 
 
 PIPELINE = SAC
