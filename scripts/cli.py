@@ -56,8 +56,9 @@ def _parser() -> argparse.ArgumentParser:
 
     sub.add_parser("presets", help="list the presets")
 
-    from rlpipe.scripts import bench
+    from rlpipe.scripts import ablate, bench
 
+    ablate.add_parser(sub)
     bench.add_parser(sub)
     return parser
 

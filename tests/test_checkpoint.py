@@ -454,8 +454,10 @@ def _session_processes(sid: int) -> list[int]:
 def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tmp_path):
     run = tmp_path / "run"
     entry_point = Path(sys.executable).parent / "rlpipe"
-    args = ["train", "dqn", "num_iterations=2000", "initial_collect_steps=100", "eval_interval=0",
-            "num_eval_episodes=2", "checkpoint_interval=100", "log_interval=100", "--no-progress"]
+    # two collector processes, so that there are children that must not outlive the run
+    args = ["train", "dqn", "num_iterations=1500", "initial_collect_steps=100", "eval_interval=0",
+            "num_eval_episodes=2", "checkpoint_interval=100", "log_interval=100", "collector.workers=2",
+            "--no-progress"]
     proc = subprocess.Popen([str(entry_point), *args, "--out", str(run)], cwd=tmp_path, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
@@ -465,6 +467,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tmp_path):
             assert time.monotonic() < deadline, "no checkpoint within 180 s"
             time.sleep(0.05)
         time.sleep(0.3)
+        assert len(_session_processes(proc.pid)) >= 3, "expected the run and its two collector processes"
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole process group
         out, err = proc.communicate(timeout=120)
     finally:
@@ -474,7 +477,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tmp_path):
     assert "--resume" in err and "Traceback" not in err, err
     latest = ckpt.latest_checkpoint(run / "checkpoints")
     state = ckpt.load_checkpoint(latest, "dqn", "CartPole-v0")
-    assert 0 < state["counters"]["iteration"] < 2000
+    assert 0 < state["counters"]["iteration"] < 1500
     assert not list((run / "checkpoints").glob(".tmp-*"))
     time.sleep(0.5)
     assert _session_processes(proc.pid) == [], "child processes outlived the interrupted run"
@@ -484,8 +487,8 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tmp_path):
     assert resumed.returncode == 0, resumed.stderr
     assert "AverageReturn" in resumed.stdout
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["iterations"] == 2000
-    assert summary["frames"] == 100 + 2000
+    assert summary["iterations"] == 1500
+    assert summary["frames"] == 100 + 1500
     rows = metric_rows(run)
     assert_no_duplicated_steps(rows)
-    assert int(rows[-1]["step"]) == 2000
+    assert int(rows[-1]["step"]) == 1500
