@@ -89,11 +89,14 @@ def plan(args) -> list[Job]:
         resolve_env_id(env)
         preset = _preset_for(env)
         _, base = resolve_preset(preset)
-        start = min(base.initial_collect_steps, args.steps // 10)
+        # Budgets in whole collector blocks, so evaluations land on the iterations they name.
+        block = base.collector.frames_per_batch
+        start = min(base.initial_collect_steps, args.steps // 10) // block * block
         iterations = args.steps - start
-        if iterations <= 0:
-            raise InputError(f"--steps={args.steps}: too few for {env}; expected more than its {start} start-up steps")
-        eval_interval = max(1, iterations // args.evals)
+        if iterations < block * args.evals:
+            raise InputError(f"--steps={args.steps}: too few for {args.evals} evaluations; expected at least "
+                             f"{start + block * args.evals}")
+        eval_interval = iterations // args.evals // block * block
         budget = [
             f"env={env}",
             f"initial_collect_steps={start}",

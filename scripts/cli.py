@@ -22,6 +22,8 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+# TorchRL announces every storage it initialises at INFO level, on stdout; keep the output ours.
+os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -72,6 +72,8 @@ def test_run_directory_holds_everything(tiny_run):
     assert (run / "returns.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     latest = (run / "checkpoints" / "latest").read_text().strip()
     assert (run / "checkpoints" / latest / "state.pt").is_file()
+    kept = sorted(p.name for p in (run / "checkpoints").glob("step_*"))
+    assert kept[-1] == latest == "step_0000000300" and len(kept) <= 2, kept  # older checkpoints are pruned
     assert list((run / "tb").rglob("events.out.tfevents.*")), "no TensorBoard events under tb/"
     assert not list(run.rglob(".tmp-*")), "a temporary checkpoint folder was left behind"
 
