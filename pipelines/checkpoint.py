@@ -1,8 +1,8 @@
 """Checkpoints that resume a run exactly: modules, optimisers, replay buffer, counters, RNG states.
 
-TorchRL's replay buffer saves itself (``ReplayBuffer.dumps``/``loads``); the rest is one
-``torch.save`` of tensors and plain data, read back with ``weights_only=True`` so a checkpoint file
-can never run code. Each checkpoint is written into a temporary folder and renamed into place, and
+Everything is one ``torch.save`` of tensors and plain data, read back with ``weights_only=True``
+so a checkpoint can never run code. That includes the replay buffer's contents: TorchRL's own
+``ReplayBuffer.dumps``/``loads`` unpickles a file of the checkpoint on load, so it is not used. Each checkpoint is written into a temporary folder and renamed into place, and
 the ``latest`` pointer is replaced atomically: a crash mid-save leaves the previous one intact.
 """
 
@@ -22,7 +22,10 @@ import torch
 
 from rlpipe.pipelines.errors import InputError
 
-__all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state"]
+__all__ = [
+    "save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state",
+    "replay_buffer_state", "load_replay_buffer",
+]
 
 FORMAT = "rlpipe-checkpoint/1"
 KEEP = 2
@@ -46,7 +49,31 @@ def set_rng_state(state: dict[str, Any]) -> None:
     random.setstate((py[0], tuple(py[1]), py[2]))
 
 
-def save_checkpoint(folder: Path, step: int, state: dict[str, Any], replay_buffer=None) -> Path:
+def replay_buffer_state(replay_buffer) -> dict[str, Any]:
+    """The buffer's transitions as plain tensors, oldest first (so FIFO eviction resumes in order)."""
+    n = len(replay_buffer)
+    if n == 0:
+        return {"len": 0}
+    storage = replay_buffer.storage
+    index = torch.arange(n)
+    if n == storage.max_size:
+        # TorchRL's round-robin writer has no public getter for its next write position.
+        index = (index + int(replay_buffer._writer._cursor)) % n
+    data = storage.get(index)
+    return {"len": n, "data": {key: value for key, value in data.flatten_keys("/").items()}}
+
+
+def load_replay_buffer(replay_buffer, state: dict[str, Any]) -> None:
+    """Refill ``replay_buffer`` (a fresh one) from ``replay_buffer_state`` output."""
+    from tensordict import TensorDict
+
+    if state["len"] == 0:
+        return
+    data = TensorDict(state["data"], batch_size=[state["len"]]).unflatten_keys("/")
+    replay_buffer.extend(data)
+
+
+def save_checkpoint(folder: Path, step: int, state: dict[str, Any]) -> Path:
     """Write checkpoint ``step`` under ``folder`` atomically; keep the newest ``KEEP``."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -54,8 +81,6 @@ def save_checkpoint(folder: Path, step: int, state: dict[str, Any], replay_buffe
     tmp = Path(tempfile.mkdtemp(dir=folder, prefix=".tmp-"))
     try:
         torch.save({"format": FORMAT, "step": step, **state}, tmp / "state.pt")
-        if replay_buffer is not None:
-            replay_buffer.dumps(tmp / "replay_buffer")
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
@@ -81,7 +106,7 @@ def latest_checkpoint(folder: Path) -> Path:
     return path
 
 
-def load_checkpoint(path: Path, algo: str, env_id: str, replay_buffer=None) -> dict[str, Any]:
+def load_checkpoint(path: Path, algo: str, env_id: str) -> dict[str, Any]:
     """Read a checkpoint written by ``save_checkpoint`` for the same pipeline and env."""
     path = Path(path)
     try:
@@ -94,9 +119,4 @@ def load_checkpoint(path: Path, algo: str, env_id: str, replay_buffer=None) -> d
         raise InputError(
             f"{path}: checkpoint is for {state.get('algo')} on {state.get('env')}; expected {algo} on {env_id}"
         )
-    if replay_buffer is not None:
-        rb_path = path / "replay_buffer"
-        if not rb_path.exists():
-            raise InputError(f"{rb_path}: missing from checkpoint; expected the replay buffer's saved contents")
-        replay_buffer.loads(rb_path)
     return state

@@ -137,6 +137,12 @@ def validate(cfg) -> None:
             raise InputError(f"{key}={value}: expected a positive learning rate")
         if leaf.endswith("layer_params") and (not value or any(v <= 0 for v in value)):
             raise InputError(f"{key}={value}: expected a non-empty list of positive layer sizes, e.g. [256,256]")
+    try:
+        import torch
+
+        torch.device(cfg.device)
+    except (RuntimeError, TypeError) as exc:
+        raise InputError(f"device={cfg.device!r}: expected a torch device such as 'cpu' or 'cuda:0'") from exc
     if not 0.0 < cfg.gamma <= 1.0:
         raise InputError(f"gamma={cfg.gamma}: expected a discount in (0, 1]")
     if not 0.0 < cfg.target_update_tau <= 1.0:
@@ -215,7 +221,8 @@ def config_from_dict(cls: type, data: dict[str, Any]):
     try:
         conf = OmegaConf.merge(OmegaConf.structured(cls), OmegaConf.create(data))
     except OmegaConfBaseException as exc:
-        raise InputError(f"config does not fit {cls.__name__}: {str(exc).splitlines()[0]}") from exc
+        key = getattr(exc, "full_key", None) or "?"
+        raise InputError(f"config does not fit {cls.__name__}: key {key!r}: {str(exc).splitlines()[0]}") from exc
     result = OmegaConf.to_object(conf)
     validate(result)
     return result

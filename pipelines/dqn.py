@@ -138,14 +138,23 @@ class DQN(OffPolicyPipeline):
     def build(self) -> None:
         cfg = self.config
         spec = self.env.action_spec
-        actor = self._given_actor or make_qvalue_actor(self.observation_dim, spec, cfg.fc_layer_params)
+        if self._given_actor is not None:
+            actor = self._given_actor
+        elif self._given_loss is not None:
+            actor = self._given_loss.value_network  # the network the given loss trains
+        else:
+            actor = make_qvalue_actor(self.observation_dim, spec, cfg.fc_layer_params)
         self.policy = actor.to(self.device)
         self.collect_policy = epsilon_greedy(
             self.policy, spec, cfg.epsilon_greedy, cfg.epsilon_greedy_end, cfg.epsilon_decay_steps
         )
         # A target network updated with tau=1 after every update equals the online network, so the
-        # loss can read the online one directly: same result, two fewer copies per update.
-        self._has_target = not (cfg.target_update_tau == 1.0 and cfg.target_update_period == 1)
+        # loss can read the online one directly: same result, two fewer copies per update. A loss
+        # handed in keeps whatever it was built with.
+        if self._given_loss is not None:
+            self._has_target = bool(self._given_loss.delay_value)
+        else:
+            self._has_target = not (cfg.target_update_tau == 1.0 and cfg.target_update_period == 1)
         loss = self._given_loss or DQNLoss(
             self.policy,
             loss_function=cfg.td_errors_loss,

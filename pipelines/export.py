@@ -66,9 +66,14 @@ def load_policy(folder: Path) -> tuple[nn.Module, dict]:
     path = folder / "policy.pt2"
     if not path.exists():
         raise InputError(f"{path}: no exported policy; expected a run that finished or saved its policy")
+    import logging
+
+    logging.disable(logging.WARNING)  # torch.export logs a traceback of its own for a damaged file
     try:
         program = torch.export.load(path).module()
         info = json.loads((folder / "policy.json").read_text())
     except Exception as exc:  # torch.export raises many kinds on a damaged file
         raise InputError(f"{path}: corrupt or not an exported policy ({type(exc).__name__})") from exc
+    finally:
+        logging.disable(logging.NOTSET)
     return _AnyBatch(program), info

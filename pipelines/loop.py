@@ -121,9 +121,8 @@ class OffPolicyPipeline:
         self.observation_dim = int(self.env.observation_spec["observation"].shape[-1])
         self.build()
         self.replay_buffer = self.make_replay_buffer()
-        self.counters: dict[str, Any] = {
-            "frames": 0, "updates": 0, "iteration": 0, "limiter": SampleToInsertRatio(1.0).state_dict()
-        }
+        self.counters: dict[str, Any] = {"frames": 0, "updates": 0, "iteration": 0}
+        self.limiter = SampleToInsertRatio(1.0 / cfg.collect_steps_per_iteration, cfg.first_update_frame)
         self._update_fn = torch.compile(self.update) if cfg.compile else self.update
 
     # --- what a pipeline supplies -------------------------------------------------------------
@@ -202,48 +201,67 @@ class OffPolicyPipeline:
             "collect_policy": self.collect_policy.state_dict(),
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
             "counters": dict(self.counters),
+            "limiter": self.limiter.state_dict(),
+            "replay_buffer": ckpt.replay_buffer_state(self.replay_buffer),
             "rng": ckpt.rng_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.loss_module.load_state_dict(state["loss"])
-        self.collect_policy.load_state_dict(state["collect_policy"])
-        for k, opt in self.optimizers.items():
-            opt.load_state_dict(state["optimizers"][k])
-        self.counters = dict(state["counters"])
-        ckpt.set_rng_state(state["rng"])
+        """Restore from ``state_dict`` output; ``InputError`` if it does not fit this pipeline."""
+        try:
+            self.loss_module.load_state_dict(state["loss"])
+            self.collect_policy.load_state_dict(state["collect_policy"])
+            for k, opt in self.optimizers.items():
+                opt.load_state_dict(state["optimizers"][k])
+            self.counters = dict(state["counters"])
+            self.limiter.load_state_dict(state["limiter"])
+            self.replay_buffer.empty()
+            ckpt.load_replay_buffer(self.replay_buffer, state["replay_buffer"])
+            ckpt.set_rng_state(state["rng"])
+        except (KeyError, ValueError, RuntimeError, TypeError, IndexError) as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise InputError(f"checkpoint does not fit this {self.algo} pipeline and config: {first[:200]}") from exc
 
     # --- the loop ---------------------------------------------------------------------------------
 
     def train(self, out: str | Path | None = None, *, resume: bool = False, progress: bool = True) -> TrainResult:
         """Run (or, with ``resume=True``, continue) training; write everything into the run directory."""
         cfg = self.config
+        evaluations: list[dict] = []
         if resume:
             if out is None:
                 raise InputError("resume needs the run directory to continue")
             run = RunDir.open(out)
-            state = ckpt.load_checkpoint(
-                ckpt.latest_checkpoint(run.checkpoints), self.algo, cfg.env, self.replay_buffer
-            )
-            self.load_state_dict(state)
+            path = ckpt.latest_checkpoint(run.checkpoints)
+            try:
+                self.load_state_dict(ckpt.load_checkpoint(path, self.algo, cfg.env))
+            except InputError as exc:
+                changed = _changed_keys(run.read_config()[1], config_to_dict(cfg))
+                hint = f" (keys changed since it was saved: {', '.join(changed)})" if changed else ""
+                raise InputError(f"{path / 'state.pt'}: {exc}{hint}") from exc
             metrics = MetricsCSV(run.metrics_path, list(self.loss_names), resume_after_step=self.counters["iteration"])
+            run.write_config(self.algo, config_to_dict(cfg))  # keys changed on resume are recorded
+            evaluations = [_eval_from_row(r) for r in metrics.rows() if r.get("average_return") not in ("", None)]
         else:
             run = RunDir.create(out or default_run_dir(self.algo, cfg.env), self.algo, config_to_dict(cfg))
             metrics = MetricsCSV(run.metrics_path, list(self.loss_names))
         self.run_dir = run
         logger = TensorboardLogger(exp_name="tb", log_dir=str(run.path))
         c = self.counters
-        frames_left = cfg.total_frames - c["frames"]
-        random_left = max(0, cfg.initial_collect_steps - c["frames"])
-        evaluations: list[dict] = []
         clock = _Clock()
         interval_stats = _IntervalStats()
-        eval_return = math.nan
+        eval_return = evaluations[-1]["average_return"] if evaluations else math.nan
         bar = tqdm(total=cfg.num_iterations, initial=c["iteration"], unit="it", disable=not progress,
                    desc=f"{self.algo} {cfg.env}", dynamic_ncols=True)
+        evaluator = None
+        collector = None
+        pending: dict[int, dict] = {}
+
+        def position() -> dict:
+            return {"step": c["iteration"], "frames": c["frames"], "updates": c["updates"]}
 
         def log_row(step_row: dict, at: dict | None = None) -> None:
-            at = at or {"step": c["iteration"], "frames": c["frames"], "updates": c["updates"]}
+            at = at or position()
             row = {**at, **step_row}
             metrics.append(row)
             for key, value in row.items():
@@ -262,14 +280,13 @@ class OffPolicyPipeline:
             bar.set_postfix(avg_return=f"{eval_return:.1f}", refresh=False)
 
         def run_eval(background: bool = False) -> None:
-            at = {"step": c["iteration"], "frames": c["frames"], "updates": c["updates"]}
             if background and evaluator is not None:
                 evaluator.trigger_eval(self.policy, step=c["iteration"])
-                pending[c["iteration"]] = at
+                pending[c["iteration"]] = position()
                 return
             with clock.paused():
                 result = evaluate(self.eval_env, self.policy, cfg.num_eval_episodes)
-            record_eval(result, at)
+            record_eval(result, position())
 
         def collect_background_evals(block: bool = False) -> None:
             while pending:
@@ -283,39 +300,44 @@ class OffPolicyPipeline:
 
         def save() -> None:
             with clock.paused():
-                ckpt.save_checkpoint(run.checkpoints, c["iteration"], self.state_dict(), self.replay_buffer)
+                ckpt.save_checkpoint(run.checkpoints, c["iteration"], self.state_dict())
 
         def export() -> None:
             with clock.paused():
                 export_policy(self.export_module(), self.observation_dim, run.policy_dir, self.export_info())
 
-        evaluator = self.make_evaluator() if cfg.eval_in_background else None
-        pending: dict[int, dict] = {}
-        if not resume:
-            run_eval()  # the tutorials evaluate once before training
-        collector = self.make_collector(frames_left, random_left) if frames_left > 0 else None
-        if collector is not None:
-            collector.set_seed(cfg.seed + c["frames"])
-        limiter = SampleToInsertRatio(1.0 / cfg.collect_steps_per_iteration, cfg.first_update_frame)
-        limiter.load_state_dict(c["limiter"])
-        clock.start()
+        def pay_updates() -> None:
+            n_updates = self.limiter.owed
+            for _ in range(n_updates):
+                losses = self._update_fn(self.replay_buffer.sample())
+                c["updates"] += 1
+                self.limiter.made(1)
+                self.after_update(c["updates"])
+                interval_stats.add_losses(losses)
+            if collector is not None and n_updates and c["updates"] % cfg.collector.weight_sync_interval < n_updates:
+                self._sync_weights(collector)
+
         try:
+            if not resume:
+                save()  # iteration 0: a run stopped at any point from here on can be resumed
+                run_eval()  # the tutorials evaluate once before training
+            evaluator = self.make_evaluator() if cfg.eval_in_background else None
+            frames_left = cfg.total_frames - c["frames"]
+            if frames_left > 0:
+                collector = self.make_collector(frames_left, max(0, cfg.initial_collect_steps - c["frames"]))
+                collector.set_seed(cfg.seed + c["frames"])
+            clock.start()
+            pay_updates()  # owed by a run stopped in the middle of a block
             for batch in collector or ():
                 batch = batch.reshape(-1)
+                # Collectors round their budget up to whole blocks; the run stops at its own.
+                batch = batch[: cfg.total_frames - c["frames"]]
                 self.replay_buffer.extend(batch)
                 c["frames"] += batch.numel()
                 interval_stats.add_frames(batch)
                 self.on_frames(batch.numel())
-                n_updates = limiter.insert(batch.numel())
-                c["limiter"] = limiter.state_dict()
-                if n_updates:
-                    for _ in range(n_updates):
-                        losses = self._update_fn(self.replay_buffer.sample())
-                        c["updates"] += 1
-                        self.after_update(c["updates"])
-                        interval_stats.add_losses(losses)
-                    if collector is not None and c["updates"] % cfg.collector.weight_sync_interval < n_updates:
-                        self._sync_weights(collector)
+                self.limiter.insert(batch.numel())
+                pay_updates()
                 previous = c["iteration"]
                 c["iteration"] = max(0, c["frames"] - cfg.initial_collect_steps) // cfg.collect_steps_per_iteration
                 bar.update(c["iteration"] - previous)
@@ -330,6 +352,8 @@ class OffPolicyPipeline:
                     export()
                 if _crossed(previous, now, cfg.checkpoint_interval) and now < cfg.num_iterations:
                     save()
+                if c["frames"] >= cfg.total_frames:
+                    break
         except KeyboardInterrupt:
             save()  # so --resume continues from here
             raise
@@ -394,6 +418,22 @@ class _PolicyCopy:
 
     def __call__(self, env=None) -> nn.Module:
         return copy.deepcopy(self.policy)
+
+
+def _changed_keys(saved: dict, current: dict, prefix: str = "") -> list[str]:
+    changed = []
+    for key, value in current.items():
+        if isinstance(value, dict) and isinstance(saved.get(key), dict):
+            changed += _changed_keys(saved[key], value, prefix + key + ".")
+        elif saved.get(key) != value:
+            changed.append(prefix + key)
+    return changed
+
+
+def _eval_from_row(row: dict[str, str]) -> dict[str, Any]:
+    return {"step": int(row["step"]), "frames": int(row["frames"]), "updates": int(row["updates"]),
+            "average_return": float(row["average_return"]),
+            "average_episode_length": float(row["average_episode_length"]), "returns": None}
 
 
 def _crossed(previous: int, now: int, interval: int) -> bool:

@@ -1,8 +1,8 @@
 """Samples-per-insert control: Reverb's ``SampleToInsertRatio`` for TorchRL collectors.
 
 TorchRL 0.14 has no rate limiter between a collector and a replay buffer, so this is ours. The
-loop inserts each collected block, asks ``insert`` how many updates the block has paid for, and
-makes them all before it takes the next block. TorchRL's multi-process collectors keep at most one
+loop inserts each collected block, asks ``insert`` how many updates are owed, and makes them all
+(reporting each with ``made``) before it takes the next block. TorchRL's multi-process collectors keep at most one
 block per worker in flight (a worker starts its next block when the learner takes the last one),
 so whatever the relative speeds, a fast learner waits for data and a fast collector waits for
 the learner: updates per inserted frame stay at ``updates_per_frame`` to within one block.
@@ -26,13 +26,20 @@ class SampleToInsertRatio:
         self._credit = 0.0
 
     def insert(self, frames: int) -> int:
-        """Record ``frames`` new frames; return how many updates are owed now (and count them as made)."""
+        """Record ``frames`` new frames; return how many updates are owed now (``owed``)."""
         before, self.frames = self.frames, self.frames + frames
         self._credit += self.updates_per_frame * max(0, self.frames - max(before, self.min_frames))
-        owed = int(self._credit + 1e-9)
-        self._credit -= owed
-        self.updates += owed
-        return owed
+        return self.owed
+
+    @property
+    def owed(self) -> int:
+        """Updates owed and not yet made."""
+        return int(self._credit + 1e-9)
+
+    def made(self, updates: int = 1) -> None:
+        """Count ``updates`` as made; the state stays exact if the loop stops between updates."""
+        self._credit -= updates
+        self.updates += updates
 
     @property
     def ratio(self) -> float:

@@ -78,8 +78,11 @@ class RunDir:
         if run.path.exists() and any(run.path.iterdir()):
             raise InputError(f"--out {run.path}: directory is not empty; expected a new or empty directory")
         run.path.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(run.config_path, {"algo": algo, "config": config})
+        run.write_config(algo, config)
         return run
+
+    def write_config(self, algo: str, config: dict) -> None:
+        write_json_atomic(self.config_path, {"algo": algo, "config": config})
 
     @classmethod
     def open(cls, path: Path | str) -> "RunDir":

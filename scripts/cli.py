@@ -26,8 +26,16 @@ os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the one-line error contract: ``rlpipe: error: ...`` and exit status 2."""
+
+    def error(self, message: str):
+        print(f"rlpipe: error: {message} (see `{self.prog} --help`)", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rlpipe", description="RL pipelines (SAC, TD3, DQN) on TorchRL.")
+    parser = _Parser(prog="rlpipe", description="RL pipelines (SAC, TD3, DQN) on TorchRL.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     train = sub.add_parser("train", help="train a preset (dqn, dqn-cartpole-v1, td3, sac, ...)")
@@ -187,7 +195,13 @@ def main(argv: list[str] | None = None) -> int:
     from rlpipe.envs import EnvError
     from rlpipe.pipelines.errors import InputError
 
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args, extra = parser.parse_known_args(argv)
+    # key=value overrides may come after options too (`--resume RUN num_iterations=40000`).
+    if extra and hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
+        args.overrides = [*args.overrides, *extra]
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     commands = {"train": cmd_train, "eval": cmd_eval, "video": cmd_video, "plot": cmd_plot,
                 "presets": cmd_presets}
     try:

@@ -230,12 +230,6 @@ def test_config_from_dict_rejects_bad_data(change, key):
         config_from_dict(DQNConfig, data)
 
 
-@pytest.mark.xfail(
-    reason="BUG: pipelines/config.py config_from_dict() reports only the first line of the OmegaConf error "
-    "(\"Value 'abc' of type 'str' could not be converted to Integer\"), which does not name the key; "
-    "fix: include exc.full_key and the expected type (as apply_overrides does).",
-    strict=True,
-)
 @pytest.mark.parametrize("change, key", [({"batch_size": "abc"}, "batch_size"), ({"fc_layer_params": "x"}, "fc_layer_params")])
 def test_config_from_dict_names_the_ill_typed_key(change, key):
     data = config_to_dict(preset("dqn"))

@@ -143,16 +143,7 @@ def test_counters(tiny_run):
         (["collect_steps_per_iteration=3"], 300),
         (["initial_collect_steps=0"], 300),
         (["learning_starts=200"], 200),  # updates begin after 200 env steps, 100 past the random ones
-        pytest.param(
-            ["num_iterations=333"], 333,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="BUG: pipelines/loop.py train() hands the collector total_frames=frames_left and never trims the "
-                "last block; TorchRL's Collector rounds total_frames up to a multiple of collector.frames_per_batch "
-                "(50), so 100+333 frames become 450: 350 iterations and updates instead of 333. Fix: trim the last "
-                "batch to cfg.total_frames - frames (or stop at total_frames) before extending the buffer.",
-            ),
-        ),
+        (["num_iterations=333"], 333),  # not a multiple of the collector block
     ],
 )
 def test_counters_match_the_config(tmp_path, extra, updates):
@@ -267,14 +258,6 @@ def test_user_qvalue_actor_and_loss_are_trained(tmp_path):
         assert exported(obs).tolist() == actor(TensorDict(observation=obs, batch_size=[20]))["action"].tolist()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: pipelines/dqn.py build() decides whether to update a target network from the config alone "
-    "(_has_target = not (tau == 1.0 and period == 1)); a user's DQNLoss built with TorchRL's default "
-    "delay_value=True has target parameters that then never get updated (TorchRL warns 'No target network "
-    "updater has been associated'), so it bootstraps from the initial random network forever. Fix: when the "
-    "loss has target params (getattr(loss, 'delay_value', False)), attach HardUpdate/SoftUpdate regardless.",
-)
 def test_user_loss_with_a_target_network_gets_target_updates(tmp_path):
     spec = make_env("CartPole-v0").action_spec
     actor = _actor(spec)
@@ -288,13 +271,6 @@ def test_user_loss_with_a_target_network_gets_target_updates(tmp_path):
         torch.testing.assert_close(target[key], online[key])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: pipelines/dqn.py build() makes a fresh make_qvalue_actor() policy when only loss_module is given, "
-    "so the loss trains the user's network while collection, evaluation, export and result.policy use an "
-    "untrained one. Fix: take the policy from the loss (loss.value_network) when qvalue_actor is None, "
-    "or raise InputError asking for both.",
-)
 def test_user_loss_alone_trains_the_policy_that_is_evaluated(tmp_path):
     spec = make_env("CartPole-v0").action_spec
     loss = DQNLoss(_actor(spec), action_space=spec, delay_value=False)

@@ -87,7 +87,7 @@ def test_tutorial_minitaur_id_resolves_to_ours():
     assert resolve_env_id("CartPole-v1") == "CartPole-v1"
     env = make_env("MinitaurBulletEnv-v0", seed=0)
     try:
-        assert env.base_env._env.spec.id == MINITAUR_ID
+        assert env.base_env.env_name == MINITAUR_ID
         assert env.observation_spec["observation"].dtype == torch.float32
         assert not is_discrete(env)
     finally:
