@@ -173,6 +173,12 @@ class OffPolicyPipeline:
         )
         if c.workers == 1 and c.sync:
             return Collector(self.env, self.collect_policy, **common)
+        if not c.sync and init_random_frames > 0:
+            # MultiAsyncCollector decides random-or-policy for a worker's next block when it hands
+            # over that worker's last one, so the other workers' blocks in flight are random too:
+            # ask for that many fewer, and exactly `init_random_frames` come out random (to a block).
+            # (Each async worker's block is a whole `frames_per_batch`.)
+            common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
         cls = MultiSyncCollector if c.sync else MultiAsyncCollector
         return cls([self.env_fn] * c.workers, self.collect_policy, **common)
 
