@@ -132,7 +132,7 @@ def bench_td3(args, out: Path, train_seeds) -> dict:
     peer_speed = statistics.mean(p["updates_per_s"] for p in peer)
     peer_return = statistics.mean(p["final_average_return"] for p in peer)
     lines.append(f"| tutorial's plain PyTorch (peer) | {peer_speed:.0f} | 1.00 | {peer_return:.1f} | "
-                 f"{', '.join(f'{p['final_average_return']:.0f}' for p in peer)} |")
+                 f"{', '.join(format(p['final_average_return'], '.0f') for p in peer)} |")
     for label, extra in (("rlpipe, in-process collection", ["collector.sync=true"]),
                          ("rlpipe, async collector process", ["collector.sync=false"])):
         results = train_seeds("td3", budget + extra, args.seeds, out / extra[0].replace("=", "-"))
