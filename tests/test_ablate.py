@@ -1,0 +1,245 @@
+"""`rlpipe ablate td3` as a user runs it: a tiny study (2 variants x 2 seeds, 600 env steps each)
+interrupted with Ctrl-C while its runs are in flight, rerun to completion, then rerun again (nothing
+left to do); and bad input refused before anything is created.
+
+``--steps 600`` is 50 start-up steps (a tenth, in whole 50-step blocks) + 550 iterations, evaluated
+every 250 iterations and at the end.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rlpipe.scripts.cli import main
+
+CLI = [sys.executable, "-m", "rlpipe.scripts.cli"]
+VARIANTS = ("full", "no_clipped_double_q")
+STUDY = ["ablate", "td3", "--envs", "Pendulum-v1", "--seeds", "2", "--steps", "600", "--evals", "2",
+         "--eval-episodes", "1", "--variants", ",".join(VARIANTS), "--workers", "2"]
+RUNS = [(variant, seed) for variant in VARIANTS for seed in (0, 1)]
+
+
+def run_dir(out: Path, variant: str, seed: int) -> Path:
+    return out / "Pendulum-v1" / variant / f"seed{seed}"
+
+
+def checkpoint_step(run: Path) -> int:
+    try:
+        return int((run / "checkpoints" / "latest").read_text().strip().removeprefix("step_"))
+    except (OSError, ValueError):
+        return -1
+
+
+def read_rows(run: Path) -> list[dict]:
+    try:
+        with (run / "metrics.csv").open(newline="") as fh:
+            return list(csv.DictReader(fh))
+    except OSError:
+        return []
+
+
+def eval_steps(rows: list[dict]) -> list[int]:
+    return [int(r["step"]) for r in rows if r["average_return"]]
+
+
+def group_members(pgid: int) -> list[str]:
+    found = []
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                with open(f"/proc/{name}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if fields[0] != "Z" and int(fields[2]) == pgid:
+                found.append(name)
+    return found
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ablation") / "study"
+    command = [*CLI, *STUDY, "--out", str(out)]
+    info = {"out": out}
+
+    # 1. Ctrl-C (SIGINT to the process group, as a terminal sends it) while runs are in flight:
+    #    the moment a run has logged iteration 250 and is evaluating it (its evaluation row not
+    #    written yet); the other run is mid-way too.
+    t0 = time.monotonic()
+    first = subprocess.Popen(command, start_new_session=True, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        evaluating = None
+        while time.monotonic() < deadline and first.poll() is None and evaluating is None:
+            for v, s in RUNS:
+                steps = [(int(r["step"]), bool(r["average_return"])) for r in read_rows(run_dir(out, v, s))]
+                if (250, False) in steps and (250, True) not in steps:
+                    evaluating = (v, s)
+            time.sleep(0.01)
+        info["interrupt_at_s"] = time.monotonic() - t0
+        os.killpg(first.pid, signal.SIGINT)
+        info["evaluating"] = evaluating
+        info["in_flight"] = {f"{v}/seed{s}": checkpoint_step(run_dir(out, v, s)) for v, s in RUNS}
+        info["done_before_interrupt"] = [f"{v}/seed{s}" for v, s in RUNS
+                                         if (run_dir(out, v, s) / "summary.json").exists()]
+        _, info["interrupt_stderr"] = first.communicate(timeout=60)
+        info["interrupt_exit"] = first.returncode
+        time.sleep(0.5)
+        info["interrupt_left"] = group_members(first.pid)
+        info["report_after_interrupt"] = (out / "ablation.csv").exists()
+        info["rows_after_interrupt"] = {run: read_rows(run_dir(out, *run)) for run in RUNS}
+    finally:
+        if first.poll() is None:
+            os.killpg(first.pid, signal.SIGKILL)
+            first.wait()
+
+    # 2. the same command again: resumes the interrupted runs, runs the others, writes the report
+    t0 = time.monotonic()
+    second = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    info["resume"], info["resume_s"] = second, time.monotonic() - t0
+    info["summary_mtimes"] = {run: (run_dir(out, *run) / "summary.json").stat().st_mtime_ns
+                              for run in RUNS if (run_dir(out, *run) / "summary.json").exists()}
+
+    # 3. and again: nothing left to run
+    t0 = time.monotonic()
+    info["again"] = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    info["again_s"] = time.monotonic() - t0
+    return info
+
+
+def test_ctrl_c_stops_the_study_and_its_runs(study):
+    assert study["evaluating"] is not None, "no run was caught evaluating iteration 250"
+    assert study["done_before_interrupt"] == [], "the study finished a run before it was interrupted"
+    assert study["interrupt_exit"] == 130, study["interrupt_stderr"][-2000:]
+    assert "rerun the same command" in study["interrupt_stderr"]
+    assert study["interrupt_left"] == []  # no run keeps going in the background
+    assert not study["report_after_interrupt"]
+    # the run caught evaluating has a checkpoint to resume from
+    assert study["in_flight"]["{}/seed{}".format(*study["evaluating"])] >= 0
+
+
+def test_rerun_completes_every_run(study):
+    second = study["resume"]
+    assert second.returncode == 0, second.stderr[-3000:]
+    out = study["out"]
+    for variant, seed in RUNS:
+        run = run_dir(out, variant, seed)
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["iterations"] == 550 and summary["frames"] == 600, (variant, seed, summary)
+        assert summary["seed"] == seed
+        config = json.loads((run / "config.json").read_text())["config"]
+        assert config["clipped_double_q"] is (variant == "full")
+        assert all(config[k] for k in ("deterministic_policy", "experience_replay", "target_networks",
+                                       "target_policy_smoothing", "delayed_policy_updates"))
+        # an interrupted run was continued, not started over: no evaluation twice, in order
+        evals = eval_steps(read_rows(run))
+        assert evals == sorted(set(evals)) and evals[0] == 0 and evals[-1] == 550, (variant, seed, evals)
+        assert set(evals) <= {0, 250, 500, 550}
+    # the runs that were in flight resumed from their checkpoint (their logs say so)
+    variant, seed = study["evaluating"]
+    log = (out / "Pendulum-v1" / variant / f"seed{seed}.log").read_text()
+    assert "interrupted" in log, log[-2000:]
+    kept = study["rows_after_interrupt"][(variant, seed)]
+    assert read_rows(run_dir(out, variant, seed))[: len(kept)] == kept  # its rows before the interrupt
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "BUG: Ctrl-C during an evaluation loses that evaluation: loop.py sets counters['iteration'] "
+    "before the block's triggers run and the KeyboardInterrupt handler checkpoints that iteration, "
+    "so the resumed run never crosses it again and skips its evaluation (export and periodic "
+    "checkpoint alike)"))
+def test_run_interrupted_while_evaluating_still_has_every_evaluation(study):
+    run = study["evaluating"]
+    assert run is not None
+    if (250, True) in [(int(r["step"]), bool(r["average_return"])) for r in study["rows_after_interrupt"][run]]:
+        pytest.skip("the Ctrl-C landed after the evaluation had finished")
+    assert eval_steps(read_rows(run_dir(study["out"], *run))) == [0, 250, 500, 550]
+
+
+def test_report_lists_every_run(study):
+    assert study["resume"].returncode == 0, study["resume"].stderr[-3000:]
+    out = study["out"]
+    with (out / "ablation.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(RUNS)
+    assert set(rows[0]) >= {"env", "variant", "seed", "final_return", "auc"}
+    assert sorted((r["variant"], int(float(r["seed"]))) for r in rows) == sorted(RUNS)
+    assert {r["env"] for r in rows} == {"Pendulum-v1"}
+    for r in rows:
+        final = float(r["final_return"])
+        assert -2000 < final <= 0 and float(r["auc"]) == float(r["auc"])  # a number, not NaN
+        summary = json.loads((run_dir(out, r["variant"], int(float(r["seed"]))) / "summary.json").read_text())
+        assert final == pytest.approx(summary["final_average_return"], rel=1e-4)
+
+    md = (out / "ablation.md").read_text()
+    for variant in VARIANTS:
+        assert variant in md
+    full_line = next(line for line in md.splitlines() if "full" in line and "|" in line)
+    assert "**" in full_line or "★" in full_line, full_line  # the full agent is marked
+    for name in ("curves_Pendulum-v1.png", "ecdf_final_returns.png"):
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, name
+    # the command prints where the report is
+    for name in ("ablation.csv", "ablation.md", "curves_Pendulum-v1.png", "ecdf_final_returns.png"):
+        assert name in study["resume"].stdout
+
+
+def test_rerun_of_a_finished_study_skips_every_run(study):
+    again = study["again"]
+    assert again.returncode == 0, again.stderr[-3000:]
+    mtimes = {run: (run_dir(study["out"], *run) / "summary.json").stat().st_mtime_ns for run in RUNS}
+    assert mtimes == study["summary_mtimes"]
+    assert study["again_s"] < 30, f"took {study['again_s']:.0f} s with nothing to run"
+    assert "ablation.md" in again.stdout
+
+
+# --- bad input ---------------------------------------------------------------------------------------
+
+
+BAD = {
+    "zero seeds": (["--seeds", "0"], "--seeds"),
+    "unknown variant": (["--variants", "full,no_target_nets"], "no_target_nets"),
+    "unknown env": (["--envs", "Pendulum-v9"], "Pendulum-v9"),
+    "key typo": (["lerning_rate=1e-3"], "lerning_rate"),
+}
+
+
+def _args(out: Path, change: list[str]) -> list[str]:
+    args = [*STUDY, "--out", str(out)]
+    if change[0].startswith("--"):
+        i = args.index(change[0])
+        args[i + 1] = change[1]
+    else:
+        args += change
+    return args
+
+
+@pytest.mark.parametrize("name", list(BAD))
+def test_bad_input_is_one_line_and_creates_nothing(name, tmp_path, capsys):
+    change, word = BAD[name]
+    out = tmp_path / "study"
+    code = main(_args(out, change))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith("rlpipe: error:") and word in err[0], err
+    assert not out.exists()
+
+
+def test_bad_input_in_a_real_process(tmp_path):
+    out = tmp_path / "study"
+    proc = subprocess.run([*CLI, *_args(out, BAD["key typo"][0])], capture_output=True, text=True, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2
+    assert len(lines) == 1 and lines[0].startswith("rlpipe: error:") and "lerning_rate" in lines[0], proc.stderr
+    assert "learning_rate" in lines[0]  # the closest valid key is suggested
+    assert not out.exists()
