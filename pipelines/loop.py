@@ -13,15 +13,27 @@ plain ``nn.Module``). Everything else is here, once:
   update-to-data ratio, with far less per-step overhead than one step / one update;
 * triggers at iteration counts: evaluate, log, checkpoint, export; a progress bar;
 * a run directory (see ``rundir``) and resume from its last checkpoint.
+
+Ctrl-C stops at the next safe point: between two updates, between two env steps of an evaluation,
+or between two triggers. The checkpoint it saves then records what that iteration still owes (the
+updates its frames paid for, the triggers not yet run, the background evaluations not yet back,
+with the weights each was asked for), and ``--resume`` does exactly those first. Collector and
+evaluator processes never see the Ctrl-C (they are started with SIGINT blocked): the learner stops
+them, so none is killed in the middle of a message. A second Ctrl-C stops at once, without saving.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import math
 import random
+import signal
+import sys
+import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,9 +41,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
-from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
+from torchrl.collectors import Collector, Evaluator, MultiAsyncCollector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import TensorboardLogger
@@ -121,7 +133,10 @@ class OffPolicyPipeline:
         self.observation_dim = int(self.env.observation_spec["observation"].shape[-1])
         self.build()
         self.replay_buffer = self.make_replay_buffer()
-        self.counters: dict[str, Any] = {"frames": 0, "updates": 0, "iteration": 0}
+        # "triggers": what the current iteration still owes (log, eval, export, save), in order.
+        self.counters: dict[str, Any] = {"frames": 0, "updates": 0, "iteration": 0, "triggers": []}
+        # Background evaluations asked for and not back yet: (position, policy weights), oldest first.
+        self.background_evals: deque[tuple[dict, TensorDictBase]] = deque()
         self.limiter = SampleToInsertRatio(1.0 / cfg.collect_steps_per_iteration, cfg.first_update_frame)
         self._update_fn = torch.compile(self.update) if cfg.compile else self.update
 
@@ -186,8 +201,6 @@ class OffPolicyPipeline:
         """TorchRL's ``Evaluator`` in a child process, fed snapshots of ``policy``'s weights."""
         if self.env_fn is None:
             raise InputError("eval_in_background=true: pass env as a function that makes the env")
-        from torchrl.collectors import Evaluator
-
         return Evaluator(
             self.env_fn,
             policy_factory=_PolicyCopy(self.policy),
@@ -208,6 +221,8 @@ class OffPolicyPipeline:
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
             "counters": dict(self.counters),
             "limiter": self.limiter.state_dict(),
+            "background_evals": [{"at": dict(at), "weights": dict(w.flatten_keys("/").items())}
+                                 for at, w in self.background_evals],
             "replay_buffer": ckpt.replay_buffer_state(self.replay_buffer),
             "rng": ckpt.rng_state(),
         }
@@ -219,7 +234,10 @@ class OffPolicyPipeline:
             self.collect_policy.load_state_dict(state["collect_policy"])
             for k, opt in self.optimizers.items():
                 opt.load_state_dict(state["optimizers"][k])
-            self.counters = dict(state["counters"])
+            self.counters = {"triggers": [], **state["counters"]}
+            self.counters["triggers"] = list(self.counters["triggers"])
+            self.background_evals = deque((dict(e["at"]), TensorDict(e["weights"]).unflatten_keys("/"))
+                                          for e in state.get("background_evals", []))
             self.limiter.load_state_dict(state["limiter"])
             self.replay_buffer.empty()
             ckpt.load_replay_buffer(self.replay_buffer, state["replay_buffer"])
@@ -231,7 +249,11 @@ class OffPolicyPipeline:
     # --- the loop ---------------------------------------------------------------------------------
 
     def train(self, out: str | Path | None = None, *, resume: bool = False, progress: bool = True) -> TrainResult:
-        """Run (or, with ``resume=True``, continue) training; write everything into the run directory."""
+        """Run (or, with ``resume=True``, continue) training; write everything into the run directory.
+
+        Ctrl-C (SIGINT) saves a checkpoint at the next safe point and raises ``KeyboardInterrupt``;
+        ``train(out, resume=True)`` then continues exactly from there.
+        """
         cfg = self.config
         evaluations: list[dict] = []
         if resume:
@@ -248,9 +270,11 @@ class OffPolicyPipeline:
             metrics = MetricsCSV(run.metrics_path, list(self.loss_names), resume_after_step=self.counters["iteration"])
             run.write_config(self.algo, config_to_dict(cfg))  # keys changed on resume are recorded
             evaluations = [_eval_from_row(r) for r in metrics.rows() if r.get("average_return") not in ("", None)]
+            self._drop_done_work(metrics.rows())
         else:
             run = RunDir.create(out or default_run_dir(self.algo, cfg.env), self.algo, config_to_dict(cfg))
             metrics = MetricsCSV(run.metrics_path, list(self.loss_names))
+            self.counters["triggers"] = ["eval"]  # the tutorials evaluate once before training
         self.run_dir = run
         logger = TensorboardLogger(exp_name="tb", log_dir=str(run.path))
         c = self.counters
@@ -259,9 +283,11 @@ class OffPolicyPipeline:
         eval_return = evaluations[-1]["average_return"] if evaluations else math.nan
         bar = tqdm(total=cfg.num_iterations, initial=c["iteration"], unit="it", disable=not progress,
                    desc=f"{self.algo} {cfg.env}", dynamic_ncols=True)
+        stop = _DeferredInterrupt()
         evaluator = None
         collector = None
-        pending: dict[int, dict] = {}
+        background = self.background_evals  # (position, weights) asked for and not back yet, oldest first
+        in_flight: list = []  # the one of them the evaluator has (TorchRL's is fed one at a time)
 
         def position() -> dict:
             return {"step": c["iteration"], "frames": c["frames"], "updates": c["updates"]}
@@ -285,21 +311,41 @@ class OffPolicyPipeline:
                 self._plot_returns(run, metrics)
             bar.set_postfix(avg_return=f"{eval_return:.1f}", refresh=False)
 
-        def run_eval(background: bool = False) -> None:
-            if background and evaluator is not None:
-                evaluator.trigger_eval(self.policy, step=c["iteration"])
-                pending[c["iteration"]] = position()
-                return
+        def run_eval(weights: TensorDictBase | None = None, at: dict | None = None) -> None:
+            """Evaluate the policy now (or ``weights``, taken at ``at``), in this process."""
+            policy = self.policy
+            if weights is not None:
+                policy = copy.deepcopy(self.policy)
+                weights.to_module(policy)
             with clock.paused():
-                result = evaluate(self.eval_env, self.policy, cfg.num_eval_episodes)
-            record_eval(result, position())
+                result = evaluate(self.eval_env, policy, cfg.num_eval_episodes, interrupt=stop.check)
+            record_eval(result, at or position())
 
-        def collect_background_evals(block: bool = False) -> None:
-            while pending:
-                result = evaluator.wait() if block else evaluator.poll()
-                if result is None:
+        def feed_evaluator() -> None:
+            # TorchRL 0.14's Evaluator loses a request when a second one is queued while the first
+            # finishes (its backend's poll clears the pending flag of the next request), and the run
+            # then waits forever for that result: hand it one request at a time.
+            if background and not in_flight:
+                at, weights = background[0]
+                with _sigint_blocked():  # the evaluator starts its worker (thread and process) lazily
+                    evaluator.trigger_eval(weights, step=at["step"])
+                in_flight.append(background[0])
+
+        def collect_background_evals(block: bool = False, feed: bool = True) -> None:
+            while background:
+                if feed:
+                    feed_evaluator()
+                elif not in_flight:
                     return
-                at = pending.pop(int(result["eval/step"]))
+                result = evaluator.poll(timeout=0.2 if block else 0)
+                if result is None:
+                    if not block:
+                        return
+                    stop.check()
+                    continue
+                at, _ = in_flight.pop()
+                background.popleft()
+                assert int(result["eval/step"]) == at["step"], (result["eval/step"], at)
                 record_eval({"average_return": float(result["eval/reward"]),
                              "average_episode_length": float(result["eval/episode_length"]),
                              "returns": None}, at)
@@ -312,76 +358,132 @@ class OffPolicyPipeline:
             with clock.paused():
                 export_policy(self.export_module(), self.observation_dim, run.policy_dir, self.export_info())
 
+        def run_triggers() -> None:
+            """Run what the current iteration owes, in order; each is crossed off once done."""
+            owed = c["triggers"]
+            while owed:
+                stop.check()
+                name = owed[0]
+                if name == "save":
+                    owed.pop(0)  # the checkpoint it writes owes nothing more
+                    save()
+                    continue
+                if name == "log":
+                    log_row(interval_stats.flush(clock))
+                elif name == "eval":
+                    if evaluator is not None and c["iteration"] > 0:
+                        background.append((position(), Evaluator.extract_weights(self.policy)))
+                        collect_background_evals()
+                    else:
+                        run_eval()
+                elif name == "export":
+                    export()
+                owed.pop(0)
+
         def pay_updates() -> None:
-            n_updates = self.limiter.owed
-            for _ in range(n_updates):
+            n_updates = 0
+            while self.limiter.owed:
+                stop.check()
                 losses = self._update_fn(self.replay_buffer.sample())
                 c["updates"] += 1
+                n_updates += 1
                 self.limiter.made(1)
                 self.after_update(c["updates"])
                 interval_stats.add_losses(losses)
             if collector is not None and n_updates and c["updates"] % cfg.collector.weight_sync_interval < n_updates:
                 self._sync_weights(collector)
 
-        try:
-            if not resume:
-                save()  # iteration 0: a run stopped at any point from here on can be resumed
-                run_eval()  # the tutorials evaluate once before training
-            evaluator = self.make_evaluator() if cfg.eval_in_background else None
-            frames_left = cfg.total_frames - c["frames"]
-            if frames_left > 0:
-                collector = self.make_collector(frames_left, max(0, cfg.initial_collect_steps - c["frames"]))
-                collector.set_seed(cfg.seed + c["frames"])
-            clock.start()
-            pay_updates()  # owed by a run stopped in the middle of a block
-            for batch in collector or ():
-                batch = batch.reshape(-1)
-                # Collectors round their budget up to whole blocks; the run stops at its own.
-                batch = batch[: cfg.total_frames - c["frames"]]
-                self.replay_buffer.extend(batch)
-                c["frames"] += batch.numel()
-                interval_stats.add_frames(batch)
-                self.on_frames(batch.numel())
-                self.limiter.insert(batch.numel())
-                pay_updates()
-                previous = c["iteration"]
-                c["iteration"] = max(0, c["frames"] - cfg.initial_collect_steps) // cfg.collect_steps_per_iteration
-                bar.update(c["iteration"] - previous)
-                now = c["iteration"]
-                if _crossed(previous, now, cfg.log_interval):
-                    log_row(interval_stats.flush(clock))
-                if cfg.eval_interval and _crossed(previous, now, cfg.eval_interval) and now < cfg.num_iterations:
-                    run_eval(background=True)
-                if pending:
-                    collect_background_evals()
-                if _crossed(previous, now, cfg.policy_save_interval):
-                    export()
-                if _crossed(previous, now, cfg.checkpoint_interval) and now < cfg.num_iterations:
-                    save()
-                if c["frames"] >= cfg.total_frames:
-                    break
-        except KeyboardInterrupt:
-            save()  # so --resume continues from here
-            raise
-        finally:
-            if collector is not None:
-                collector.shutdown()
-            if evaluator is not None:
-                try:
-                    if pending:
-                        with clock.paused():
-                            collect_background_evals(block=True)
-                finally:
+        # The deferred Ctrl-C handler stays on through the checkpoint saved on an interrupt: a SIGINT
+        # delivered twice (the terminal's and a parent's) must not cut that save short.
+        with stop:
+            try:
+                if not resume:
+                    save()  # iteration 0: a run stopped at any point from here on can be resumed
+                if cfg.eval_in_background:
+                    evaluator = self.make_evaluator()
+                elif background:  # asked for in the background before a resume that turned it off
+                    while background:
+                        at, weights = background[0]
+                        run_eval(weights, at)
+                        background.popleft()
+                clock.start()
+                pay_updates()  # owed by a run stopped in the middle of a block ...
+                run_triggers()  # ... and what its iteration still had to do
+                frames_left = cfg.total_frames - c["frames"]
+                if frames_left > 0:
+                    with _sigint_blocked(), clock.paused():  # worker start-up is not training time
+                        collector = self.make_collector(frames_left, max(0, cfg.initial_collect_steps - c["frames"]))
+                    collector.set_seed(cfg.seed + c["frames"])
+                for batch in collector or ():
+                    batch = batch.reshape(-1)
+                    # Collectors round their budget up to whole blocks; the run stops at its own.
+                    batch = batch[: cfg.total_frames - c["frames"]]
+                    self.replay_buffer.extend(batch)
+                    c["frames"] += batch.numel()
+                    interval_stats.add_frames(batch)
+                    self.on_frames(batch.numel())
+                    self.limiter.insert(batch.numel())
+                    previous = c["iteration"]
+                    now = c["iteration"] = max(0, c["frames"] - cfg.initial_collect_steps) // cfg.collect_steps_per_iteration
+                    c["triggers"] = self._triggers_between(previous, now)
+                    bar.update(now - previous)
+                    pay_updates()
+                    run_triggers()
+                    if background:
+                        collect_background_evals()
+                    if c["frames"] >= cfg.total_frames:
+                        break
+                if collector is not None:
+                    collector.shutdown()
+                    collector = None
+                if background:
+                    with clock.paused():
+                        collect_background_evals(block=True)
+                if not evaluations or evaluations[-1]["step"] != c["iteration"]:
+                    run_eval()
+            except _Stopped:
+                if in_flight:
+                    collect_background_evals(feed=False)  # one already back is kept; the others are saved
+                save()  # with what this iteration still owes: --resume does that first
+                raise KeyboardInterrupt from None
+            finally:
+                if collector is not None:
+                    collector.shutdown()
+                if evaluator is not None:
                     evaluator.shutdown()
-            bar.close()
-        if not evaluations or evaluations[-1]["step"] != c["iteration"]:
-            run_eval()
-        export()
-        save()
-        summary = self._summary(run, evaluations, clock)
-        write_json_atomic(run.summary_path, summary)
+                bar.close()
+            export()
+            save()
+            summary = self._summary(run, evaluations, clock)
+            write_json_atomic(run.summary_path, summary)
         return TrainResult(policy=self.policy, run_dir=run.path, metrics=metrics.rows(), summary=summary,
                            evaluations=evaluations)
+
+    def _triggers_between(self, previous: int, now: int) -> list[str]:
+        """The triggers whose interval has a multiple in (previous, now], in the order they run."""
+        cfg = self.config
+        owed = []
+        if _crossed(previous, now, cfg.log_interval):
+            owed.append("log")
+        if cfg.eval_interval and _crossed(previous, now, cfg.eval_interval) and now < cfg.num_iterations:
+            owed.append("eval")  # the last iteration's evaluation runs after the loop, in the foreground
+        if _crossed(previous, now, cfg.policy_save_interval):
+            owed.append("export")
+        if _crossed(previous, now, cfg.checkpoint_interval) and now < cfg.num_iterations:
+            owed.append("save")
+        return owed
+
+    def _drop_done_work(self, rows: list[dict[str, str]]) -> None:
+        """On resume, forget owed work whose rows were written after the checkpoint was saved."""
+        step = self.counters["iteration"]
+        logged = {int(r["step"]) for r in rows if r.get("steps_per_s") not in ("", None)}
+        evaluated = {int(r["step"]) for r in rows if r.get("average_return") not in ("", None)}
+        owed = self.counters["triggers"]
+        if "log" in owed and step in logged:
+            owed.remove("log")
+        if "eval" in owed and step in evaluated:
+            owed.remove("eval")
+        self.background_evals = deque((at, w) for at, w in self.background_evals if at["step"] not in evaluated)
 
     # --- helpers ----------------------------------------------------------------------------------
 
@@ -414,6 +516,74 @@ class OffPolicyPipeline:
             "env_steps_per_s": c["frames"] / train_s if train_s > 0 else None,
             "updates_per_s": c["updates"] / train_s if train_s > 0 else None,
         }
+
+
+class _Stopped(Exception):
+    """Ctrl-C reached a safe point (an ``Exception``, so cleanup code in libraries runs as usual)."""
+
+
+class _DeferredInterrupt:
+    """While active (main thread only), Ctrl-C sets a flag that ``check`` turns into ``_Stopped``.
+
+    A ``KeyboardInterrupt`` raised wherever the learner happens to be can land inside an optimiser
+    step or inside a library's context manager (tensordict's ``to_module`` turns it into an
+    unrelated ``RuntimeError``), and the state it leaves is not one to checkpoint. The loop calls
+    ``check`` where its state is whole. A second Ctrl-C raises ``KeyboardInterrupt`` at once.
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._first = 0.0
+        self._installed = False
+        self._previous = None
+
+    def __enter__(self) -> "_DeferredInterrupt":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+            self._installed = True
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._installed:
+            # None: the handler was not set from Python; the default one is the closest to it
+            signal.signal(signal.SIGINT, signal.default_int_handler if self._previous is None else self._previous)
+            self._installed = False
+
+    # A second SIGINT this soon after the first is the same Ctrl-C delivered twice (the terminal's to
+    # the process group, and a parent's such as `rlpipe ablate` forwarding it), not a second press.
+    SAME_PRESS_S = 2.0
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            if time.monotonic() - self._first < self.SAME_PRESS_S:
+                return
+            raise KeyboardInterrupt
+        self.requested = True
+        self._first = time.monotonic()
+        print("\nrlpipe: stopping at the next safe point to save a checkpoint (Ctrl-C again: stop now, unsaved)",
+              file=sys.stderr, flush=True)
+
+    def check(self) -> None:
+        if self.requested:
+            raise _Stopped
+
+
+@contextlib.contextmanager
+def _sigint_blocked():
+    """Start processes (and threads) with SIGINT blocked, so a Ctrl-C reaches the learner alone.
+
+    The block is inherited by threads started here and by the processes they spawn (the signal
+    mask survives fork and exec); the learner's own SIGINT, if one comes meanwhile, waits until
+    the block is lifted. The learner then shuts the workers down itself.
+    """
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 class _PolicyCopy:

@@ -128,9 +128,6 @@ def test_ctrl_c_stops_the_study_and_its_runs(study):
     assert study["in_flight"]["{}/seed{}".format(*study["evaluating"])] >= 0
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "FLAKY, to investigate: depends on where the Ctrl-C lands; seen twice with an evaluation at step 300 "
-    "after the resume (blocks no longer aligned with eval_interval), passes in other runs"))
 def test_rerun_completes_every_run(study):
     second = study["resume"]
     assert second.returncode == 0, second.stderr[-3000:]
@@ -156,11 +153,6 @@ def test_rerun_completes_every_run(study):
     assert read_rows(run_dir(out, variant, seed))[: len(kept)] == kept  # its rows before the interrupt
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "BUG: Ctrl-C during an evaluation loses that evaluation: loop.py sets counters['iteration'] "
-    "before the block's triggers run and the KeyboardInterrupt handler checkpoints that iteration, "
-    "so the resumed run never crosses it again and skips its evaluation (export and periodic "
-    "checkpoint alike)"))
 def test_run_interrupted_while_evaluating_still_has_every_evaluation(study):
     run = study["evaluating"]
     assert run is not None
