@@ -216,14 +216,14 @@ def test_resuming_a_finished_run_adds_no_duplicated_rows(saved_run, tmp_path):
 
 
 class _InterruptedDQN(DQN):
-    """Raises KeyboardInterrupt in the middle of a block of updates, as a Ctrl-C landing there does."""
+    """Gets a Ctrl-C (SIGINT to this process) in the middle of a block of updates."""
 
     at = 125
 
     def update(self, batch):
         self.calls = getattr(self, "calls", 0) + 1
         if self.calls == self.at:
-            raise KeyboardInterrupt
+            os.kill(os.getpid(), signal.SIGINT)
         return super().update(batch)
 
 
@@ -232,6 +232,9 @@ def test_ctrl_c_during_updates_loses_no_updates(tmp_path):
                                           "num_eval_episodes=1", "checkpoint_interval=100"])
     with pytest.raises(KeyboardInterrupt):
         _InterruptedDQN(cfg).train(tmp_path / "run", progress=False)
+    # saved where it stopped: after the 125th update, within the block of iteration 150
+    state = ckpt.load_checkpoint(ckpt.latest_checkpoint(tmp_path / "run" / "checkpoints"), "dqn", "CartPole-v0")
+    assert state["counters"]["updates"] == 125 and state["counters"]["iteration"] == 150, state["counters"]
     result = DQN(cfg).train(tmp_path / "run", resume=True, progress=False)
     assert result.summary["iterations"] == 300
     assert result.summary["updates"] == 300
@@ -245,10 +248,11 @@ def test_resume_with_changed_keys_records_them_in_config_json(saved_run, tmp_pat
 
 
 class _InterruptedAtStart(DQN):
-    """Raises KeyboardInterrupt while the collector starts (seconds with collector.workers>1)."""
+    """Gets a Ctrl-C while the collector starts (seconds with collector.workers>1)."""
 
     def make_collector(self, *args, **kwargs):
-        raise KeyboardInterrupt
+        os.kill(os.getpid(), signal.SIGINT)
+        return super().make_collector(*args, **kwargs)
 
 
 def test_ctrl_c_before_the_first_checkpoint_can_be_resumed(tmp_path):
@@ -463,3 +467,42 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tmp_path):
     rows = metric_rows(run)
     assert_no_duplicated_steps(rows)
     assert int(rows[-1]["step"]) == 1500
+
+
+def _logged_past(run: Path, step: int) -> bool:
+    try:
+        return any(int(r["step"]) >= step for r in metric_rows(run))
+    except (OSError, ValueError, TypeError):  # not written yet, or a line half-written
+        return False
+
+
+def test_resume_after_a_kill_has_every_evaluation_once(tmp_path):
+    """kill -9 (no chance to save): --resume continues from the last periodic checkpoint, and the
+    rows written after it are replaced, not repeated."""
+    run = tmp_path / "run"
+    args = ["train", "dqn", "num_iterations=600", "initial_collect_steps=100", "eval_interval=100",
+            "num_eval_episodes=1", "log_interval=50", "checkpoint_interval=100", "policy_save_interval=100",
+            "--no-progress"]
+    proc = subprocess.Popen([*RLPIPE, *args, "--out", str(run)], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not _logged_past(run, 350):
+            assert proc.poll() is None, f"training ended before it could be killed: {proc.communicate()}"
+            assert time.monotonic() < deadline, "no row past step 350 within 180 s"
+            time.sleep(0.01)
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert not (run / "summary.json").exists()
+    saved = ckpt.load_checkpoint(ckpt.latest_checkpoint(run / "checkpoints"), "dqn", "CartPole-v0")["counters"]
+    assert 0 < saved["iteration"] < 600
+    out = rlpipe("train", "dqn", "--resume", run, "--no-progress", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows = metric_rows(run)
+    assert_no_duplicated_steps(rows)
+    assert [int(r["step"]) for r in rows if r["average_return"]] == list(range(0, 601, 100))
+    assert [int(r["step"]) for r in rows if r["steps_per_s"]] == list(range(50, 601, 50))
