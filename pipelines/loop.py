@@ -208,6 +208,7 @@ class OffPolicyPipeline:
             max_steps=None,  # our envs end episodes themselves (time limits); StepCounter is set
             backend="process",
             busy_policy="queue",
+            collector_kwargs={"traj_format": "padded"},  # what 0.14 does by default, without its FutureWarning
         )
 
     # --- checkpoint state -------------------------------------------------------------------------
