@@ -539,7 +539,10 @@ class _DeferredInterrupt:
         self._previous = None
 
     def __enter__(self) -> "_DeferredInterrupt":
-        if threading.current_thread() is threading.main_thread():
+        # A process started with SIGINT ignored (nohup, a background job) is meant to be immune to
+        # Ctrl-C, as Python itself leaves it then: keep it so.
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
             self._previous = signal.signal(signal.SIGINT, self._handle)
             self._installed = True
         return self

@@ -506,3 +506,27 @@ def test_resume_after_a_kill_has_every_evaluation_once(tmp_path):
     assert_no_duplicated_steps(rows)
     assert [int(r["step"]) for r in rows if r["average_return"]] == list(range(0, 601, 100))
     assert [int(r["step"]) for r in rows if r["steps_per_s"]] == list(range(50, 601, 50))
+
+
+def test_a_run_started_immune_to_ctrl_c_stays_so(tmp_path):
+    """Started with SIGINT ignored (nohup, a background job), a run ignores it, as Python does."""
+    run = tmp_path / "run"
+    args = ["train", "dqn", "num_iterations=1500", "initial_collect_steps=100", "eval_interval=500",
+            "num_eval_episodes=1", "log_interval=100", "checkpoint_interval=500", "--no-progress"]
+    proc = subprocess.Popen([*RLPIPE, *args, "--out", str(run)], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        deadline = time.monotonic() + 180
+        while not _logged_past(run, 200):
+            assert proc.poll() is None, f"training ended before the SIGINT: {proc.communicate()}"
+            assert time.monotonic() < deadline, "no row past step 200 within 180 s"
+            time.sleep(0.01)
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, err[-3000:]
+    assert json.loads((run / "summary.json").read_text())["iterations"] == 1500
