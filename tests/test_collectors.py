@@ -27,7 +27,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from rlpipe.pipelines import checkpoint as ckpt
-from rlpipe.pipelines import sac, td3
+from rlpipe.pipelines import td3
 from rlpipe.pipelines.config import apply_overrides, config_from_dict
 from rlpipe.pipelines.rate_limiter import SampleToInsertRatio
 
@@ -141,8 +141,6 @@ def eval_rows(rows: list[dict]) -> list[dict]:
 # --- in-process: MultiSyncCollector, background evaluation -----------------------------------------
 
 SMALL_TD3 = ["actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]", "batch_size=32"]
-SMALL_SAC = ["actor_fc_layer_params=[32]", "critic_joint_fc_layer_params=[32]", "batch_size=32",
-             "replay_buffer_capacity=100000"]
 
 
 @pytest.fixture(scope="module")
