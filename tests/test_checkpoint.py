@@ -5,6 +5,7 @@ A run trained once in-process (module fixture) is copied for every case that dam
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
@@ -476,6 +477,25 @@ def _logged_past(run: Path, step: int) -> bool:
         return False
 
 
+@contextlib.contextmanager
+def _run_logged_past(args: list[str], run: Path, step: int, **popen):
+    """``rlpipe ARGS --out RUN`` in its own process group, handed over once it has logged past
+    ``step``; killed (group and all) if still running at exit."""
+    proc = subprocess.Popen([*RLPIPE, *args, "--out", str(run)], cwd=run.parent, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, **popen)
+    try:
+        deadline = time.monotonic() + 180
+        while not _logged_past(run, step):
+            assert proc.poll() is None, f"training ended before step {step}: {proc.communicate()}"
+            assert time.monotonic() < deadline, f"no row past step {step} within 180 s"
+            time.sleep(0.01)
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
 def test_resume_after_a_kill_has_every_evaluation_once(tmp_path):
     """kill -9 (no chance to save): --resume continues from the last periodic checkpoint, and the
     rows written after it are replaced, not repeated."""
@@ -483,20 +503,9 @@ def test_resume_after_a_kill_has_every_evaluation_once(tmp_path):
     args = ["train", "dqn", "num_iterations=600", "initial_collect_steps=100", "eval_interval=100",
             "num_eval_episodes=1", "log_interval=50", "checkpoint_interval=100", "policy_save_interval=100",
             "--no-progress"]
-    proc = subprocess.Popen([*RLPIPE, *args, "--out", str(run)], cwd=tmp_path, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 180
-        while not _logged_past(run, 350):
-            assert proc.poll() is None, f"training ended before it could be killed: {proc.communicate()}"
-            assert time.monotonic() < deadline, "no row past step 350 within 180 s"
-            time.sleep(0.01)
+    with _run_logged_past(args, run, 350) as proc:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
     assert not (run / "summary.json").exists()
     saved = ckpt.load_checkpoint(ckpt.latest_checkpoint(run / "checkpoints"), "dqn", "CartPole-v0")["counters"]
     assert 0 < saved["iteration"] < 600
@@ -513,20 +522,8 @@ def test_a_run_started_immune_to_ctrl_c_stays_so(tmp_path):
     run = tmp_path / "run"
     args = ["train", "dqn", "num_iterations=1500", "initial_collect_steps=100", "eval_interval=500",
             "num_eval_episodes=1", "log_interval=100", "checkpoint_interval=500", "--no-progress"]
-    proc = subprocess.Popen([*RLPIPE, *args, "--out", str(run)], cwd=tmp_path, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    try:
-        deadline = time.monotonic() + 180
-        while not _logged_past(run, 200):
-            assert proc.poll() is None, f"training ended before the SIGINT: {proc.communicate()}"
-            assert time.monotonic() < deadline, "no row past step 200 within 180 s"
-            time.sleep(0.01)
+    with _run_logged_past(args, run, 200, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) as proc:
         os.killpg(proc.pid, signal.SIGINT)
         out, err = proc.communicate(timeout=300)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
     assert proc.returncode == 0, err[-3000:]
     assert json.loads((run / "summary.json").read_text())["iterations"] == 1500

@@ -263,9 +263,17 @@ def interrupt(proc: subprocess.Popen, ready, timeout: float) -> dict:
     return out
 
 
-def launch(args: list[str], cwd: Path) -> subprocess.Popen:
-    return subprocess.Popen([*CLI, *args], cwd=cwd, start_new_session=True, stdout=subprocess.PIPE,
+@contextlib.contextmanager
+def launch(args: list[str], cwd: Path):
+    """``rlpipe ARGS`` in its own process group, killed (group and all) if still running at exit."""
+    proc = subprocess.Popen([*CLI, *args], cwd=cwd, start_new_session=True, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=FAULTHANDLER)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 def latest_state(run: Path) -> dict:
@@ -283,44 +291,30 @@ def interrupted(tmp_path_factory):
 
     # (1) the Evaluator starts its worker process at the first evaluation, right after the log
     # row of step 150; the worker takes seconds to start (imports): the evaluation is pending
-    proc = launch([*INTERRUPTED, "--out", str(run)], run.parent)
-    try:
+    with launch([*INTERRUPTED, "--out", str(run)], run.parent) as proc:
         out["first"] = interrupt(proc, lambda: any(int(r["step"]) >= 150 for r in read_rows(run / "metrics.csv"))
                                  and spawned_workers(proc.pid) >= 3, HANG_S)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
     out["first"]["state"] = latest_state(run)["counters"]
     out["first"]["rows"] = read_rows(run / "metrics.csv")
 
     # (2) resumed, interrupted again before the next evaluation (at 300; none pending)
     stop_at = out["first"]["state"]["iteration"] + 75
-    proc = launch(["train", "td3", "--resume", str(run), "--no-progress"], run.parent)
-    try:
+    with launch(["train", "td3", "--resume", str(run), "--no-progress"], run.parent) as proc:
         out["second"] = interrupt(proc, lambda: any(int(r["step"]) >= stop_at and r["loss_qvalue"]
                                                     for r in read_rows(run / "metrics.csv")), 30)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
     out["second"]["state"] = latest_state(run)["counters"]
     out["second"]["rows"] = read_rows(run / "metrics.csv")
     out["summary_before_end"] = (run / "summary.json").exists()
 
     # (3) resumed to the end
-    proc = launch(["train", "td3", "--resume", str(run), "--no-progress"], run.parent)
-    try:
-        out["stdout"], out["stderr"] = proc.communicate(timeout=180)
-    except subprocess.TimeoutExpired:
-        os.kill(proc.pid, signal.SIGABRT)
-        time.sleep(1)
-        os.killpg(proc.pid, signal.SIGKILL)
-        out["stdout"], out["stderr"] = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
+    with launch(["train", "td3", "--resume", str(run), "--no-progress"], run.parent) as proc:
+        try:
+            out["stdout"], out["stderr"] = proc.communicate(timeout=180)
+        except subprocess.TimeoutExpired:
+            os.kill(proc.pid, signal.SIGABRT)  # faulthandler prints where it waits
+            time.sleep(1)
             os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+            out["stdout"], out["stderr"] = proc.communicate(timeout=30)
     out["exit"] = proc.returncode
     wait_until(lambda: not group_members(proc.pid), 10)
     out["left"] = group_members(proc.pid)
