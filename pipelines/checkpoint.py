@@ -63,14 +63,18 @@ def replay_buffer_state(replay_buffer) -> dict[str, Any]:
     return {"len": n, "data": {key: value for key, value in data.flatten_keys("/").items()}}
 
 
-def load_replay_buffer(replay_buffer, state: dict[str, Any]) -> None:
-    """Refill ``replay_buffer`` (a fresh one) from ``replay_buffer_state`` output."""
+def load_replay_buffer(replay_buffer, state: dict[str, Any], keys=None) -> None:
+    """Refill ``replay_buffer`` (a fresh one) from ``replay_buffer_state`` output.
+
+    ``keys``: store only these (a checkpoint saved with every key, loaded by a run that stores
+    fewer); None stores what the checkpoint has.
+    """
     from tensordict import TensorDict
 
     if state["len"] == 0:
         return
     data = TensorDict(state["data"], batch_size=[state["len"]]).unflatten_keys("/")
-    replay_buffer.extend(data)
+    replay_buffer.extend(data if keys is None else data.select(*keys))
 
 
 def save_checkpoint(folder: Path, step: int, state: dict[str, Any]) -> Path:

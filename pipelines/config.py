@@ -70,6 +70,8 @@ class TrainConfig:
     """transitions kept; the oldest are evicted first"""
     batch_size: int = 64
     """transitions per update, sampled uniformly"""
+    replay_all_keys: bool = False
+    """store every key the collector returns (true: e.g. to inspect ("collector", "traj_ids") or step counts in the buffer); false stores only the keys the loss reads (`loss_module.in_keys`): less memory, faster sampling"""
     gamma: float = 0.99
     """discount factor"""
     target_update_tau: float = 1.0

@@ -1,7 +1,7 @@
 """TD3 on TorchRL parts, with its six ingredients as switches: the TD3-on-Pendulum tutorial.
 
     from rlpipe.pipelines import td3
-    cfg = td3.preset("td3")                 # the tutorial: Pendulum-v1, 100k steps
+    cfg = td3.preset("td3")                 # the tutorial: Pendulum-v1, 100k steps, collector process
     cfg.clipped_double_q = False            # leave one ingredient out
     result = td3.TD3(cfg).train("runs/td3-no-cdq")
 
@@ -42,9 +42,10 @@ from rlpipe.modules.actors import (
     make_gaussian_actor,
 )
 from rlpipe.modules.critics import make_qvalue_critic
-from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.config import CollectorConfig, TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.loop import OffPolicyPipeline
+from rlpipe.pipelines.optim import LeanAdam
 from rlpipe.pipelines.td3_loss import TD3AblationLoss, make_target_updater, td3_update
 
 __all__ = ["TD3Config", "TD3", "INGREDIENTS", "PRESETS", "preset"]
@@ -124,11 +125,17 @@ class TD3Config(TrainConfig):
             raise InputError(f"policy_delay={self.policy_delay}: expected a positive integer")
 
 
+def _collect_beside_learning() -> CollectorConfig:
+    # One collector process stepping the env while the learner updates (MultiAsyncCollector): on
+    # Pendulum ~1.5x the updates per second of in-process collection, same returns (BENCHMARKS.md).
+    return CollectorConfig(sync=False)
+
+
 def _pendulum() -> TD3Config:
     # The tutorial: Pendulum-v1, 1x256 actor/critics, discount 0.99, expl_noise 0.1, lr 3e-4,
     # 10,000 start-up steps, tau 0.005, policy noise 0.2 clipped at 0.5, policy_freq 2,
     # buffer 100,000, batch 256, 100,000 steps, models saved every 5,000.
-    return TD3Config()
+    return TD3Config(collector=_collect_beside_learning())
 
 
 def _mujoco(env: str) -> TD3Config:
@@ -147,6 +154,7 @@ def _mujoco(env: str) -> TD3Config:
         critic_fc_layer_params=[400, 300],
         checkpoint_interval=50_000,
         policy_save_interval=50_000,
+        collector=_collect_beside_learning(),
     )
 
 
@@ -165,8 +173,9 @@ def preset(name: str = "td3") -> TD3Config:
 
 
 def _adam(params, lr: float) -> torch.optim.Adam:
-    # Fused Adam does the parameter update in one kernel: ~10% of a TD3 update on this CPU.
-    return torch.optim.Adam(list(params), lr=lr, fused=True)
+    # Fused Adam does the parameter update in one kernel (~10% of a TD3 update on this CPU), and
+    # LeanAdam calls it without Optimizer.step's per-call Python (another ~15%): see pipelines/optim.py.
+    return LeanAdam(list(params), lr=lr)
 
 
 class TD3(OffPolicyPipeline):

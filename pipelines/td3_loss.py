@@ -20,10 +20,12 @@ keys, value estimator (``gamma``), ``forward`` and compatibility with ``SoftUpda
 ``value_loss``/``actor_loss`` for three reasons besides the switches:
 
 * speed: the stock loss builds, selects, expands and vmaps TensorDicts (~3 ms per forward at batch
-  256 on this machine, for ~0.3 ms of arithmetic). Here the actor's inner ``nn.Module`` is called
-  on tensors (``torch.func.functional_call`` with the online or target parameters), and a critic
-  that is a TorchRL ``MLP`` is evaluated for both critics at once as batched matmuls over the
-  loss's stacked parameters. Other networks fall back to TensorDict calls;
+  256 on this machine, for ~0.3 ms of arithmetic). Here networks run on tensors: a critic that is
+  a TorchRL ``MLP`` is evaluated for both critics at once as batched matmuls over the loss's
+  stacked parameters, and an actor that is a ``TanhBoundedMLP`` (``make_deterministic_actor``)
+  layer by layer on the online or target parameters (``torch.func.functional_call`` costs ~60 us
+  more per call, for ~35 us of arithmetic). Other plain actors go through ``functional_call``,
+  anything else through TensorDicts;
 * the tutorial's target noise is in normalised action units (see ``target_action``), the stock
   loss adds it in raw action units;
 * the stock actor loss evaluates both critics and keeps Q1; this one evaluates Q1 only.
@@ -43,6 +45,8 @@ from torchrl.modules import MLP
 from torchrl.objectives import SoftUpdate, TD3Loss, ValueEstimators
 from torchrl.objectives.utils import distance_loss
 
+from rlpipe.modules.actors import TanhBoundedMLP
+
 __all__ = ["TD3AblationLoss", "ForeachSoftUpdate", "make_target_updater", "td3_update"]
 
 
@@ -55,26 +59,31 @@ def _is_plain_module(module) -> bool:
     )
 
 
-def _mlp_layers(module) -> list[tuple[str, object]] | None:
-    """``[("linear", name) | ("other", parameter-free module)]`` of a TorchRL ``MLP``, else None.
+def _mlp_layers(mlp: torch.nn.Module, prefix: str = "") -> list[tuple[str, object]] | None:
+    """``[("linear", parameter name prefix) | ("other", parameter-free module)]`` of a TorchRL
+    ``MLP`` whose parameters are named ``prefix + <layer>.weight/bias``; None for anything else.
 
-    Such a critic can be evaluated for all critics at once with batched matmuls over the loss's
-    stacked parameters (see ``TD3AblationLoss._qvalues``).
+    Such a network can be evaluated on tensors from a flat ``{name: tensor}`` dict of parameters
+    (see ``_run_mlp`` and ``TD3AblationLoss._qvalues``).
     """
-    if not _is_plain_module(module) or type(module.module) is not MLP:
-        return None
-    mlp = module.module
-    if getattr(mlp, "_reshape_out", False):
+    if type(mlp) is not MLP or getattr(mlp, "_reshape_out", False):
         return None
     layers = []
     for name, layer in mlp.named_children():
         if type(layer) is torch.nn.Linear:
-            layers.append(("linear", name))
+            layers.append(("linear", prefix + name))
         elif not any(True for _ in layer.parameters()) and not any(True for _ in layer.buffers()):
             layers.append(("other", layer))
         else:
             return None
     return layers
+
+
+def _run_mlp(layers, params: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+    """One network of ``_mlp_layers`` on ``x``, with the tensors of ``params``."""
+    for kind, layer in layers:
+        x = layer(x) if kind == "other" else F.linear(x, params[f"{layer}.weight"], params.get(f"{layer}.bias"))
+    return x
 
 
 class TD3AblationLoss(TD3Loss):
@@ -150,7 +159,14 @@ class TD3AblationLoss(TD3Loss):
         self.register_buffer("action_radius", (self.max_action - self.min_action) / 2)
         # Plain modules are called on tensors (fast); anything else through TensorDicts.
         self._actor_on_tensors = _is_plain_module(self.actor_network)
-        self._critic_layers = _mlp_layers(self.qvalue_network)
+        self._actor_layers = (
+            _mlp_layers(self.actor_network.module.mlp, "mlp.")
+            if self._actor_on_tensors and type(self.actor_network.module) is TanhBoundedMLP
+            else None
+        )
+        self._critic_layers = (
+            _mlp_layers(self.qvalue_network.module) if _is_plain_module(self.qvalue_network) else None
+        )
         if len(self.actor_network.in_keys) != 1:
             raise ValueError(
                 f"the actor must read one observation key, got {self.actor_network.in_keys}"
@@ -206,8 +222,13 @@ class TD3AblationLoss(TD3Loss):
     def _actor(self, params_name: str, observation: torch.Tensor) -> torch.Tensor:
         """The action of the actor with parameters ``params_name`` (online or target)."""
         net = self.actor_network
+        if self._actor_layers is not None:
+            # TanhBoundedMLP.forward, with these parameters
+            params = self._flat_params(params_name)
+            out = torch.tanh(_run_mlp(self._actor_layers, params, observation))
+            return params["center"] + params["radius"] * out
         if self._actor_on_tensors:
-            return functional_call(net.module, self._flat_params(params_name), (observation,))
+            return functional_call(net.module, self._flat_params(params_name), (observation,), tie_weights=False)
         # Stochastic actors sample (rsample: differentiable) unless the policy is deterministic.
         deterministic = self.deterministic_policy
         mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
@@ -242,20 +263,18 @@ class TD3AblationLoss(TD3Loss):
                 # baddbmm wants [critics, rows, features]: flatten any batch dims into rows.
                 x = x.reshape(-1, x.shape[-1]).expand(self.num_qvalue_nets, -1, -1)
             else:
-                params = self._critic_slice(params_name, index)
+                return _run_mlp(self._critic_layers, self._critic_slice(params_name, index), x)
             for kind, layer in self._critic_layers:
                 if kind == "other":
                     x = layer(x)
-                elif index is None:
+                else:
                     weight, bias = params[f"{layer}.weight"], params.get(f"{layer}.bias")
                     x = (
                         torch.matmul(x, weight.transpose(-1, -2))
                         if bias is None
                         else torch.baddbmm(bias.unsqueeze(-2), x, weight.transpose(-1, -2))
                     )
-                else:
-                    x = F.linear(x, params[f"{layer}.weight"], params.get(f"{layer}.bias"))
-            return x if index is not None else x.reshape(self.num_qvalue_nets, *batch_shape, -1)
+            return x.reshape(self.num_qvalue_nets, *batch_shape, -1)
         # Any other critic: TorchRL's way, one TensorDict call per critic.
         net = self.qvalue_network
         td = TensorDict(

@@ -107,6 +107,9 @@ def plan(args) -> list[Job]:
             f"checkpoint_interval={eval_interval}",
             f"policy_save_interval={iterations}",
             f"log_interval={eval_interval}",
+            # Each run steps its env in its learner's process: the study already keeps the cores
+            # busy with --workers runs side by side (user overrides, after these, still win).
+            "collector.sync=true",
         ]
         for variant in variants:
             switch = [] if variant == "full" else [f"{variant.removeprefix('no_')}=false"]

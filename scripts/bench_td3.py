@@ -4,7 +4,8 @@ rlpipe runs the ``td3`` preset for ``--steps`` env steps (default 30,000: 10,000
 per seed, in-process (``collector.sync=true``) and with collection in a second process overlapping
 learning (``collector.sync=false``); the peer is the tutorial's plain-PyTorch TD3 (its ``TD3``
 class and loop, reproduced below) for the same steps. Reported: updates per second after the
-start-up phase (env steps included) and the final average return over 20 episodes.
+start-up phase (env steps included) and the final average return over 20 episodes, every policy
+played from the same 20 start states (the tutorial's ``reset(seed=10_000 + i)``).
 """
 
 from __future__ import annotations
@@ -98,18 +99,45 @@ def tutorial_td3(steps: int, seed: int, startup: int = 10_000, eval_episodes: in
         if term or trunc:
             state, _ = env.reset()
     elapsed = time.perf_counter() - t_start
+    final = average_return_on_fixed_starts(lambda obs: actor(torch.FloatTensor(obs.reshape(1, -1))), eval_episodes)
+    return {"updates_per_s": updates_after / elapsed, "final_average_return": final}
+
+
+def average_return_on_fixed_starts(act, episodes: int = 20) -> float:
+    """Mean return of ``act`` (numpy observation -> action tensor) on Pendulum-v1 episodes that start
+    from ``reset(seed=10_000 + i)``: the same starts for every implementation and seed, so that the
+    final returns compare policies, not the luck of the start states."""
+    import gymnasium as gym
+    import torch
+
+    env = gym.make("Pendulum-v1")
     returns = []
-    for i in range(eval_episodes):
+    for i in range(episodes):
         s, _ = env.reset(seed=10_000 + i)
         total, done = 0.0, False
         while not done:
             with torch.no_grad():
-                a = actor(torch.FloatTensor(s.reshape(1, -1))).numpy().flatten()
+                a = act(s).numpy().reshape(-1)
             s, r, term, trunc, _ = env.step(a)
             total += r
             done = term or trunc
         returns.append(total)
-    return {"updates_per_s": updates_after / elapsed, "final_average_return": float(np.mean(returns))}
+    env.close()
+    return float(np.mean(returns))
+
+
+def rlpipe_policy_return(policy, episodes: int = 20) -> float:
+    """``average_return_on_fixed_starts`` of a trained rlpipe policy (its deterministic action)."""
+    import torch
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    def act(obs):
+        td = TensorDict(observation=torch.as_tensor(obs, dtype=torch.float32)[None], batch_size=[1])
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return policy(td)["action"]
+
+    return average_return_on_fixed_starts(act, episodes)
 
 
 def _after_startup_updates_per_s(metrics: list[dict]) -> float:
@@ -137,14 +165,15 @@ def bench_td3(args, out: Path, train_seeds) -> dict:
                          ("rlpipe, async collector process", ["collector.sync=false"])):
         results = train_seeds("td3", budget + extra, args.seeds, out / extra[0].replace("=", "-"))
         speeds = [_after_startup_updates_per_s(r.metrics) for r in results]
-        finals = [r.summary["final_average_return"] for r in results]
-        figures[label] = {"updates_per_s": speeds, "final_average_return": finals}
+        finals = [rlpipe_policy_return(r.policy) for r in results]
+        figures[label] = {"updates_per_s": speeds, "final_average_return": finals,
+                          "own_final_evaluation": [r.summary["final_average_return"] for r in results]}
         lines.append(f"| {label} | {statistics.mean(speeds):.0f} | {statistics.mean(speeds) / peer_speed:.2f} | "
                      f"{statistics.mean(finals):.1f} | {', '.join(f'{f:.0f}' for f in finals)} |")
     table = "\n".join([
         f"TD3 benchmark: Pendulum-v1, tutorial settings, {steps} env steps ({startup} start-up), {args.seeds} seeds",
         "",
-        "| implementation | updates/s after start-up (env steps included) | ratio to tutorial | final AverageReturn (20 episodes), mean | per seed |",
+        "| implementation | updates/s after start-up (env steps included) | ratio to tutorial | final AverageReturn (20 episodes, same starts for all), mean | per seed |",
         "|---|---|---|---|---|",
         *lines,
     ])

@@ -113,6 +113,23 @@ def test_checkpoints_keep_counters_and_the_replay_buffer(saved_run):
         torch.testing.assert_close(fresh.loss_module.state_dict()[key], value)
 
 
+def test_the_buffer_keeps_what_the_loss_reads_unless_asked_for_all(saved_run, tmp_path):
+    run, pipeline, _ = saved_run
+    assert set(pipeline.replay_buffer[:].keys(True, True)) == set(pipeline.loss_module.in_keys)
+    # every key the collector returns, on request ...
+    full = DQN(cfg_with("num_iterations=10", "replay_all_keys=true"))
+    full.train(tmp_path / "full", progress=False)
+    stored = set(full.replay_buffer[:].keys(True, True))
+    assert {("collector", "traj_ids"), "step_count"} <= stored and set(full.loss_module.in_keys) < stored
+    # ... and a run that stores fewer keys resumes from such a checkpoint, and trains on
+    lean = DQN(cfg_with("num_iterations=20"))
+    lean.load_state_dict(ckpt.load_checkpoint(ckpt.latest_checkpoint(tmp_path / "full" / "checkpoints"),
+                                              "dqn", "CartPole-v0"))
+    assert set(lean.replay_buffer[:].keys(True, True)) == set(lean.loss_module.in_keys)
+    result = lean.train(tmp_path / "full", resume=True, progress=False)
+    assert result.summary["iterations"] == 20 and len(lean.replay_buffer) == 100 + 20
+
+
 def test_leftover_tmp_folder_from_a_crash_does_not_break_latest(saved_run, tmp_path):
     run = copy_run(saved_run, tmp_path / "run")
     folder = run / "checkpoints"

@@ -275,12 +275,17 @@ def test_batch_of_one():
     assert torch.isfinite(out["loss_qvalue"]) and torch.isfinite(out["loss_actor"])
 
 
-def test_tensordict_path_matches_tensor_path():
-    """Critics that are not a TorchRL MLP go through TensorDicts; both paths agree."""
+@pytest.mark.parametrize("path", ["functional_call", "tensordict"])
+def test_every_network_path_agrees_with_the_tensor_path(path):
+    """Actors other than a TanhBoundedMLP are called through functional_call (plain modules) or
+    TensorDicts, critics that are not a TorchRL MLP through TensorDicts: all paths agree."""
     torch.manual_seed(8)
     fast = make_loss()
     slow = make_loss()
-    slow._critic_layers = None  # as for any critic that is not a plain MLP
+    slow._actor_layers = None  # as for a plain actor module that is not a TanhBoundedMLP
+    if path == "tensordict":
+        slow._actor_on_tensors = False  # as for any other actor
+        slow._critic_layers = None  # as for any critic that is not a plain MLP
     with torch.no_grad():
         names = ("qvalue_network_params", "target_qvalue_network_params")
         names += ("target_actor_network_params",)
