@@ -399,7 +399,7 @@ class OffPolicyPipeline:
 
         # The deferred Ctrl-C handler stays on through the checkpoint saved on an interrupt: a SIGINT
         # delivered twice (the terminal's and a parent's) must not cut that save short.
-        with stop:
+        with stop, _gc_frozen():
             try:
                 if not resume:
                     save()  # iteration 0: a run stopped at any point from here on can be resumed
@@ -573,6 +573,24 @@ class _DeferredInterrupt:
     def check(self) -> None:
         if self.requested:
             raise _Stopped
+
+
+@contextlib.contextmanager
+def _gc_frozen():
+    """Keep Python's cyclic garbage collector off the objects that exist before training.
+
+    Each update makes thousands of short-lived objects, so the collector runs often, and its full
+    collections scan every object of torch, TorchRL and the env (~0.1 s each, ~4% of a TD3 run on
+    Pendulum). Frozen objects are left out of those scans; they are handed back at the end, so
+    garbage among them is collected as usual afterwards.
+    """
+    import gc
+
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 @contextlib.contextmanager
