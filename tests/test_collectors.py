@@ -399,6 +399,7 @@ def test_resume_after_ctrl_c_evaluates_on_schedule(where, call, tmp_path):
     cfg = apply_overrides(td3.preset("td3"), [
         *SMALL_TD3, "num_iterations=300", "initial_collect_steps=50", "learning_starts=50", "eval_interval=100",
         "num_eval_episodes=1", "log_interval=50", "checkpoint_interval=1000", "policy_save_interval=1000",
+        "collector.sync=true",  # in-process: the hooked policy is not sent to a worker
     ])
     pipeline = td3.TD3(cfg)
     calls = 0
