@@ -162,7 +162,7 @@ def bench_td3(args, out: Path, train_seeds) -> dict:
     lines.append(f"| tutorial's plain PyTorch (peer) | {peer_speed:.0f} | 1.00 | {peer_return:.1f} | "
                  f"{', '.join(format(p['final_average_return'], '.0f') for p in peer)} |")
     for label, extra in (("rlpipe, in-process collection", ["collector.sync=true"]),
-                         ("rlpipe, async collector process", ["collector.sync=false"])):
+                         ("rlpipe, the td3 preset (env stepped in a second process)", ["collector.sync=false"])):
         results = train_seeds("td3", budget + extra, args.seeds, out / extra[0].replace("=", "-"))
         speeds = [_after_startup_updates_per_s(r.metrics) for r in results]
         finals = [rlpipe_policy_return(r.policy) for r in results]
