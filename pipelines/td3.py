@@ -174,7 +174,7 @@ def preset(name: str = "td3") -> TD3Config:
 
 def _adam(params, lr: float) -> torch.optim.Adam:
     # Fused Adam does the parameter update in one kernel (~10% of a TD3 update on this CPU), and
-    # LeanAdam calls it without Optimizer.step's per-call Python (another ~15%): see pipelines/optim.py.
+    # LeanAdam calls it without Optimizer.step's per-call Python (another ~6%): see pipelines/optim.py.
     return LeanAdam(list(params), lr=lr)
 
 

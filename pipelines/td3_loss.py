@@ -257,13 +257,12 @@ class TD3AblationLoss(TD3Loss):
             # over the [num_qvalue_nets, ...] stacked parameters (what TD3Loss does with vmap).
             inputs = {self._observation_key: observation, self.tensor_keys.action: action}
             x = torch.cat([inputs[k] for k in self.qvalue_network.in_keys], -1)
-            batch_shape = x.shape[:-1]
-            if index is None:
-                params = self._flat_params(params_name)
-                # baddbmm wants [critics, rows, features]: flatten any batch dims into rows.
-                x = x.reshape(-1, x.shape[-1]).expand(self.num_qvalue_nets, -1, -1)
-            else:
+            if index is not None:
                 return _run_mlp(self._critic_layers, self._critic_slice(params_name, index), x)
+            batch_shape = x.shape[:-1]
+            params = self._flat_params(params_name)
+            # baddbmm wants [critics, rows, features]: flatten any batch dims into rows.
+            x = x.reshape(-1, x.shape[-1]).expand(self.num_qvalue_nets, -1, -1)
             for kind, layer in self._critic_layers:
                 if kind == "other":
                     x = layer(x)

@@ -49,6 +49,9 @@ def test_steps_are_bitwise_those_of_fused_adam_with_a_schedule_and_weight_decay(
     train(lean, opt_lean, 10, scheduler=sched_lean)
     assert_same(ref, lean, opt_ref, opt_lean)
     assert float(opt_lean.state[next(lean.parameters())]["step"]) == 10
+    # and those steps took the lean path (Adam's own step only made the state, on the first)
+    lean(torch.ones(2, 4)).sum().backward()
+    assert opt_lean._lean_groups() is not None
 
 
 def test_a_parameter_without_gradient_is_left_alone_as_adam_does():
@@ -70,7 +73,7 @@ def test_state_dict_round_trip_continues_identically():
     opt_lean = LeanAdam(lean.parameters(), lr=1e-2)
     train(ref, opt_ref, 5)
     train(lean, opt_lean, 5)
-    # a fresh LeanAdam loaded from the stock optimiser's checkpoint, and the reverse
+    # a fresh LeanAdam loaded from the stock optimiser's checkpoint
     resumed_model = copy.deepcopy(lean)
     resumed = LeanAdam(resumed_model.parameters(), lr=1.0)
     resumed.load_state_dict(copy.deepcopy(opt_ref.state_dict()))  # as from a file: no shared tensors
