@@ -28,6 +28,16 @@ def train(model, opt, steps: int, seed: int = 1, scheduler=None):
             scheduler.step()
 
 
+def trained_pair(steps: int):
+    """The same model trained ``steps`` steps by Adam(fused=True) and by LeanAdam."""
+    ref, lean = twin_models()
+    opt_ref = torch.optim.Adam(ref.parameters(), lr=1e-2, fused=True)
+    opt_lean = LeanAdam(lean.parameters(), lr=1e-2)
+    train(ref, opt_ref, steps)
+    train(lean, opt_lean, steps)
+    return ref, lean, opt_ref, opt_lean
+
+
 def assert_same(a: nn.Module, b: nn.Module, opt_a, opt_b):
     for pa, pb in zip(a.parameters(), b.parameters()):
         assert torch.equal(pa, pb)
@@ -55,11 +65,7 @@ def test_steps_are_bitwise_those_of_fused_adam_with_a_schedule_and_weight_decay(
 
 
 def test_a_parameter_without_gradient_is_left_alone_as_adam_does():
-    ref, lean = twin_models()
-    opt_ref = torch.optim.Adam(ref.parameters(), lr=1e-2, fused=True)
-    opt_lean = LeanAdam(lean.parameters(), lr=1e-2)
-    train(ref, opt_ref, 2)
-    train(lean, opt_lean, 2)
+    ref, lean, opt_ref, opt_lean = trained_pair(2)
     for model, opt in ((ref, opt_ref), (lean, opt_lean)):  # only the last layer gets a gradient
         opt.zero_grad()
         model[2](torch.ones(3, 32)).sum().backward()
@@ -68,11 +74,7 @@ def test_a_parameter_without_gradient_is_left_alone_as_adam_does():
 
 
 def test_state_dict_round_trip_continues_identically():
-    ref, lean = twin_models()
-    opt_ref = torch.optim.Adam(ref.parameters(), lr=1e-2, fused=True)
-    opt_lean = LeanAdam(lean.parameters(), lr=1e-2)
-    train(ref, opt_ref, 5)
-    train(lean, opt_lean, 5)
+    ref, lean, opt_ref, _ = trained_pair(5)
     # a fresh LeanAdam loaded from the stock optimiser's checkpoint
     resumed_model = copy.deepcopy(lean)
     resumed = LeanAdam(resumed_model.parameters(), lr=1.0)
