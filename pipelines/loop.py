@@ -238,8 +238,7 @@ class OffPolicyPipeline:
             self.collect_policy.load_state_dict(state["collect_policy"])
             for k, opt in self.optimizers.items():
                 opt.load_state_dict(state["optimizers"][k])
-            self.counters = {"triggers": [], **state["counters"]}
-            self.counters["triggers"] = list(self.counters["triggers"])
+            self.counters = {**state["counters"], "triggers": list(state["counters"].get("triggers", []))}
             self.background_evals = deque((dict(e["at"]), TensorDict(e["weights"]).unflatten_keys("/"))
                                           for e in state.get("background_evals", []))
             self.limiter.load_state_dict(state["limiter"])

@@ -7,6 +7,7 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
 import signal  # noqa: E402
+import sys  # noqa: E402
 
 import pytest  # noqa: E402
 import torch  # noqa: E402
@@ -24,3 +25,27 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 def run_dir(tmp_path):
     """A path for a run directory that does not exist yet."""
     return tmp_path / "run"
+
+
+@pytest.fixture
+def ctrl_c_on_call():
+    """``ctrl_c_on_call(where, n)``: a hook (any signature) that presses Ctrl-C, a real SIGINT to
+    this process as the terminal sends it, on its ``n``-th call from inside a function named
+    ``where``; calls from elsewhere are not counted."""
+
+    def make(where: str, n: int):
+        calls = 0
+
+        def hook(*_):
+            nonlocal calls
+            frame = sys._getframe(1)
+            while frame is not None and frame.f_code.co_name != where:
+                frame = frame.f_back
+            if frame is not None:
+                calls += 1
+                if calls == n:
+                    os.kill(os.getpid(), signal.SIGINT)
+
+        return hook
+
+    return make

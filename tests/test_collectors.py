@@ -395,25 +395,14 @@ def test_async_workers_all_deliver_frames(interrupted):
     # in the evaluation at iteration 100 (50 steps into it; the one at 0 took 200 actor calls)
     ("evaluate", 250),
 ])
-def test_resume_after_ctrl_c_evaluates_on_schedule(where, call, tmp_path):
+def test_resume_after_ctrl_c_evaluates_on_schedule(where, call, tmp_path, ctrl_c_on_call):
     cfg = apply_overrides(td3.preset("td3"), [
         *SMALL_TD3, "num_iterations=300", "initial_collect_steps=50", "learning_starts=50", "eval_interval=100",
         "num_eval_episodes=1", "log_interval=50", "checkpoint_interval=1000", "policy_save_interval=1000",
         "collector.sync=true",  # in-process: the hooked policy is not sent to a worker
     ])
     pipeline = td3.TD3(cfg)
-    calls = 0
-
-    def ctrl_c(*_):
-        nonlocal calls
-        frame = sys._getframe(1)
-        while frame is not None and frame.f_code.co_name != where:
-            frame = frame.f_back
-        if frame is not None:
-            calls += 1
-            if calls == call:
-                os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C, as the terminal sends it
-
+    ctrl_c = ctrl_c_on_call(where, call)
     if where == "evaluate":
         hook = pipeline.policy.module.register_forward_pre_hook(ctrl_c)  # the actor's network
     else:  # the loss runs the networks on their parameters, not through the modules

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -135,7 +134,7 @@ def test_sac_learns_pendulum(run_dir):
 # --- Ctrl-C during an update ------------------------------------------------------------------------
 
 
-def test_ctrl_c_during_a_sac_update_checkpoints_and_resumes(run_dir):
+def test_ctrl_c_during_a_sac_update_checkpoints_and_resumes(run_dir, ctrl_c_on_call):
     # A KeyboardInterrupt raised inside SACLoss's target computation (within tensordict's
     # `to_module` context) would surface as an unrelated RuntimeError; the loop defers Ctrl-C to
     # the end of the update instead.
@@ -146,20 +145,8 @@ def test_ctrl_c_during_a_sac_update_checkpoints_and_resumes(run_dir):
         "checkpoint_interval=1000", "policy_save_interval=1000",
     ])
     pipeline = sac.SAC(cfg)
-    calls = 0
-
-    def ctrl_c_inside_the_loss(module, args):
-        # where a Ctrl-C lands most of the time in SAC training: inside the loss's target computation
-        # (a real SIGINT to this process, as the terminal sends it)
-        nonlocal calls
-        frame = sys._getframe(1)
-        while frame is not None and frame.f_code.co_name != "_compute_target_v2":
-            frame = frame.f_back
-        if frame is not None:
-            calls += 1
-            if calls == 120:
-                os.kill(os.getpid(), signal.SIGINT)
-
+    # where a Ctrl-C lands most of the time in SAC training: inside the loss's target computation
+    ctrl_c_inside_the_loss = ctrl_c_on_call("_compute_target_v2", 120)
     hook = pipeline.policy.module[0].module[0].register_forward_pre_hook(ctrl_c_inside_the_loss)  # the actor's MLP
     handler = signal.getsignal(signal.SIGINT)
     with pytest.raises(KeyboardInterrupt):
