@@ -235,6 +235,9 @@ LEARN = [
     "seed=0", "num_iterations=8000", "initial_collect_steps=1000", "learning_starts=1000",
     "learning_rate=1e-3", "eval_interval=0", "num_eval_episodes=5", "log_interval=2000",
     "checkpoint_interval=100000", "policy_save_interval=100000",
+    # In-process collection, so the run is the same on every run: with a collector process (the
+    # preset's) which policy collected which block depends on timing.
+    "collector.sync=true",
 ]
 
 
