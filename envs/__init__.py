@@ -10,20 +10,26 @@ Importing this package registers ``rlpipe/MinitaurBullet-v0`` with gymnasium.
 from __future__ import annotations
 
 import difflib
+import re
 
 import gymnasium
+from torchrl.data import Categorical, OneHot, TensorSpec
+from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs import (
     Compose,
     DoubleToFloat,
+    EnvBase,
     GymEnv,
     InitTracker,
     RewardSum,
     StepCounter,
     TransformedEnv,
 )
-from torchrl.data import Categorical, OneHot
 
-__all__ = ["EnvError", "make_env", "resolve_env_id", "is_discrete", "MINITAUR_ID"]
+__all__ = [
+    "EnvError", "MINITAUR_ID", "describe_action_space", "env_label", "is_discrete", "make_env", "resolve_env_id",
+    "with_episode_return",
+]
 
 MINITAUR_ID = "rlpipe/MinitaurBullet-v0"
 
@@ -81,14 +87,38 @@ def make_env(
     return env
 
 
-def is_discrete(env) -> bool:
-    """Whether ``env``'s action space is a finite set of choices (what DQN needs)."""
-    return isinstance(env.action_spec, (Categorical, OneHot))
+def _action_spec(env_or_spec: EnvBase | TensorSpec) -> TensorSpec:
+    return env_or_spec.action_spec_unbatched if isinstance(env_or_spec, EnvBase) else env_or_spec
 
 
-def describe_action_space(env) -> str:
+def is_discrete(env_or_spec: EnvBase | TensorSpec) -> bool:
+    """Whether an env's action space (or an action spec) is a finite set of choices (what DQN needs)."""
+    return isinstance(_action_spec(env_or_spec), (Categorical, OneHot))
+
+
+def describe_action_space(env_or_spec: EnvBase | TensorSpec) -> str:
     """A short phrase for error messages, e.g. 'continuous Box of shape (1,)'."""
-    spec = env.action_spec
-    if is_discrete(env):
+    spec = _action_spec(env_or_spec)
+    if is_discrete(spec):
         return f"discrete with {spec.space.n} actions"
     return f"continuous Box of shape {tuple(spec.shape)}"
+
+
+def env_label(env: EnvBase) -> str:
+    """The name of the world an env steps: its gymnasium id if it wraps one, else its class name."""
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    if isinstance(env, BatchedEnvBase):
+        # SerialEnv/ParallelEnv describe their sub-env only as its repr, "GymEnv(env=ID, ...)"
+        found = re.search(r"GymEnv\(env=([^,)\s]+)", env.meta_data.env_str)
+        return found.group(1) if found else type(env).__name__
+    name = getattr(env, "env_name", None) if isinstance(env, GymEnv) else None
+    return name if isinstance(name, str) else type(env).__name__
+
+
+def with_episode_return(env: EnvBase) -> EnvBase:
+    """``env`` with TorchRL's ``RewardSum`` appended if it has none: the loop reads each finished
+    training episode's return from ``("next", "episode_reward")``."""
+    if "episode_reward" in env.observation_spec.keys():
+        return env
+    return TransformedEnv(env, RewardSum())

@@ -1,4 +1,13 @@
-"""Networks and policies as TensorDict modules, usable in any TorchRL project."""
+"""Networks, policies, losses and optimisers as TorchRL parts, usable in any TorchRL project.
+
+This package never imports ``rlpipe.pipelines``: everything here is a plain TorchRL/torch object.
+
+    actors, critics, qnetworks, exploration   policies and value networks (TensorDict modules)
+    td3_loss          TorchRL's TD3Loss with TD3's six ingredients as switches, and one TD3 step
+    target_updates    SoftUpdate with a one-kernel step, for any loss with target networks
+    optim             LeanAdam: fused Adam without Optimizer.step's per-call Python
+    tensor_nets       TorchRL MLPs run on plain tensors (one copy, or stacked twin critics at once)
+"""
 
 from rlpipe.modules.actors import (
     TanhBoundedMLP,
@@ -10,9 +19,15 @@ from rlpipe.modules.actors import (
 )
 from rlpipe.modules.critics import make_qvalue_critic
 from rlpipe.modules.exploration import epsilon_greedy
+from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.qnetworks import make_qvalue_actor
+from rlpipe.modules.target_updates import ForeachSoftUpdate, make_target_updater
+from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
 
 __all__ = [
+    "ForeachSoftUpdate",
+    "LeanAdam",
+    "TD3AblationLoss",
     "TanhBoundedMLP",
     "TanhNormalMode",
     "epsilon_greedy",
@@ -22,4 +37,6 @@ __all__ = [
     "make_qvalue_actor",
     "make_qvalue_critic",
     "make_tanh_normal_actor",
+    "make_target_updater",
+    "td3_update",
 ]

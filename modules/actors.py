@@ -1,8 +1,8 @@
 """Policies for continuous control (TD3, SAC), as plain TorchRL modules.
 
 Every factory takes the environment's ``Bounded`` action spec (``env.action_spec`` of a TorchRL
-``GymEnv``) and returns a module reading ``"observation"`` and writing ``"action"``, so the result
-plugs into TorchRL collectors, losses and ``env.rollout`` unchanged.
+``GymEnv``) and returns a module reading ``"observation"`` (or the ``observation_key`` given) and
+writing ``"action"``, so the result plugs into TorchRL collectors, losses and ``env.rollout`` unchanged.
 """
 
 from __future__ import annotations
@@ -75,6 +75,8 @@ def make_deterministic_actor(
     observation_dim: int,
     action_spec,
     hidden_sizes: Sequence[int] = (256,),
+    *,
+    observation_key: str = "observation",
 ) -> TensorDictModule:
     """TD3's deterministic policy: ``"observation"`` -> ``"action"`` inside the spec's bounds.
 
@@ -86,7 +88,7 @@ def make_deterministic_actor(
     """
     low, high = _bounds(action_spec)
     net = TanhBoundedMLP(observation_dim, low, high, hidden_sizes)
-    return TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
+    return TensorDictModule(net, in_keys=[observation_key], out_keys=["action"])
 
 
 def make_tanh_normal_actor(
@@ -96,6 +98,7 @@ def make_tanh_normal_actor(
     *,
     min_scale: float = 1e-4,
     return_log_prob: bool = True,
+    observation_key: str = "observation",
 ) -> ProbabilisticActor:
     """SAC's policy: a TanhNormal whose loc/scale come from an MLP, rescaled to the action bounds.
 
@@ -109,6 +112,7 @@ def make_tanh_normal_actor(
         min_scale: lower bound of the pre-tanh standard deviation (``NormalParamExtractor``'s
             ``scale_lb``); it keeps sampling alive when a loss drives the scale down.
         return_log_prob: also write ``"action_log_prob"`` (SAC's loss needs it).
+        observation_key: the TensorDict key the actor reads.
     """
     low, high = _bounds(action_spec)
     net = nn.Sequential(
@@ -122,7 +126,7 @@ def make_tanh_normal_actor(
         # as TorchRL's SAC example does.
         NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=min_scale),
     )
-    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    module = TensorDictModule(net, in_keys=[observation_key], out_keys=["loc", "scale"])
     return ProbabilisticActor(
         module,
         in_keys=["loc", "scale"],
@@ -140,6 +144,7 @@ def make_gaussian_actor(
     hidden_sizes: Sequence[int] = (256,),
     *,
     min_scale: float = 0.1,
+    observation_key: str = "observation",
 ) -> ProbabilisticActor:
     """The stochastic policy for TD3's ``deterministic_policy=False`` ablation.
 
@@ -162,6 +167,7 @@ def make_gaussian_actor(
         min_scale=min_scale,
         # TD3 never reads log-probabilities; skipping them saves work on every step.
         return_log_prob=False,
+        observation_key=observation_key,
     )
 
 

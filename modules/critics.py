@@ -14,6 +14,8 @@ def make_qvalue_critic(
     observation_dim: int,
     action_dim: int,
     hidden_sizes: Sequence[int] = (256,),
+    *,
+    observation_key: str = "observation",
 ) -> ValueOperator:
     """Q(s, a): an MLP over ``cat(observation, action)`` writing ``"state_action_value"``.
 
@@ -24,6 +26,7 @@ def make_qvalue_critic(
         observation_dim: length of the flat observation vector.
         action_dim: length of the action vector.
         hidden_sizes: hidden layer widths (ReLU); ``(256,)`` is the TD3 tutorial's critic.
+        observation_key: the TensorDict key of the observation.
     """
     net = MLP(
         in_features=observation_dim + action_dim,
@@ -34,4 +37,4 @@ def make_qvalue_critic(
         activation_kwargs={"inplace": True},
     )
     # TorchRL's MLP concatenates several inputs along the last dim, so it takes (obs, action).
-    return ValueOperator(net, in_keys=["observation", "action"])
+    return ValueOperator(net, in_keys=[observation_key, "action"])

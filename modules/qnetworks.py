@@ -20,12 +20,15 @@ def make_qvalue_actor(
     action_spec,
     hidden_sizes: Sequence[int] = (100,),
     activation: type[nn.Module] = nn.ReLU,
+    *,
+    observation_key: str = "observation",
 ) -> QValueActor:
-    """Greedy Q-value policy over an MLP: ``observation`` -> ``action`` (an integer index)."""
+    """Greedy Q-value policy over an MLP: ``observation`` (or ``observation_key``) -> ``action`` (an integer index)."""
     net = MLP(
         in_features=observation_dim,
         out_features=action_spec.space.n,
         num_cells=list(hidden_sizes),
         activation_class=activation,
     )
-    return QValueActor(net, in_keys=["observation"], spec=action_spec, action_space="categorical")
+    # The action encoding (integer index or one-hot) is the spec's own.
+    return QValueActor(net, in_keys=[observation_key], spec=action_spec)

@@ -14,7 +14,6 @@ import ast
 import dataclasses
 import difflib
 import inspect
-import json
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -228,10 +227,6 @@ def config_from_dict(cls: type, data: dict[str, Any]):
     result = OmegaConf.to_object(conf)
     validate(result)
     return result
-
-
-def dumps(cfg) -> str:
-    return json.dumps(config_to_dict(cfg), indent=2, sort_keys=False)
 
 
 def field_docs(cls: type, prefix: str = "") -> dict[str, str]:

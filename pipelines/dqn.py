@@ -7,8 +7,8 @@
 
 The pieces are TorchRL's: ``QValueActor`` over an MLP (TF-Agents' ``QNetwork``), ``EGreedyModule``
 for the collect policy, ``DQNLoss`` with the element-wise squared TD error, ``HardUpdate`` /
-``SoftUpdate`` for the target network, ``Adam``. Hand in your own env, Q-network module or loss to
-use them instead (``DQN(config, env=..., qvalue_actor=..., loss_module=...)``).
+``SoftUpdate`` for the target network, ``Adam``. Hand in your own env, Q-network or loss to use
+them instead (``DQN(config, env=..., actor=..., loss_module=...)``).
 """
 
 from __future__ import annotations
@@ -16,16 +16,19 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import List, Optional
 
+import copy
+
 import torch
 from tensordict import TensorDictBase
 from torch import nn
+from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from rlpipe.envs import describe_action_space, is_discrete
 from rlpipe.modules import epsilon_greedy, make_qvalue_actor
+from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.loop import OffPolicyPipeline
+from rlpipe.modules.plain_policy import TensorDictPolicy
 
 __all__ = ["DQNConfig", "DQN", "PRESETS", "preset"]
 
@@ -96,14 +99,6 @@ def _cartpole_v1() -> DQNConfig:
 PRESETS = {"dqn": _tutorial, "dqn-cartpole-v1": _cartpole_v1}
 
 
-
-def preset(name: str = "dqn") -> DQNConfig:
-    """A fresh config of the named preset."""
-    if name not in PRESETS:
-        raise InputError(f"unknown DQN preset {name!r}; expected one of {', '.join(PRESETS)}")
-    return PRESETS[name]()
-
-
 class _GreedyPolicy(nn.Module):
     """The exported policy: observations -> index of the highest Q-value."""
 
@@ -116,85 +111,85 @@ class _GreedyPolicy(nn.Module):
 
 
 class DQN(OffPolicyPipeline):
-    """Deep Q-learning: epsilon-greedy collection, greedy evaluation, TorchRL's ``DQNLoss``."""
+    """Deep Q-learning: epsilon-greedy collection, greedy evaluation, TorchRL's ``DQNLoss``.
+
+    Args:
+        config: a ``DQNConfig`` (default: the tutorial's, ``preset("dqn")``).
+        env: a TorchRL env, or a function making one (needed for collector processes and background
+            evaluation); batched envs (``SerialEnv``, ``ParallelEnv``) too. Default: ``config.env``.
+        eval_env: the env to evaluate on (an env or a function); default: another ``env()``.
+        actor: your Q-value policy (e.g. a TorchRL ``QValueActor``) writing ``"action"`` and
+            ``"action_value"``; or
+        qvalue: your Q-network, a plain ``nn.Module`` mapping observations to one value per action
+            (TF-Agents' ``QNetwork``), wrapped here in a ``QValueActor``.
+        loss_module: your TorchRL ``DQNLoss``; it keeps its own value estimator and target network
+            settings. Its ``value_network`` is the policy unless ``actor`` names it.
+        observation_key: the observation entry the networks read (default: the actor's in_key, or
+            ``"observation"``).
+    """
 
     algo = "dqn"
     Config = DQNConfig
+    action_space = "discrete"
+    presets = PRESETS
     loss_names = ("loss",)
 
-    def __init__(self, config: DQNConfig | None = None, *, env=None, eval_env=None,
-                 qvalue_actor: nn.Module | None = None, loss_module: DQNLoss | None = None):
-        self._given_actor = qvalue_actor
-        self._given_loss = loss_module
-        super().__init__(config, env=env, eval_env=eval_env)
+    def __init__(self, config: DQNConfig | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,
+                 qvalue: nn.Module | None = None, loss_module: DQNLoss | None = None, observation_key: str | None = None):
+        super().__init__(config, env=env, eval_env=eval_env,
+                         observation_key=observation_key or observation_key_of(actor, loss_module))
+        self.assemble(lambda: self.build(actor=actor, qvalue=qvalue, loss_module=loss_module))
 
-    def check_env(self, env) -> None:
-        if not is_discrete(env):
-            raise InputError(
-                f"DQN needs a discrete action space; env {self.config.env!r} has a {describe_action_space(env)} "
-                "(use td3 or sac for continuous actions)"
-            )
+    def build(self, *, actor=None, qvalue=None, loss_module=None) -> Agent:
+        cfg, spec = self.config, self.action_spec
+        if qvalue is not None and (actor is not None or loss_module is not None):
+            raise InputError("qvalue is a bare Q-network for DQN to wrap; pass it alone, not with actor or loss_module")
+        if qvalue is not None:
+            actor = QValueActor(qvalue, in_keys=[self.observation_key], spec=spec)
+        if actor is None:
+            actor = (loss_module.value_network if loss_module is not None  # the network the given loss trains
+                     else make_qvalue_actor(self.observation_dim, spec, cfg.fc_layer_params,
+                                            observation_key=self.observation_key))
+        if loss_module is None:
+            # A target network updated with tau=1 after every update equals the online network, so the
+            # loss can read the online one directly: same result, two fewer copies per update.
+            has_target = not (cfg.target_update_tau == 1.0 and cfg.target_update_period == 1)
+            loss_module = DQNLoss(actor, loss_function=cfg.td_errors_loss, delay_value=has_target,
+                                  double_dqn=cfg.double_dqn, action_space=spec)
+            loss_module.make_value_estimator(gamma=cfg.gamma)
+        collect_policy = epsilon_greedy(actor, spec, cfg.epsilon_greedy, cfg.epsilon_greedy_end, cfg.epsilon_decay_steps)
+        return Agent(policy=actor, collect_policy=collect_policy, loss_module=loss_module)
 
-    def build(self) -> None:
-        cfg = self.config
-        spec = self.env.action_spec
-        if self._given_actor is not None:
-            actor = self._given_actor
-        elif self._given_loss is not None:
-            actor = self._given_loss.value_network  # the network the given loss trains
-        else:
-            actor = make_qvalue_actor(self.observation_dim, spec, cfg.fc_layer_params)
-        self.policy = actor.to(self.device)
-        self.collect_policy = epsilon_greedy(
-            self.policy, spec, cfg.epsilon_greedy, cfg.epsilon_greedy_end, cfg.epsilon_decay_steps
-        )
-        # A target network updated with tau=1 after every update equals the online network, so the
-        # loss can read the online one directly: same result, two fewer copies per update. A loss
-        # handed in keeps whatever it was built with.
-        if self._given_loss is not None:
-            self._has_target = bool(self._given_loss.delay_value)
-        else:
-            self._has_target = not (cfg.target_update_tau == 1.0 and cfg.target_update_period == 1)
-        loss = self._given_loss or DQNLoss(
-            self.policy,
-            loss_function=cfg.td_errors_loss,
-            delay_value=self._has_target,
-            double_dqn=cfg.double_dqn,
-            action_space=spec,
-        )
-        loss.make_value_estimator(gamma=cfg.gamma)
-        self.loss_module = loss
-        self.target_updater = None
-        if self._has_target:
-            if cfg.target_update_tau == 1.0:
-                self.target_updater = HardUpdate(loss, value_network_update_interval=1)
-            else:
-                self.target_updater = SoftUpdate(loss, tau=cfg.target_update_tau)
-        self.optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.learning_rate)
-        self.optimizers = {"q": self.optimizer}
+    def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"q": torch.optim.Adam(self.loss_module.parameters(), lr=self.config.learning_rate)}
 
-    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+    def make_target_updater(self):
+        if not self.loss_module.delay_value:
+            return None
+        if self.config.target_update_tau == 1.0:
+            return HardUpdate(self.loss_module, value_network_update_interval=1)
+        return SoftUpdate(self.loss_module, tau=self.config.target_update_tau)
+
+    def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
+        optimizer = self.optimizers["q"]
         loss = self.loss_module(batch)["loss"]
         loss.backward()
         if self.config.gradient_clipping is not None:
             torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), self.config.gradient_clipping)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        return {"loss": loss.detach()}
-
-    def after_update(self, updates: int) -> None:
-        if self.target_updater is not None and updates % self.config.target_update_period == 0:
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        if self.target_updater is not None and update_index % self.config.target_update_period == 0:
             self.target_updater.step()
+        return {"loss": loss.detach()}
 
     def on_frames(self, frames: int) -> None:
         if self.config.epsilon_greedy_end is not None:
             self.collect_policy[-1].step(frames)
 
     def export_module(self) -> nn.Module:
-        import copy
+        if isinstance(self.policy, QValueActor):
+            return _GreedyPolicy(copy.deepcopy(self.policy.module[0]).cpu())
+        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
 
-        qnet = copy.deepcopy(self.policy.module[0]).cpu()
-        return _GreedyPolicy(qnet)
 
-
-PIPELINE = DQN
+preset = DQN.preset

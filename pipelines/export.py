@@ -13,16 +13,15 @@ observations to actions::
 from __future__ import annotations
 
 import json
-import os
-import tempfile
+import logging
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from rlpipe.pipelines.rundir import replace_readable
+from rlpipe.pipelines.files import atomic_path, write_json_atomic
 
-__all__ = ["export_policy", "load_exported_policy", "load_policy"]
+__all__ = ["export_policy", "load_policy"]
 
 
 def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: dict) -> Path:
@@ -33,16 +32,10 @@ def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: d
     example = torch.zeros(2, observation_dim)
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
     program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},), strict=False)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".policy.", suffix=".pt2")
-    os.close(fd)
-    torch.export.save(program, tmp)
-    replace_readable(tmp, folder / "policy.pt2")
-    (folder / "policy.json").write_text(json.dumps({"observation_dim": observation_dim, **info}, indent=2) + "\n")
+    with atomic_path(folder / "policy.pt2", suffix=".pt2") as tmp:
+        torch.export.save(program, tmp)
+    write_json_atomic(folder / "policy.json", {"observation_dim": observation_dim, **info})
     return folder / "policy.pt2"
-
-
-def load_exported_policy(folder: Path) -> nn.Module:
-    return torch.export.load(Path(folder) / "policy.pt2").module()
 
 
 class _AnyBatch(nn.Module):
@@ -66,14 +59,15 @@ def load_policy(folder: Path) -> tuple[nn.Module, dict]:
     path = folder / "policy.pt2"
     if not path.exists():
         raise InputError(f"{path}: no exported policy; expected a run that finished or saved its policy")
-    import logging
-
-    logging.disable(logging.WARNING)  # torch.export logs a traceback of its own for a damaged file
+    # torch.export logs a traceback of its own for a damaged file; the caller's own
+    # logging.disable level is kept while loading and restored after.
+    disabled = logging.root.manager.disable
+    logging.disable(max(disabled, logging.WARNING))
     try:
         program = torch.export.load(path).module()
         info = json.loads((folder / "policy.json").read_text())
     except Exception as exc:  # torch.export raises many kinds on a damaged file
         raise InputError(f"{path}: corrupt or not an exported policy ({type(exc).__name__})") from exc
     finally:
-        logging.disable(logging.NOTSET)
+        logging.disable(disabled)
     return _AnyBatch(program), info

@@ -13,15 +13,14 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.files import atomic_path, write_json_atomic
 
-__all__ = ["RunDir", "default_run_dir", "write_json_atomic"]
+__all__ = ["RunDir", "default_run_dir"]
 
 BASE_COLUMNS = ["step", "frames", "updates", "average_return", "average_episode_length"]
 SPEED_COLUMNS = ["train_episode_return", "steps_per_s", "updates_per_s", "wall_time"]
@@ -30,21 +29,6 @@ SPEED_COLUMNS = ["train_episode_return", "steps_per_s", "updates_per_s", "wall_t
 def default_run_dir(algo: str, env_id: str) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return Path("runs") / f"{algo}-{env_id.replace('/', '_')}-{stamp}"
-
-
-def replace_readable(tmp: str | Path, path: Path) -> None:
-    """Move a finished temporary file into place, readable like any other file (mkstemp makes 0600)."""
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
-
-
-def write_json_atomic(path: Path, data: Any) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as fh:
-        json.dump(data, fh, indent=2)
-        fh.write("\n")
-    replace_readable(tmp, path)
 
 
 class RunDir:
@@ -60,7 +44,6 @@ class RunDir:
     checkpoints = property(lambda self: self.path / "checkpoints")
     policy_dir = property(lambda self: self.path / "policy")
     returns_png = property(lambda self: self.path / "returns.png")
-    tensorboard_dir = property(lambda self: self.path / "tb")
 
     def holds_run(self) -> bool:
         return self.config_path.exists()
@@ -118,12 +101,10 @@ class MetricsCSV:
             self._rewrite([])
 
     def _rewrite(self, rows: list[dict]) -> None:
-        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=".metrics.")
-        with os.fdopen(fd, "w", newline="") as fh:
+        with atomic_path(self.path) as tmp, tmp.open("w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=self.columns, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
-        replace_readable(tmp, self.path)
 
     def append(self, row: dict[str, Any]) -> None:
         with self.path.open("a", newline="") as fh:

@@ -11,6 +11,7 @@ learned temperature) with ``SoftUpdate``; its Learner and triggers are the share
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import List, Optional
 
@@ -19,12 +20,12 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from rlpipe.envs import describe_action_space, is_discrete
 from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
 from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.modules.plain_policy import TensorDictPolicy
+from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import CollectorConfig, TrainConfig
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.loop import OffPolicyPipeline
 
 __all__ = ["SACConfig", "SAC", "PRESETS", "preset"]
 
@@ -112,61 +113,67 @@ def _hopper() -> SACConfig:
 PRESETS = {"sac": _minitaur, "sac-halfcheetah": _halfcheetah, "sac-hopper": _hopper}
 
 
-def preset(name: str = "sac") -> SACConfig:
-    """A fresh config of the named preset."""
-    if name not in PRESETS:
-        raise InputError(f"unknown SAC preset {name!r}; expected one of {', '.join(PRESETS)}")
-    return PRESETS[name]()
-
-
 class SAC(OffPolicyPipeline):
-    """Soft actor-critic with learned temperature: TorchRL's ``SACLoss`` + ``SoftUpdate``."""
+    """Soft actor-critic with learned temperature: TorchRL's ``SACLoss`` + ``SoftUpdate``.
+
+    Args:
+        config: a ``SACConfig`` (default: the Minitaur tutorial's, ``preset("sac")``).
+        env: a TorchRL env, or a function making one (needed for collector processes and background
+            evaluation); batched envs (``SerialEnv``, ``ParallelEnv``) too. Default: ``config.env``.
+        eval_env: the env to evaluate on (an env or a function); default: another ``env()``.
+        actor: your stochastic policy (a TorchRL ``ProbabilisticActor``, e.g. TanhNormal) writing
+            ``"action"`` and ``"action_log_prob"``.
+        qvalue: your critic, ``(observation, action) -> "state_action_value"``; SACLoss makes the twin.
+        loss_module: your TorchRL ``SACLoss`` (it holds actor and critics; ``actor`` may name its actor).
+        observation_key: the observation entry the networks read (default: the actor's in_key, or
+            ``"observation"``).
+    """
 
     algo = "sac"
     Config = SACConfig
+    action_space = "continuous"
+    presets = PRESETS
     loss_names = ("actor", "qvalue", "alpha", "alpha_value", "entropy")
 
-    def __init__(self, config: SACConfig | None = None, *, env=None, eval_env=None,
-                 actor: nn.Module | None = None, qvalue: nn.Module | None = None):
-        self._given_actor = actor
-        self._given_qvalue = qvalue
-        super().__init__(config, env=env, eval_env=eval_env)
+    def __init__(self, config: SACConfig | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,
+                 qvalue: nn.Module | None = None, loss_module: SACLoss | None = None, observation_key: str | None = None):
+        super().__init__(config, env=env, eval_env=eval_env,
+                         observation_key=observation_key or observation_key_of(actor, loss_module))
+        self.assemble(lambda: self.build(actor=actor, qvalue=qvalue, loss_module=loss_module))
 
-    def check_env(self, env) -> None:
-        if is_discrete(env):
-            raise InputError(
-                f"SAC needs a continuous (Box) action space; env {self.config.env!r} is {describe_action_space(env)} "
-                "(use dqn for discrete actions)"
-            )
-
-    def build(self) -> None:
-        cfg = self.config
-        spec = self.env.action_spec
+    def build(self, *, actor=None, qvalue=None, loss_module=None) -> Agent:
+        cfg, spec, key = self.config, self.action_spec, self.observation_key
         action_dim = int(spec.shape[-1])
-        actor = self._given_actor or make_tanh_normal_actor(self.observation_dim, spec, cfg.actor_fc_layer_params)
-        qvalue = self._given_qvalue or make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_joint_fc_layer_params)
-        # The same module explores (samples) in collection and acts deterministically in evaluation.
-        self.policy = actor.to(self.device)
-        self.collect_policy = self.policy
+        if loss_module is not None:
+            if qvalue is not None:
+                raise InputError("qvalue is unused when loss_module is given (the loss holds its critics); pass one of them")
+            # The same module explores (samples) in collection and acts deterministically in evaluation.
+            actor = actor if actor is not None else loss_module.actor_network
+            return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
+        if actor is None:
+            actor = make_tanh_normal_actor(self.observation_dim, spec, cfg.actor_fc_layer_params, observation_key=key)
+            self._export_network_only = True  # its deterministic action is TanhNormalMode of its MLP
+        if qvalue is None:
+            qvalue = make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_joint_fc_layer_params,
+                                        observation_key=key)
         target_entropy = cfg.target_entropy if cfg.target_entropy is not None else -action_dim / 2
-        self.loss_module = SACLoss(
-            actor_network=self.policy,
-            qvalue_network=qvalue.to(self.device),
-            num_qvalue_nets=2,
-            loss_function="l2",
-            alpha_init=cfg.initial_alpha,
-            target_entropy=target_entropy,
-            delay_qvalue=True,
-        )
-        self.loss_module.make_value_estimator(gamma=cfg.gamma)
-        self.target_updater = SoftUpdate(self.loss_module, tau=cfg.target_update_tau)
-        self.optimizers = {
-            "actor": torch.optim.Adam(self.loss_module.actor_network_params.flatten_keys().values(), lr=cfg.actor_learning_rate),
-            "qvalue": torch.optim.Adam(self.loss_module.qvalue_network_params.flatten_keys().values(), lr=cfg.critic_learning_rate),
-            "alpha": torch.optim.Adam([self.loss_module.log_alpha], lr=cfg.alpha_learning_rate),
+        loss_module = SACLoss(actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2, loss_function="l2",
+                              alpha_init=cfg.initial_alpha, target_entropy=target_entropy, delay_qvalue=True)
+        loss_module.make_value_estimator(gamma=cfg.gamma)
+        return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
+
+    def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        cfg, loss = self.config, self.loss_module
+        return {
+            "actor": torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.actor_learning_rate),
+            "qvalue": torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.critic_learning_rate),
+            "alpha": torch.optim.Adam([loss.log_alpha], lr=cfg.alpha_learning_rate),
         }
 
-    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+    def make_target_updater(self):
+        return SoftUpdate(self.loss_module, tau=self.config.target_update_tau)
+
+    def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         if self.config.reward_scale_factor != 1.0:
             batch.set(("next", "reward"), batch.get(("next", "reward")) * self.config.reward_scale_factor)
         out = self.loss_module(batch)
@@ -175,16 +182,18 @@ class SAC(OffPolicyPipeline):
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if update_index % self.config.target_update_period == 0:
+            self.target_updater.step()
         return {"actor": out["loss_actor"].detach(), "qvalue": out["loss_qvalue"].detach(),
                 "alpha": out["loss_alpha"].detach(), "alpha_value": out["alpha"].detach(),
                 "entropy": out["entropy"].detach()}
 
-    def after_update(self, updates: int) -> None:
-        if updates % self.config.target_update_period == 0:
-            self.target_updater.step()
+    _export_network_only = False
 
     def export_module(self) -> nn.Module:
-        return TanhNormalMode.from_actor(self.policy, self.env.action_spec)
+        if self._export_network_only:
+            return TanhNormalMode.from_actor(self.policy, self.action_spec)
+        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
 
 
-PIPELINE = SAC
+preset = SAC.preset

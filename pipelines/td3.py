@@ -31,22 +31,26 @@ from typing import List
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictSequential
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.objectives import TD3Loss
 
-from rlpipe.envs import describe_action_space, is_discrete
 from rlpipe.modules.actors import (
+    TanhBoundedMLP,
     TanhNormalMode,
     make_deterministic_actor,
     make_exploration_policy,
     make_gaussian_actor,
 )
 from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.modules.optim import LeanAdam
+from rlpipe.modules.plain_policy import TensorDictPolicy
+from rlpipe.modules.target_updates import make_target_updater
+from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
+from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import CollectorConfig, TrainConfig
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.loop import OffPolicyPipeline
-from rlpipe.pipelines.optim import LeanAdam
-from rlpipe.pipelines.td3_loss import TD3AblationLoss, make_target_updater, td3_update
 
 __all__ = ["TD3Config", "TD3", "INGREDIENTS", "PRESETS", "preset"]
 
@@ -88,6 +92,8 @@ class TD3Config(TrainConfig):
     """std of the Gaussian exploration noise as a fraction of the half action range (tutorial: expl_noise)"""
     target_update_tau: float = 0.005
     """target networks' soft-update factor (tutorial: tau)"""
+    target_update_period: int = 1
+    """actor updates between target network updates (tutorial: 1, the targets move with every actor update)"""
     policy_noise: float = 0.2
     """std of the target policy smoothing noise, in half action ranges (tutorial: policy_noise)"""
     noise_clip: float = 0.5
@@ -165,61 +171,75 @@ PRESETS = {
 }
 
 
-def preset(name: str = "td3") -> TD3Config:
-    """A fresh config of the named preset."""
-    if name not in PRESETS:
-        raise InputError(f"unknown TD3 preset {name!r}; expected one of {', '.join(PRESETS)}")
-    return PRESETS[name]()
-
-
-def _adam(params, lr: float) -> torch.optim.Adam:
-    # Fused Adam does the parameter update in one kernel (~10% of a TD3 update on this CPU), and
-    # LeanAdam calls it without Optimizer.step's per-call Python (another ~6%): see pipelines/optim.py.
-    return LeanAdam(list(params), lr=lr)
-
-
 class TD3(OffPolicyPipeline):
-    """Twin delayed DDPG: TorchRL's ``TD3Loss`` (as ``TD3AblationLoss``) + ``SoftUpdate``."""
+    """Twin delayed DDPG: TorchRL's ``TD3Loss`` (as ``TD3AblationLoss``) + ``SoftUpdate``.
+
+    Args:
+        config: a ``TD3Config`` (default: the tutorial's, ``preset("td3")``).
+        env: a TorchRL env, or a function making one (needed for collector processes and background
+            evaluation); batched envs (``SerialEnv``, ``ParallelEnv``) too. Default: ``config.env``.
+        eval_env: the env to evaluate on (an env or a function); default: another ``env()``.
+        actor: your deterministic policy writing ``"action"`` inside the action bounds (or, with
+            ``deterministic_policy=False``, a stochastic ``ProbabilisticActor``); exploration
+            noise is added for collection.
+        qvalue: your critic, ``(observation, action) -> "state_action_value"``; TD3 makes the twin.
+        loss_module: your TorchRL ``TD3Loss`` (it holds actor and critics; ``actor`` may name its actor).
+        observation_key: the observation entry the networks read (default: the actor's in_key, or
+            ``"observation"``).
+    """
 
     algo = "td3"
     Config = TD3Config
+    action_space = "continuous"
+    presets = PRESETS
     loss_names = ("qvalue", "actor")
 
-    def check_env(self, env) -> None:
-        if is_discrete(env):
-            raise InputError(
-                f"TD3 needs a continuous (Box) action space; env {self.config.env!r} is {describe_action_space(env)} "
-                "(use dqn for discrete actions)"
-            )
+    def __init__(self, config: TD3Config | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,
+                 qvalue: nn.Module | None = None, loss_module: TD3Loss | None = None, observation_key: str | None = None):
+        super().__init__(config, env=env, eval_env=eval_env,
+                         observation_key=observation_key or observation_key_of(actor, loss_module))
+        self.assemble(lambda: self.build(actor=actor, qvalue=qvalue, loss_module=loss_module))
 
-    def build(self) -> None:
-        cfg = self.config
-        spec = self.env.action_spec
-        action_dim = int(spec.shape[-1])
-        if cfg.deterministic_policy:
-            self.policy = make_deterministic_actor(self.observation_dim, spec, cfg.actor_fc_layer_params)
-            self.collect_policy = make_exploration_policy(self.policy, spec, sigma=cfg.exploration_noise)
-        else:
-            # Samples in collection (exploration), its deterministic sample in evaluation.
-            self.policy = make_gaussian_actor(self.observation_dim, spec, cfg.actor_fc_layer_params)
-            self.collect_policy = self.policy
-        critic = make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_fc_layer_params)
-        self.loss_module = TD3AblationLoss(
-            self.policy,
-            critic,
-            action_spec=spec,
-            deterministic_policy=cfg.deterministic_policy,
-            target_policy_smoothing=cfg.target_policy_smoothing,
-            clipped_double_q=cfg.clipped_double_q,
-            policy_noise=cfg.policy_noise,
-            noise_clip=cfg.noise_clip,
-        )
-        self.loss_module.make_value_estimator(gamma=cfg.gamma)
-        self.target_updater = make_target_updater(self.loss_module, cfg.target_update_tau, cfg.target_networks)
-        self.optimizers = {
-            "actor": _adam(self.loss_module.actor_network_params.parameters(), cfg.learning_rate),
-            "qvalue": _adam(self.loss_module.qvalue_network_params.parameters(), cfg.learning_rate),
-        }
+    def build(self, *, actor=None, qvalue=None, loss_module=None) -> Agent:
+        cfg, spec, key = self.config, self.action_spec, self.observation_key
+        if loss_module is not None:
+            if qvalue is not None:
+                raise InputError("qvalue is unused when loss_module is given (the loss holds its critics); pass one of them")
+            actor = actor if actor is not None else loss_module.actor_network
+        elif actor is None:
+            make = make_deterministic_actor if cfg.deterministic_policy else make_gaussian_actor
+            actor = make(self.observation_dim, spec, cfg.actor_fc_layer_params, observation_key=key)
+            self._gaussian_actor_made = not cfg.deterministic_policy  # exported as TanhNormalMode of its MLP
+        stochastic = isinstance(actor, ProbabilisticTensorDictSequential)
+        if cfg.deterministic_policy and stochastic:
+            raise InputError("actor is stochastic (a ProbabilisticActor); expected a deterministic one, "
+                             "or deterministic_policy=false")
+        # A stochastic actor explores by sampling; a deterministic one with Gaussian noise added.
+        collect_policy = actor if stochastic else make_exploration_policy(actor, spec, sigma=cfg.exploration_noise)
+        if loss_module is None:
+            if qvalue is None:
+                qvalue = make_qvalue_critic(self.observation_dim, int(spec.shape[-1]), cfg.critic_fc_layer_params,
+                                            observation_key=key)
+            loss_module = TD3AblationLoss(
+                actor, qvalue, action_spec=spec,
+                deterministic_policy=cfg.deterministic_policy,
+                target_policy_smoothing=cfg.target_policy_smoothing,
+                clipped_double_q=cfg.clipped_double_q,
+                policy_noise=cfg.policy_noise,
+                noise_clip=cfg.noise_clip,
+            )
+            loss_module.make_value_estimator(gamma=cfg.gamma)
+        return Agent(policy=actor, collect_policy=collect_policy, loss_module=loss_module)
+
+    def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        # Fused Adam does the parameter update in one kernel (~10% of a TD3 update on this CPU), and
+        # LeanAdam calls it without Optimizer.step's per-call Python (another ~6%): see modules/optim.py.
+        lr, loss = self.config.learning_rate, self.loss_module
+        return {"actor": LeanAdam(list(loss.actor_network_params.parameters()), lr=lr),
+                "qvalue": LeanAdam(list(loss.qvalue_network_params.parameters()), lr=lr)}
+
+    def make_target_updater(self):
+        return make_target_updater(self.loss_module, self.config.target_update_tau, self.config.target_networks)
 
     def make_replay_buffer(self) -> ReplayBuffer:
         if self.config.experience_replay:
@@ -227,19 +247,24 @@ class TD3(OffPolicyPipeline):
         # Ingredient 2 off: learn from the latest transition only.
         return ReplayBuffer(storage=LazyTensorStorage(1, device=self.device), batch_size=1)
 
-    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+    def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         cfg = self.config
         out = td3_update(
             self.loss_module, batch, self.optimizers["qvalue"], self.optimizers["actor"], self.target_updater,
-            update_index=self.counters["updates"] + 1, policy_delay=cfg.policy_delay,
-            delayed_policy_updates=cfg.delayed_policy_updates,
+            update_index=update_index, policy_delay=cfg.policy_delay,
+            delayed_policy_updates=cfg.delayed_policy_updates, target_update_period=cfg.target_update_period,
         )
         return {name.removeprefix("loss_"): value for name, value in out.items()}
 
+    _gaussian_actor_made = False
+
     def export_module(self) -> nn.Module:
-        if self.config.deterministic_policy:
-            return copy.deepcopy(self.policy.module).cpu()
-        return TanhNormalMode.from_actor(self.policy, self.env.action_spec)
+        network = getattr(self.policy, "module", None)
+        if type(network) is TanhBoundedMLP:  # make_deterministic_actor's: its network alone, on tensors
+            return copy.deepcopy(network).cpu()
+        if self._gaussian_actor_made:
+            return TanhNormalMode.from_actor(self.policy, self.action_spec)
+        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
 
 
-PIPELINE = TD3
+preset = TD3.preset

@@ -6,8 +6,6 @@ same float32 observations the policy was trained on.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,7 +15,7 @@ import numpy as np
 import torch
 
 from rlpipe.envs import MINITAUR_ID, resolve_env_id
-from rlpipe.pipelines.rundir import replace_readable
+from rlpipe.pipelines.files import atomic_path
 
 __all__ = ["record_video"]
 
@@ -41,10 +39,11 @@ def record_video(
     fps = max(1, int(env.metadata.get("render_fps", 30)) // frame_skip)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".video.", suffix=".mp4")
-    os.close(fd)
     try:
-        with imageio.get_writer(tmp, fps=fps, codec="libx264", macro_block_size=8) as writer:
+        with (
+            atomic_path(path, suffix=".mp4") as tmp,
+            imageio.get_writer(tmp, fps=fps, codec="libx264", macro_block_size=8) as writer,
+        ):
             for episode in range(episodes):
                 obs, _ = env.reset(seed=seed + episode)
                 writer.append_data(env.render())
@@ -62,9 +61,6 @@ def record_video(
                         writer.append_data(env.render())
                     if terminated or truncated:
                         break
-        replace_readable(tmp, path)
     finally:
         env.close()
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path

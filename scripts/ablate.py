@@ -21,8 +21,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-VARIANTS = ("full",)  # + "no_<ingredient>" for each of TD3's six, filled in from the pipeline
-
 
 def add_parser(sub) -> None:
     ablate = sub.add_parser("ablate", help="leave-one-out ablation study over TD3's six ingredients")
@@ -126,6 +124,7 @@ def run(args) -> int:
 
     from rlpipe.pipelines.analysis import collect_runs, write_ablation_report
     from rlpipe.pipelines.errors import InputError
+    from rlpipe.pipelines.files import write_json_atomic
 
     jobs = plan(args)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -137,7 +136,7 @@ def run(args) -> int:
         if {k: previous.get(k) for k in ("steps", "overrides")} != {k: study[k] for k in ("steps", "overrides")}:
             raise InputError(f"{args.out}: holds a study with other settings ({previous}); expected the same --steps "
                              "and overrides to resume it, or another --out")
-    study_file.write_text(json.dumps(study, indent=2) + "\n")
+    write_json_atomic(study_file, study)
 
     todo = [j for j in jobs if j.state() != "done"]
     for j in todo:

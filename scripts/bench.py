@@ -48,14 +48,14 @@ def run(args) -> int:
 
 
 def _train_seeds(preset: str, overrides: list[str], seeds: int, out: Path) -> list[dict]:
-    from rlpipe.pipelines import algo_module, resolve_preset
+    from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides
 
     results = []
     for seed in range(seeds):
         algo, cfg = resolve_preset(preset)
         cfg = apply_overrides(cfg, [*overrides, f"seed={seed}"])
-        result = algo_module(algo).PIPELINE(cfg).train(out / f"{preset}-seed{seed}", progress=False)
+        result = pipeline_class(algo)(cfg).train(out / f"{preset}-seed{seed}", progress=False)
         results.append(result)
         print(f"  seed {seed}: {json.dumps(result.summary)}", file=sys.stderr)
     return results

@@ -81,21 +81,13 @@ def _positive(name: str, value: int) -> None:
 
 
 def cmd_train(args) -> int:
-    from rlpipe.pipelines import algo_module, resolve_preset
+    from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.rundir import RunDir
 
     algo, cfg = resolve_preset(args.preset)
-    module = algo_module(algo)
-    if args.keys:
-        docs = field_docs(type(cfg))
-        for key in flat_keys(type(cfg)):
-            value = cfg
-            for part in key.split("."):
-                value = getattr(value, part)
-            print(f"{key}={json.dumps(value)}\n    {docs.get(key, '')}")
-        return 0
+    Pipeline = pipeline_class(algo)
     if args.resume is not None:
         if args.out is not None and args.out.resolve() != args.resume.resolve():
             raise InputError("--out and --resume name different directories; expected one run directory")
@@ -103,9 +95,17 @@ def cmd_train(args) -> int:
         saved_algo, saved = run.read_config()
         if saved_algo != algo:
             raise InputError(f"{args.resume} holds a {saved_algo} run; expected a {algo} run for preset {args.preset!r}")
-        cfg = config_from_dict(module.PIPELINE.Config, saved)
+        cfg = config_from_dict(Pipeline.Config, saved)
     cfg = apply_overrides(cfg, args.overrides)
-    pipeline = module.PIPELINE(cfg)
+    if args.keys:  # the values this command would train with, overrides included
+        docs = field_docs(type(cfg))
+        for key in flat_keys(type(cfg)):
+            value = cfg
+            for part in key.split("."):
+                value = getattr(value, part)
+            print(f"{key}={json.dumps(value)}\n    {docs.get(key, '')}")
+        return 0
+    pipeline = Pipeline(cfg)
     out = args.resume if args.resume is not None else args.out
     try:
         result = pipeline.train(out, resume=args.resume is not None, progress=not args.no_progress)
@@ -122,13 +122,13 @@ def cmd_train(args) -> int:
 
 
 def _run_config(run_dir: Path):
-    from rlpipe.pipelines import algo_module
+    from rlpipe.pipelines import pipeline_class
     from rlpipe.pipelines.config import config_from_dict
     from rlpipe.pipelines.rundir import RunDir
 
     run = RunDir.open(run_dir)
     algo, saved = run.read_config()
-    return run, config_from_dict(algo_module(algo).PIPELINE.Config, saved)
+    return run, config_from_dict(pipeline_class(algo).Config, saved)
 
 
 def cmd_eval(args) -> int:

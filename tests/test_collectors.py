@@ -29,7 +29,6 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines import td3
 from rlpipe.pipelines.config import apply_overrides, config_from_dict
-from rlpipe.pipelines.rate_limiter import SampleToInsertRatio
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -452,12 +451,11 @@ def pushed() -> dict:
             pipeline.replay_buffer.extend(b)
         before = [p.detach().clone() for p in pipeline.policy.parameters()]
         for i in range(4):  # learner updates, as the loop makes them
-            pipeline.counters["updates"] = i
-            pipeline.update(pipeline.replay_buffer.sample())
+            pipeline.update(pipeline.replay_buffer.sample(), i + 1)
         out["policy_changed"] = any(not torch.equal(a, b) for a, b in zip(before, pipeline.policy.parameters()))
         # blocks collected before the push (at most one per worker is in flight)
         out["stale_before_push"] = [int(mismatch(next(blocks).reshape(-1)).sum())]
-        pipeline._sync_weights(collector)  # what the loop calls after the updates
+        pipeline.push_weights(collector)  # what the loop calls after the updates
         # a block in flight may predate the push; from the third on all are collected after it
         out["stale_after_push"] = [int(mismatch(next(blocks).reshape(-1)).sum()) for _ in range(4)]
     finally:
@@ -500,71 +498,3 @@ def test_same_seed_in_process_gives_identical_metrics(tmp_path):
     assert [r["step"] for r in eval_rows(first)] == ["0", "150", "300"]
     assert first == second
     assert any(r["loss_qvalue"] for r in first)  # the losses are compared too, not only returns
-
-
-# --- the rate limiter -------------------------------------------------------------------------------------
-
-
-def pay(limiter: SampleToInsertRatio) -> int:
-    """Make every owed update, as the loop does."""
-    owed = limiter.owed
-    limiter.made(owed)
-    return owed
-
-
-@pytest.mark.parametrize("updates_per_frame", [1.0, 0.5, 1 / 3, 4.0])
-def test_ratio_holds_for_uneven_blocks(updates_per_frame):
-    limiter = SampleToInsertRatio(updates_per_frame)
-    blocks = [7, 1, 50, 3, 13, 64, 2, 2, 31, 100, 9]
-    frames = updates = 0
-    for block in blocks:
-        owed = limiter.insert(block)
-        assert owed == limiter.owed
-        updates += pay(limiter)
-        frames += block
-        # never more than owed, and less by under one update
-        assert 0 <= frames * updates_per_frame - updates < 1 + 1e-9, (frames, updates)
-        assert limiter.owed == 0
-    assert limiter.frames == frames and limiter.updates == updates
-    assert limiter.ratio == pytest.approx(updates_per_frame, rel=0.02)
-
-
-def test_min_frames_are_not_paid_for():
-    limiter = SampleToInsertRatio(0.5, min_frames=100)
-    assert limiter.insert(60) == 0
-    assert limiter.insert(39) == 0
-    assert limiter.insert(11) == 5  # 10 frames past 100 -> 5 updates
-    pay(limiter)
-    assert limiter.insert(1) == 0  # half an update owed
-    assert limiter.insert(1) == 1
-    pay(limiter)
-    assert limiter.updates == 6 and limiter.ratio == pytest.approx(0.5)
-
-
-def test_owed_updates_stay_owed_until_made():
-    limiter = SampleToInsertRatio(1.0)
-    assert limiter.insert(5) == 5
-    limiter.made(2)  # the loop stopped after two updates
-    assert limiter.owed == 3
-    assert limiter.insert(1) == 4
-    limiter.made(4)
-    assert limiter.owed == 0 and limiter.updates == 6
-
-
-def test_state_dict_round_trip_continues_exactly():
-    a = SampleToInsertRatio(1 / 3, min_frames=10)
-    a.insert(25)
-    pay(a)
-    a.insert(2)  # a fraction of an update is owed now
-    b = SampleToInsertRatio(1 / 3, min_frames=10)
-    b.load_state_dict(json.loads(json.dumps(a.state_dict())))  # survives plain serialisation
-    assert b.state_dict() == a.state_dict() and b.owed == a.owed
-    for block in (1, 4, 9, 2):
-        assert a.insert(block) == b.insert(block)
-        assert pay(a) == pay(b)
-    assert a.state_dict() == b.state_dict()
-
-
-def test_a_non_positive_ratio_is_refused():
-    with pytest.raises(ValueError):
-        SampleToInsertRatio(0)

@@ -246,7 +246,7 @@ def test_user_qvalue_actor_and_loss_are_trained(tmp_path):
     loss = DQNLoss(actor, action_space=spec, delay_value=False)
     before = {k: v.clone() for k, v in actor.state_dict().items()}
     pipeline = DQN(tiny("num_iterations=100", "eval_interval=0"), env=lambda: make_env("CartPole-v0"),
-                   qvalue_actor=actor, loss_module=loss)
+                   actor=actor, loss_module=loss)
     result = pipeline.train(tmp_path / "run", progress=False)
     assert pipeline.loss_module is loss
     assert result.policy is actor
@@ -263,7 +263,7 @@ def test_user_loss_with_a_target_network_gets_target_updates(tmp_path):
     actor = _actor(spec)
     loss = DQNLoss(actor, action_space=spec)  # TorchRL's default: delay_value=True
     pipeline = DQN(tiny("num_iterations=100", "eval_interval=0"), env=lambda: make_env("CartPole-v0"),
-                   qvalue_actor=actor, loss_module=loss)
+                   actor=actor, loss_module=loss)
     pipeline.train(tmp_path / "run", progress=False)
     online, target = loss.value_network_params, loss.target_value_network_params
     # target_update_tau=1.0 every update: the target network equals the online one after training

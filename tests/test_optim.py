@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from rlpipe.pipelines.optim import LeanAdam
+from rlpipe.modules.optim import LeanAdam
 
 
 def twin_models(seed: int = 0):

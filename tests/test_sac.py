@@ -153,11 +153,11 @@ def test_ctrl_c_during_a_sac_update_checkpoints_and_resumes(run_dir, ctrl_c_on_c
         pipeline.train(run_dir, progress=False)
     hook.remove()
     assert signal.getsignal(signal.SIGINT) is handler  # train put the handler it found back
-    c = pipeline.counters
+    c = pipeline.state
     latest = (run_dir / "checkpoints" / "latest").read_text().strip()
-    assert latest == f"step_{c['iteration']:010d}" and c["iteration"] > 0
+    assert latest == f"step_{c.iteration:010d}" and c.iteration > 0
     # stopped within the update it was in: the frames' iteration, all but the unpaid updates made
-    assert c["iteration"] == c["frames"] - 100 and 100 < c["updates"] < c["iteration"], c
+    assert c.iteration == c.frames - 100 and 100 < c.updates < c.iteration, c
     resumed = sac.SAC(cfg).train(run_dir, resume=True, progress=False)
     assert resumed.summary["iterations"] == 300 and resumed.summary["updates"] == 300
 

@@ -39,9 +39,8 @@ def fill(pipeline: td3.TD3, steps: int = 64) -> None:
 
 def step(pipeline: td3.TD3) -> None:
     """One update the way the loop makes it (the update count decides the delayed actor step)."""
-    pipeline.update(pipeline.replay_buffer.sample())
-    pipeline.counters["updates"] += 1
-    pipeline.after_update(pipeline.counters["updates"])
+    pipeline.state.updated()
+    pipeline.update(pipeline.replay_buffer.sample(), pipeline.state.updates)
 
 
 def params(tensordict_params) -> list[torch.Tensor]:

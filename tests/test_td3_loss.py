@@ -19,7 +19,8 @@ from rlpipe.modules.actors import (
     make_gaussian_actor,
 )
 from rlpipe.modules.critics import make_qvalue_critic
-from rlpipe.pipelines.td3_loss import TD3AblationLoss, make_target_updater, td3_update
+from rlpipe.modules.target_updates import make_target_updater
+from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 

@@ -9,7 +9,7 @@ ingredient                 switched off means                      honoured by
 deterministic_policy       a stochastic (Gaussian) actor that      ``TD3AblationLoss``
                            explores by sampling
 experience_replay          buffer of 1, batch of 1                 the pipeline's replay buffer
-target_networks            targets = online networks (tau = 1)     ``make_target_updater``
+target_networks            targets = online networks (tau = 1)     ``make_target_updater`` (target_updates)
 target_policy_smoothing    no noise on the target action           ``TD3AblationLoss``
 delayed_policy_updates     actor updated on every critic update    ``td3_update``
 clipped_double_q           target uses Q1 alone, not min(Q1, Q2)   ``TD3AblationLoss``
@@ -20,9 +20,9 @@ keys, value estimator (``gamma``), ``forward`` and compatibility with ``SoftUpda
 ``value_loss``/``actor_loss`` for three reasons besides the switches:
 
 * speed: the stock loss builds, selects, expands and vmaps TensorDicts (~3 ms per forward at batch
-  256 on this machine, for ~0.3 ms of arithmetic). Here networks run on tensors: a critic that is
-  a TorchRL ``MLP`` is evaluated for both critics at once as batched matmuls over the loss's
-  stacked parameters, and an actor that is a ``TanhBoundedMLP`` (``make_deterministic_actor``)
+  256 on this machine, for ~0.3 ms of arithmetic). Here networks run on tensors (``tensor_nets``):
+  a critic that is a TorchRL ``MLP`` is evaluated for both critics at once as batched matmuls over
+  the loss's stacked parameters, and an actor that is a ``TanhBoundedMLP`` (``make_deterministic_actor``)
   layer by layer on the online or target parameters (``torch.func.functional_call`` costs ~60 us
   more per call, for ~35 us of arithmetic). Other plain actors go through ``functional_call``,
   anything else through TensorDicts;
@@ -33,57 +33,18 @@ keys, value estimator (``gamma``), ``forward`` and compatibility with ``SoftUpda
 
 from __future__ import annotations
 
-import warnings
-
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from torch.func import functional_call
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import MLP
 from torchrl.objectives import SoftUpdate, TD3Loss, ValueEstimators
 from torchrl.objectives.utils import distance_loss
 
 from rlpipe.modules.actors import TanhBoundedMLP
+from rlpipe.modules.tensor_nets import is_plain_module, mlp_layers, run_mlp, run_stacked_mlp
 
-__all__ = ["TD3AblationLoss", "ForeachSoftUpdate", "make_target_updater", "td3_update"]
-
-
-def _is_plain_module(module) -> bool:
-    """A TensorDictModule that only maps its in_keys' tensors through one ``nn.Module``."""
-    return (
-        isinstance(module, TensorDictModule)
-        and type(module).forward is TensorDictModule.forward
-        and isinstance(module.module, torch.nn.Module)
-    )
-
-
-def _mlp_layers(mlp: torch.nn.Module, prefix: str = "") -> list[tuple[str, object]] | None:
-    """``[("linear", parameter name prefix) | ("other", parameter-free module)]`` of a TorchRL
-    ``MLP`` whose parameters are named ``prefix + <layer>.weight/bias``; None for anything else.
-
-    Such a network can be evaluated on tensors from a flat ``{name: tensor}`` dict of parameters
-    (see ``_run_mlp`` and ``TD3AblationLoss._qvalues``).
-    """
-    if type(mlp) is not MLP or getattr(mlp, "_reshape_out", False):
-        return None
-    layers = []
-    for name, layer in mlp.named_children():
-        if type(layer) is torch.nn.Linear:
-            layers.append(("linear", prefix + name))
-        elif not any(True for _ in layer.parameters()) and not any(True for _ in layer.buffers()):
-            layers.append(("other", layer))
-        else:
-            return None
-    return layers
-
-
-def _run_mlp(layers, params: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
-    """One network of ``_mlp_layers`` on ``x``, with the tensors of ``params``."""
-    for kind, layer in layers:
-        x = layer(x) if kind == "other" else F.linear(x, params[f"{layer}.weight"], params.get(f"{layer}.bias"))
-    return x
+__all__ = ["TD3AblationLoss", "td3_update"]
 
 
 class TD3AblationLoss(TD3Loss):
@@ -158,14 +119,14 @@ class TD3AblationLoss(TD3Loss):
         # Converts normalised noise to action units, as the tutorial's (a - center) / radius does.
         self.register_buffer("action_radius", (self.max_action - self.min_action) / 2)
         # Plain modules are called on tensors (fast); anything else through TensorDicts.
-        self._actor_on_tensors = _is_plain_module(self.actor_network)
+        self._actor_on_tensors = is_plain_module(self.actor_network)
         self._actor_layers = (
-            _mlp_layers(self.actor_network.module.mlp, "mlp.")
+            mlp_layers(self.actor_network.module.mlp, "mlp.")
             if self._actor_on_tensors and type(self.actor_network.module) is TanhBoundedMLP
             else None
         )
         self._critic_layers = (
-            _mlp_layers(self.qvalue_network.module) if _is_plain_module(self.qvalue_network) else None
+            mlp_layers(self.qvalue_network.module) if is_plain_module(self.qvalue_network) else None
         )
         if len(self.actor_network.in_keys) != 1:
             raise ValueError(
@@ -225,7 +186,7 @@ class TD3AblationLoss(TD3Loss):
         if self._actor_layers is not None:
             # TanhBoundedMLP.forward, with these parameters
             params = self._flat_params(params_name)
-            out = torch.tanh(_run_mlp(self._actor_layers, params, observation))
+            out = torch.tanh(run_mlp(self._actor_layers, params, observation))
             return params["center"] + params["radius"] * out
         if self._actor_on_tensors:
             return functional_call(net.module, self._flat_params(params_name), (observation,), tie_weights=False)
@@ -258,22 +219,8 @@ class TD3AblationLoss(TD3Loss):
             inputs = {self._observation_key: observation, self.tensor_keys.action: action}
             x = torch.cat([inputs[k] for k in self.qvalue_network.in_keys], -1)
             if index is not None:
-                return _run_mlp(self._critic_layers, self._critic_slice(params_name, index), x)
-            batch_shape = x.shape[:-1]
-            params = self._flat_params(params_name)
-            # baddbmm wants [critics, rows, features]: flatten any batch dims into rows.
-            x = x.reshape(-1, x.shape[-1]).expand(self.num_qvalue_nets, -1, -1)
-            for kind, layer in self._critic_layers:
-                if kind == "other":
-                    x = layer(x)
-                else:
-                    weight, bias = params[f"{layer}.weight"], params.get(f"{layer}.bias")
-                    x = (
-                        torch.matmul(x, weight.transpose(-1, -2))
-                        if bias is None
-                        else torch.baddbmm(bias.unsqueeze(-2), x, weight.transpose(-1, -2))
-                    )
-            return x.reshape(self.num_qvalue_nets, *batch_shape, -1)
+                return run_mlp(self._critic_layers, self._critic_slice(params_name, index), x)
+            return run_stacked_mlp(self._critic_layers, self._flat_params(params_name), x, self.num_qvalue_nets)
         # Any other critic: TorchRL's way, one TensorDict call per critic.
         net = self.qvalue_network
         td = TensorDict(
@@ -404,49 +351,8 @@ class TD3AblationLoss(TD3Loss):
         return loss, {"state_action_value_actor": q1.squeeze(-1).detach()}
 
 
-class ForeachSoftUpdate(SoftUpdate):
-    """TorchRL's ``SoftUpdate`` whose ``step`` is one ``torch._foreach_lerp_`` over cached lists.
-
-    The stock ``step`` walks its TensorDicts and re-checks every target's ``requires_grad`` on each
-    call (~0.3 ms here, more than the arithmetic); the arithmetic is the same
-    (``target.lerp_(source, tau)``). Create it after moving the loss to its device.
-    """
-
-    def step(self) -> None:
-        pairs = self.__dict__.get("_flat_pairs")
-        if pairs is None:
-            targets, sources = [], []
-            for key, source in self._sources.items(True, True):
-                targets.append(self._targets.get(("target_" + key[0], *key[1:])))
-                sources.append(source)
-            pairs = self.__dict__["_flat_pairs"] = (targets, sources)
-        with torch.no_grad():
-            torch._foreach_lerp_(pairs[0], pairs[1], 1 - self.eps)
-
-
-def make_target_updater(
-    loss: TD3Loss, tau: float = 0.005, target_networks: bool = True
-) -> SoftUpdate:
-    """A ``SoftUpdate`` for ``loss``: ``target <- (1 - tau) * target + tau * online``.
-
-    Args:
-        loss: the TD3 loss whose target parameters to update.
-        tau: Polyak factor (the tutorial's 0.005).
-        target_networks: False switches target networks off the tutorial's way, ``tau = 1``: each
-            update copies the online parameters, so the targets equal the online networks as of
-            the last update (in ``td3_update`` that is every ``policy_delay`` critic steps, as in
-            the tutorial).
-    """
-    if not target_networks:
-        tau = 1.0
-    with warnings.catch_warnings():
-        # SoftUpdate warns for tau > 0.5 ("eps < 0.5"); tau = 1 is intended here.
-        warnings.filterwarnings("ignore", message=".*eps value.*")
-        return ForeachSoftUpdate(loss, tau=tau)
-
-
 def td3_update(
-    loss: TD3AblationLoss,
+    loss: TD3Loss,
     batch: TensorDictBase,
     critic_optimizer: torch.optim.Optimizer,
     actor_optimizer: torch.optim.Optimizer,
@@ -454,27 +360,31 @@ def td3_update(
     update_index: int,
     policy_delay: int = 2,
     delayed_policy_updates: bool = True,
+    target_update_period: int = 1,
 ) -> dict[str, torch.Tensor]:
     """One TD3 gradient step, the tutorial's ``TD3.train`` after sampling the batch.
 
     The critics are updated on every call; the actor and the target networks when
     ``update_index % policy_delay == 0`` (the tutorial's ``total_itr % policy_freq``, counted
-    from 1), or on every call when ``delayed_policy_updates`` is False. As in the tutorial the
-    actor loss is computed after the critic step, i.e. with the updated critic.
+    from 1), or on every call when ``delayed_policy_updates`` is False; the targets only on every
+    ``target_update_period``-th of those. As in the tutorial the actor loss is computed after the
+    critic step, i.e. with the updated critic.
 
     Args:
-        loss: a ``TD3AblationLoss``.
+        loss: a ``TD3AblationLoss`` (fast, on tensors) or any TorchRL ``TD3Loss`` (through its
+            own ``value_loss``/``actor_loss``).
         batch: a replay-buffer sample with the loss's keys (observation, action, ("next", ...)).
         critic_optimizer: optimiser over ``loss.qvalue_network_params.parameters()`` (the
-            tutorial: ``torch.optim.Adam(..., lr=3e-4)``; ``rlpipe.pipelines.optim.LeanAdam``,
+            tutorial: ``torch.optim.Adam(..., lr=3e-4)``; ``rlpipe.modules.optim.LeanAdam``,
             the same fused Adam with less Python per step, is what the TD3 pipeline uses).
         actor_optimizer: optimiser over ``loss.actor_network_params.parameters()``
             (``.parameters()`` leaves out the actor's bound buffers).
-        target_updater: ``make_target_updater(loss, ...)``.
+        target_updater: ``rlpipe.modules.target_updates.make_target_updater(loss, ...)``.
         update_index: number of this update (1, 2, ...); a Python int, so under ``torch.compile``
             the delay decision selects one of two graphs instead of branching on a tensor.
         policy_delay: the tutorial's ``policy_freq`` (2).
         delayed_policy_updates: False updates the actor on every call.
+        target_update_period: actor updates between target updates (1: each of them).
 
     Returns:
         ``{"loss_qvalue": ..., "loss_actor": ...}`` as detached tensors (no host sync); the actor
@@ -484,21 +394,24 @@ def td3_update(
     expected) but measured no faster than eager on this 2-core CPU, after ~55 s of compiling;
     compiling only ``loss.qvalue_loss_from_tensors`` (instance attribute) gains a few percent.
     """
-    observation, action, next_observation, reward, terminated = loss.tensors_from(batch)
-
-    critic_loss, _, _, _ = loss.qvalue_loss_from_tensors(
-        observation, action, next_observation, reward, terminated
-    )
+    fast = isinstance(loss, TD3AblationLoss)
+    if fast:
+        observation, action, next_observation, reward, terminated = loss.tensors_from(batch)
+        critic_loss = loss.qvalue_loss_from_tensors(observation, action, next_observation, reward, terminated)[0]
+    else:
+        critic_loss = loss.value_loss(batch)[0]
     critic_optimizer.zero_grad(set_to_none=True)
     critic_loss.backward()
     critic_optimizer.step()
     out = {"loss_qvalue": critic_loss.detach()}
 
-    if not delayed_policy_updates or update_index % policy_delay == 0:
-        actor_loss, _ = loss.actor_loss_from_tensors(observation)
+    actor_every = policy_delay if delayed_policy_updates else 1
+    if update_index % actor_every == 0:
+        actor_loss = loss.actor_loss_from_tensors(observation)[0] if fast else loss.actor_loss(batch)[0]
         actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()
         actor_optimizer.step()
-        target_updater.step()
+        if update_index % (actor_every * target_update_period) == 0:
+            target_updater.step()
         out["loss_actor"] = actor_loss.detach()
     return out

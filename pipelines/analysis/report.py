@@ -1,0 +1,188 @@
+"""The ablation report: ``ablation.csv``, ``ablation.md`` and its figures, from run tables.
+
+:func:`write_ablation_report` takes the ``records`` and ``curves`` tables of
+:func:`rlpipe.pipelines.analysis.runs.collect_runs` (the TD3 leave-one-out ablation: variants
+``full``, ``no_clipped_double_q``, ...) and writes a table per env with the statistics of
+:mod:`rlpipe.pipelines.analysis.stats`, learning curves and ECDFs of the final returns.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from rlpipe.pipelines.analysis.plots import (
+    _fmt,
+    _plot_env_curves,
+    _plot_final_ecdfs,
+    _variant_styles,
+)
+from rlpipe.pipelines.analysis.runs import RECORD_COLUMNS
+from rlpipe.pipelines.analysis.stats import (
+    BOOTSTRAP_SEED,
+    N_RESAMPLES,
+    N_RESAMPLES_BAND,
+    aggregate_curves,
+    summarise_runs,
+)
+from rlpipe.pipelines.files import write_text_atomic
+
+__all__ = ["safe_filename", "write_ablation_report"]
+
+
+def safe_filename(name: Any) -> str:
+    """A file-name-safe form of ``name``: runs of characters other than letters, digits, ``.``,
+    ``_`` and ``-`` become ``_``; leading dots/underscores are stripped (``rlpipe/MinitaurBullet-v0``
+    -> ``rlpipe_MinitaurBullet-v0``)."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("._")
+    return safe or "unnamed"
+
+
+def _markdown_report(
+    summary: pd.DataFrame,
+    envs: Sequence[str],
+    curve_files: Mapping[str, str],
+    reference: str | None,
+    n_runs: int,
+) -> str:
+    lines = [
+        "# Ablation report",
+        "",
+        f"{n_runs} runs, {len(envs)} env(s), {summary['variant'].nunique()} variant(s). "
+        f"Reference variant: `{reference}` (bold, ★).",
+        "",
+        "How the numbers were made:",
+        "",
+        "- **final return**: the average return of a run's last evaluation (the last row of "
+        "its `metrics.csv` with a non-empty `average_return`).",
+        "- **n**: runs (seeds) of the variant; **mean**: mean final return over those seeds.",
+        f"- **95% CI**: 95% percentile bootstrap confidence interval of the mean over seeds "
+        f"(`scipy.stats.bootstrap`, {N_RESAMPLES} resamples, seed {BOOTSTRAP_SEED}); for "
+        "n = 1 it is the value itself.",
+        "- **IQM**: interquartile mean of the final returns over seeds (`scipy.stats.trim_mean`, "
+        "25% cut from each end; the plain mean when n < 4).",
+        "- **AUC**: normalised area under the learning curve (trapezoid over iterations divided "
+        "by the iteration span, i.e. the mean evaluation return over training), averaged over "
+        "seeds.",
+        "- Rows are sorted by mean final return, best first.",
+        "- Learning curves (`curves_<env>.png`): mean over seeds per variant vs iteration; seeds "
+        "are linearly interpolated onto the union of their evaluation steps within the range "
+        "all seeds cover; the shaded band is the 95% percentile bootstrap CI of the mean "
+        f"({N_RESAMPLES_BAND} resamples) at each step. `ecdf_final_returns.png`: ECDF of the "
+        "final returns per variant.",
+        "",
+    ]
+    for env in envs:
+        lines += [f"## {env}", ""]
+        if env in curve_files:
+            lines += [f"![learning curves on {env}]({curve_files[env]})", ""]
+        lines += [
+            "| variant | n | mean final return | 95% CI | IQM | AUC |",
+            "|:--|--:|--:|:-:|--:|--:|",
+        ]
+        for row in summary[summary["env"] == env].itertuples(index=False):
+            name = f"`{row.variant}`"
+            if row.variant == reference:
+                name = f"**{row.variant}** ★"
+            ci = f"[{_fmt(row.ci_low)}, {_fmt(row.ci_high)}]"
+            lines.append(
+                f"| {name} | {row.n} | {_fmt(row.mean)} | {ci} | {_fmt(row.iqm)} "
+                f"| {_fmt(row.auc_mean)} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_ablation_report(
+    records: pd.DataFrame,
+    curves: pd.DataFrame | Mapping | None,
+    out_dir: str | os.PathLike,
+    reference_variant: str = "full",
+) -> list[Path]:
+    """Write the ablation study's tables and figures into ``out_dir``.
+
+    Args:
+        records: one row per run with columns ``env``, ``variant``, ``seed``, ``final_return``,
+            ``auc`` (see :func:`collect_runs`).
+        curves: learning curves, in any form :func:`aggregate_curves` takes (long DataFrame with
+            ``env``, ``variant``, ``seed``, ``step``, ``average_return``, or a dict keyed by
+            ``(env, variant, seed)``); ``None`` skips the curve figures.
+        out_dir: output folder (created).
+        reference_variant: the full agent, marked in the table and drawn black and thick.
+
+    Writes:
+        * ``ablation.csv`` -- ``env, variant, seed, final_return, auc``, one row per run;
+        * ``ablation.md`` -- per env a Markdown table (variant, n, mean final return, 95% CI,
+          IQM, AUC) sorted by mean, the reference variant in bold with a ★, under a header
+          saying how the numbers were made (see :func:`summarise_runs`);
+        * ``curves_<env>.png`` per env with curve data (env id made safe by
+          :func:`safe_filename`) -- mean over seeds per variant with a shaded 95% percentile
+          bootstrap band (see :func:`aggregate_curves` for the step alignment);
+        * ``ecdf_final_returns.png`` -- one panel per env, one ECDF per variant.
+
+    Returns:
+        the paths written: csv, md, the curve PNGs (env order), the ECDF PNG.
+    """
+    missing = [c for c in RECORD_COLUMNS if c not in records.columns]
+    if missing:
+        raise ValueError(f"records lack column(s) {missing}; have {list(records.columns)}")
+    if records.empty:
+        raise ValueError("write_ablation_report: no runs in records")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    table = records[RECORD_COLUMNS].copy()
+    table["env"] = table["env"].astype(str)
+    table["variant"] = table["variant"].astype(str)
+    table = table.sort_values(["env", "variant", "seed"], kind="mergesort").reset_index(drop=True)
+    summary = summarise_runs(table)
+    envs = sorted(table["env"].unique())
+    orders = {env: list(summary.loc[summary["env"] == env, "variant"]) for env in envs}
+    reference = reference_variant if reference_variant in set(table["variant"]) else None
+
+    agg = aggregate_curves(curves) if curves is not None else aggregate_curves(None)
+    if not agg.empty:
+        agg["env"] = agg["env"].astype(str)
+        agg["variant"] = agg["variant"].astype(str)
+    styles = _variant_styles(set(table["variant"]) | set(agg["variant"]), reference_variant)
+
+    curve_files: dict[str, str] = {}
+    used: set[str] = set()
+    for env in envs:
+        stem = base = f"curves_{safe_filename(env)}"
+        i = 2
+        while stem in used:  # two env ids that sanitise to the same name
+            stem, i = f"{base}_{i}", i + 1
+        used.add(stem)
+        curve_files[env] = f"{stem}.png"
+
+    written: list[Path] = []
+    csv_path = out / "ablation.csv"
+    write_text_atomic(csv_path, table.to_csv(index=False))
+    written.append(csv_path)
+
+    curve_paths = []
+    for env in envs:
+        env_agg = agg[agg["env"] == env]
+        if env_agg.empty:
+            curve_files.pop(env)
+            continue
+        order = orders[env] + sorted(set(env_agg["variant"]) - set(orders[env]))
+        curve_paths.append(
+            _plot_env_curves(env_agg, env, order, styles, reference, out / curve_files[env])
+        )
+
+    md_path = out / "ablation.md"
+    write_text_atomic(
+        md_path, _markdown_report(summary, envs, curve_files, reference, len(table))
+    )
+    written.append(md_path)
+    written += curve_paths
+    written.append(
+        _plot_final_ecdfs(table, envs, orders, styles, reference, out / "ecdf_final_returns.png")
+    )
+    return written

@@ -1,0 +1,385 @@
+"""What every pipeline is: the algorithm contract, the plug-in surface, and the parts they share.
+
+A pipeline (``dqn.DQN``, ``td3.TD3``, ``sac.SAC``) subclasses ``OffPolicyPipeline`` and declares:
+
+* ``algo``, ``Config`` (its typed config), ``action_space`` (``"discrete"`` or ``"continuous"``),
+  ``presets`` (name -> function making a config) and ``loss_names`` (the losses ``update`` returns);
+* ``__init__``: ``super().__init__(...)`` (config, envs, device, observation key), then
+  ``self.assemble(self.build(...))`` with the user's modules, if any;
+* ``build(actor=, qvalue=, loss_module=) -> Agent``: the policy, the exploring policy and the loss;
+* ``make_optimizers()``, ``make_target_updater()``: made after the loss is on its device;
+* ``update(batch, update_index) -> losses``: one gradient step (target updates included);
+* ``export_module()``: the deterministic policy as a plain ``nn.Module`` on observation tensors.
+
+Adding an algorithm is one new module with such a class and one line in ``pipelines.ALGOS``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import random
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.objectives import LossModule
+from torchrl.record.loggers import Logger, TensorboardLogger
+
+from rlpipe.envs import EnvError, describe_action_space, env_label, is_discrete, make_env, with_episode_return
+from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.config import TrainConfig, config_to_dict, validate
+from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.loop import Loop, TrainResult
+from rlpipe.pipelines.meters import Clock
+from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir
+from rlpipe.pipelines.state import RunState
+from rlpipe.pipelines.triggers import Trigger, default_triggers
+
+__all__ = ["Agent", "OffPolicyPipeline", "seed_everything"]
+
+EnvArg = EnvBase | Callable[[], EnvBase] | None
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python's, NumPy's and torch's global generators (what TorchRL's samplers and exploration draw from)."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+@dataclass
+class Agent:
+    """What an algorithm builds: the modules the loop trains, runs and saves."""
+
+    policy: nn.Module
+    """deterministic policy (evaluation, export): reads the observation, writes ``"action"``"""
+    collect_policy: nn.Module
+    """exploring policy (collection); may be ``policy`` itself when it explores by sampling"""
+    loss_module: LossModule
+
+
+class OffPolicyPipeline:
+    """Base of every pipeline: a TorchRL env, modules and loss, trained by the shared ``Loop``."""
+
+    algo: ClassVar[str]
+    Config: ClassVar[type[TrainConfig]]
+    action_space: ClassVar[str]  # "discrete" or "continuous"
+    presets: ClassVar[dict[str, Callable[[], TrainConfig]]]
+    loss_names: ClassVar[tuple[str, ...]] = ("loss",)
+
+    policy: nn.Module
+    collect_policy: nn.Module
+    loss_module: LossModule
+    optimizers: dict[str, torch.optim.Optimizer]
+
+    @classmethod
+    def preset(cls, name: str | None = None) -> TrainConfig:
+        """A fresh config of the named preset (default: the first, the tutorial's)."""
+        name = name or next(iter(cls.presets))
+        if name not in cls.presets:
+            raise InputError(f"unknown {cls.algo.upper()} preset {name!r}; expected one of {', '.join(cls.presets)}")
+        return cls.presets[name]()
+
+    def __init__(self, config: TrainConfig | None = None, *, env: EnvArg = None, eval_env: EnvArg = None,
+                 observation_key: str | None = None):
+        cfg = config if config is not None else self.Config()
+        if not isinstance(cfg, self.Config):
+            raise InputError(f"config is a {type(cfg).__name__}; expected {self.Config.__name__} for {self.algo}")
+        validate(cfg)
+        self.device = torch.device(cfg.device)
+        self.env_fn, self.env = _factory_and_env(env, cfg)
+        self.eval_env = self._eval_env(eval_env, cfg)
+        self.env.set_seed(cfg.seed)
+        self.eval_env.set_seed(cfg.seed + 10_000)
+        # Runs are labelled (config.json, checkpoints, plots) with the env actually used.
+        self.config = cfg if env is None else dataclasses.replace(cfg, env=env_label(self.env))
+        self.action_spec = self.env.action_spec_unbatched
+        if is_discrete(self.action_spec) != (self.action_space == "discrete"):
+            other = "td3 or sac for continuous actions" if self.action_space == "discrete" else "dqn for discrete actions"
+            raise InputError(f"{self.algo.upper()} needs a {self._space_phrase()}; env {self.config.env!r} has a "
+                             f"{describe_action_space(self.action_spec)} (use {other})")
+        self.observation_key = self._observation_key(observation_key)
+        self.observation_dim = int(self.env.observation_spec[self.observation_key].shape[-1])
+        self.state = RunState.fresh(cfg)
+
+    def _space_phrase(self) -> str:
+        return "discrete action space" if self.action_space == "discrete" else "continuous (Box) action space"
+
+    def _eval_env(self, eval_env: EnvArg, cfg: TrainConfig) -> EnvBase:
+        if eval_env is None:
+            if self.env_fn is None:
+                raise InputError("env is an instance: pass eval_env as well (an env or a function making one), "
+                                 "or pass env as a function that makes the env")
+            return self.env_fn()
+        env = eval_env() if callable(eval_env) and not isinstance(eval_env, EnvBase) else eval_env
+        if not isinstance(env, EnvBase):
+            raise InputError(f"eval_env is a {type(env).__name__}; expected a TorchRL EnvBase or a function returning one")
+        return env
+
+    def _observation_key(self, given: str | None) -> str:
+        keys = [k for k in self.env.observation_spec.keys() if k not in ("episode_reward", "step_count", "is_init")]
+        key = given or ("observation" if "observation" in keys else keys[0] if len(keys) == 1 else None)
+        if key not in keys:
+            raise InputError(f"env {self.config.env!r} has no observation {key or 'observation'!r} (it has "
+                             f"{', '.join(map(str, keys))}); pass observation_key=... or an actor that reads one of them")
+        return key
+
+    # --- what a pipeline supplies -----------------------------------------------------------------
+
+    def build(self, *, actor: nn.Module | None = None, qvalue: nn.Module | None = None,
+              loss_module: LossModule | None = None) -> Agent:
+        """The policy, exploring policy and loss, from the user's modules where given."""
+        raise NotImplementedError
+
+    def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        raise NotImplementedError
+
+    def make_target_updater(self):
+        """A TorchRL target updater for the loss, or None."""
+        return None
+
+    def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
+        """Update ``update_index`` (1, 2, ...) on ``batch``; returns detached losses named as in ``loss_names``."""
+        raise NotImplementedError
+
+    def on_frames(self, frames: int) -> None:
+        """Called after each collected block with its frame count (exploration schedules go here)."""
+
+    def export_module(self) -> nn.Module:
+        """The deterministic policy as a plain module: observations [B, D] -> actions."""
+        raise NotImplementedError
+
+    # --- assembled once, the same for every pipeline ------------------------------------------------
+
+    def assemble(self, build: Callable[[], Agent]) -> None:
+        """Call ``build`` (networks drawn from the config's seed, the caller's random state left as it
+        was), put its modules on the pipeline's device, then make optimisers, target updater, buffer."""
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.config.seed)
+            agent = build()
+        self.policy = agent.policy.to(self.device)
+        self.collect_policy = agent.collect_policy.to(self.device)
+        self.loss_module = agent.loss_module.to(self.device)
+        self.optimizers = self.make_optimizers()
+        self.target_updater = self.make_target_updater()
+        self.replay_buffer = self.make_replay_buffer()
+        # What the loop stores of each transition (None: everything the collector returns). The
+        # loss's in_keys are 6 of the collector's 16: sampling them costs about a third less.
+        self.replay_keys: list | None = None if self.config.replay_all_keys else list(self.loss_module.in_keys)
+        self.update_step = torch.compile(self.update) if self.config.compile else self.update
+
+    def export_info(self) -> dict[str, Any]:
+        spec = self.action_spec
+        info = {"algo": self.algo, "env": self.config.env, "observation_key": str(self.observation_key)}
+        if is_discrete(spec):
+            return {**info, "action": "discrete", "num_actions": int(spec.space.n)}
+        return {**info, "action": "continuous", "low": spec.space.low.flatten().tolist(),
+                "high": spec.space.high.flatten().tolist()}
+
+    # --- the parts, as plain TorchRL objects -------------------------------------------------------
+
+    def make_replay_buffer(self) -> ReplayBuffer:
+        cfg = self.config
+        return ReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer_capacity, device=self.device),
+                            batch_size=cfg.batch_size)
+
+    def make_collector(self, total_frames: int, init_random_frames: int):
+        c = self.config.collector
+        common = dict(frames_per_batch=c.frames_per_batch, total_frames=total_frames,
+                      init_random_frames=init_random_frames,
+                      # a user's env without the transforms the policy reads (InitTracker) gets them
+                      # appended, as TorchRL 0.15 will do by default
+                      auto_register_policy_transforms=True)
+        if c.workers == 1 and c.sync:
+            return Collector(self.env, self.collect_policy, **common)
+        if not c.sync and init_random_frames > 0:
+            # MultiAsyncCollector decides random-or-policy for a worker's next block when it hands
+            # over that worker's last one, so the other workers' blocks in flight are random too:
+            # ask for that many fewer, and exactly `init_random_frames` come out random (to a block).
+            # (Each async worker's block is a whole `frames_per_batch`.)
+            common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
+        cls = MultiSyncCollector if c.sync else MultiAsyncCollector
+        return cls([self.env_fn] * c.workers, self.collect_policy, **common)
+
+    def push_weights(self, collector) -> None:
+        """Send the policy's weights to collector processes (in-process collection shares them)."""
+        if not isinstance(collector, Collector):
+            collector.update_policy_weights_()
+
+    # --- checkpoint state -------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "algo": self.algo,
+            "env": self.config.env,
+            "loss": self.loss_module.state_dict(),
+            "collect_policy": self.collect_policy.state_dict(),
+            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
+            **self.state.state_dict(),
+            "replay_buffer": ckpt.replay_buffer_state(self.replay_buffer),
+            "rng": ckpt.rng_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore from ``state_dict`` output; ``InputError`` if it does not fit this pipeline."""
+        try:
+            self.loss_module.load_state_dict(state["loss"])
+            self.collect_policy.load_state_dict(state["collect_policy"])
+            for k, opt in self.optimizers.items():
+                opt.load_state_dict(state["optimizers"][k])
+            self.state.load_state_dict(state)
+            self.replay_buffer.empty()
+            ckpt.load_replay_buffer(self.replay_buffer, state["replay_buffer"], keys=self.replay_keys)
+            ckpt.set_rng_state(state["rng"])
+        except (KeyError, ValueError, RuntimeError, TypeError, IndexError) as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise InputError(f"checkpoint does not fit this {self.algo} pipeline and config: {first[:200]}") from exc
+
+    # --- training ---------------------------------------------------------------------------------
+
+    def train(self, out: str | Path | None = None, *, resume: bool = False, progress: bool = True,
+              logger: Logger | None = None, callbacks: Sequence[Callable[[dict], None]] = (),
+              triggers: Sequence[Trigger] = ()) -> TrainResult:
+        """Train (or, with ``resume=True``, continue the run in ``out``); write everything into the run directory.
+
+        ``logger``: any TorchRL ``Logger`` (default: TensorBoard events in ``out/tb``).
+        ``callbacks``: functions called with each metrics row as it is written.
+        ``triggers``: more ``Trigger``s, run after the built-in ones (log, eval, export, save).
+        Ctrl-C (SIGINT) saves a checkpoint at the next safe point and raises ``KeyboardInterrupt``;
+        ``train(out, resume=True)`` then continues from there.
+        """
+        run, metrics, evaluations = self._resume(out) if resume else self._start(out)
+        self.run_dir = run
+        names = [t.name for t in [*default_triggers(self.config), *triggers]]
+        if len(set(names)) != len(names):
+            raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
+        loop = Loop(self, run, metrics, fresh=not resume, evaluations=evaluations,
+                    triggers=[*default_triggers(self.config), *triggers],
+                    logger=logger or TensorboardLogger(exp_name="tb", log_dir=str(run.path)),
+                    callbacks=callbacks, progress=progress)
+        with _torch_threads(self.config.num_threads):
+            return loop.run()
+
+    def _start(self, out) -> tuple[RunDir, MetricsCSV, list[dict]]:
+        cfg = self.config
+        run = RunDir.create(out or default_run_dir(self.algo, cfg.env), self.algo, config_to_dict(cfg))
+        seed_everything(cfg.seed)  # replay sampling, exploration: the same seed gives the same run
+        self.state.owed = ["eval"]  # the tutorials evaluate once before training
+        return run, MetricsCSV(run.metrics_path, list(self.loss_names)), []
+
+    def _resume(self, out) -> tuple[RunDir, MetricsCSV, list[dict]]:
+        if out is None:
+            raise InputError("resume needs the run directory to continue")
+        run = RunDir.open(out)
+        path = ckpt.latest_checkpoint(run.checkpoints)
+        try:
+            self.load_state_dict(ckpt.load_checkpoint(path, self.algo, self.config.env))
+        except InputError as exc:
+            changed = _changed_keys(run.read_config()[1], config_to_dict(self.config))
+            hint = f" (keys changed since it was saved: {', '.join(changed)})" if changed else ""
+            raise InputError(f"{path / 'state.pt'}: {exc}{hint}") from exc
+        metrics = MetricsCSV(run.metrics_path, list(self.loss_names), resume_after_step=self.state.iteration)
+        run.write_config(self.algo, config_to_dict(self.config))  # keys changed on resume are recorded
+        rows = metrics.rows()
+        self.state.forget_done(rows)
+        evaluations = [_evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
+        return run, metrics, evaluations
+
+    def summary(self, state: RunState, evaluations: list[dict], clock: Clock) -> dict[str, Any]:
+        last = evaluations[-1] if evaluations else {}
+        train_s = clock.train_seconds()
+        return {
+            "algo": self.algo,
+            "env": self.config.env,
+            "seed": self.config.seed,
+            "iterations": state.iteration,
+            "frames": state.frames,
+            "updates": state.updates,
+            "final_average_return": last.get("average_return"),
+            "final_average_episode_length": last.get("average_episode_length"),
+            "wall_time_s": clock.wall(),
+            "train_time_s": train_s,
+            "env_steps_per_s": state.frames / train_s if train_s > 0 else None,
+            "updates_per_s": state.updates / train_s if train_s > 0 else None,
+        }
+
+
+def observation_key_of(*modules: nn.Module | None) -> str | None:
+    """The observation key the first given module reads (an actor's first in_key, or a loss's actor's)."""
+    for module in modules:
+        if module is None:
+            continue
+        for name in ("actor_network", "value_network"):  # a loss: the network that reads observations
+            if getattr(module, name, None) is not None:
+                module = getattr(module, name)
+                break
+        in_keys = getattr(module, "in_keys", None)
+        if in_keys:
+            key = in_keys[0]
+            return key if isinstance(key, str) else None
+    return None
+
+
+def _factory_and_env(env: EnvArg, cfg: TrainConfig) -> tuple[Callable[[], EnvBase] | None, EnvBase]:
+    """(a picklable factory, or None for an instance; the learner's env), with what the loop needs added."""
+    if env is None:
+        factory = functools.partial(make_env, cfg.env, device="cpu")
+    elif isinstance(env, EnvBase):
+        if cfg.collector.workers > 1 or not cfg.collector.sync:
+            raise InputError("collector.workers>1 or collector.sync=false: pass env as a function that makes the env")
+        if cfg.eval_in_background:
+            raise InputError("eval_in_background=true: pass env as a function that makes the env")
+        return None, with_episode_return(env)
+    elif callable(env):
+        factory = functools.partial(_made_with_episode_return, env)
+    else:
+        raise InputError(f"env is a {type(env).__name__}; expected a TorchRL EnvBase or a function returning one")
+    try:
+        made = factory()
+    except EnvError as exc:
+        raise InputError(str(exc)) from exc
+    if not isinstance(made, EnvBase):
+        raise InputError(f"env() returned a {type(made).__name__}; expected a TorchRL EnvBase")
+    return factory, made
+
+
+def _made_with_episode_return(env_fn: Callable[[], EnvBase]) -> EnvBase:
+    return with_episode_return(env_fn())
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int):
+    """torch's intra-op threads set to ``n`` (0: leave them) while inside, then put back."""
+    before = torch.get_num_threads()
+    if n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _changed_keys(saved: dict, current: dict, prefix: str = "") -> list[str]:
+    changed = []
+    for key, value in current.items():
+        if isinstance(value, dict) and isinstance(saved.get(key), dict):
+            changed += _changed_keys(saved[key], value, prefix + key + ".")
+        elif saved.get(key) != value:
+            changed.append(prefix + key)
+    return changed
+
+
+def _evaluation_of(row: dict[str, str]) -> dict[str, Any]:
+    return {"step": int(row["step"]), "frames": int(row["frames"]), "updates": int(row["updates"]),
+            "average_return": float(row["average_return"]),
+            "average_episode_length": float(row["average_episode_length"]), "returns": None}

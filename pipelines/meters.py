@@ -1,0 +1,84 @@
+"""What the loop measures between two log rows: training time, speeds, losses, episode returns."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+
+__all__ = ["Clock", "IntervalStats"]
+
+
+class Clock:
+    """Wall time, and training time with evaluations and saving taken out (for steps per second)."""
+
+    def __init__(self):
+        self._t0 = time.perf_counter()
+        self._paused = 0.0
+        self._train_start: float | None = None
+
+    def start(self) -> None:
+        self._train_start = time.perf_counter()
+        self._paused = 0.0
+
+    def wall(self) -> float:
+        return time.perf_counter() - self._t0
+
+    def train_seconds(self) -> float:
+        if self._train_start is None:
+            return 0.0
+        return time.perf_counter() - self._train_start - self._paused
+
+    @contextlib.contextmanager
+    def paused(self):
+        """Time spent inside does not count as training time."""
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            if self._train_start is not None:
+                self._paused += time.perf_counter() - t
+
+
+class IntervalStats:
+    """Means of losses, finished training episodes' returns, and speeds since the last log row."""
+
+    def __init__(self):
+        self._reset(0.0)
+
+    def _reset(self, t: float) -> None:
+        self.loss_sums: dict[str, torch.Tensor] = {}
+        self.loss_counts: dict[str, int] = {}
+        self.episode_returns: list[float] = []
+        self.frames = 0
+        self.updates = 0
+        self.t = t
+
+    def add_frames(self, batch: TensorDictBase) -> None:
+        """A collected block, flat; the returns of the episodes it ends (``RewardSum``'s ``episode_reward``)."""
+        self.frames += batch.numel()
+        done = batch["next", "done"]
+        if done.any():
+            self.episode_returns += batch["next", "episode_reward"][done].tolist()
+
+    def add_losses(self, losses: dict[str, torch.Tensor]) -> None:
+        self.updates += 1
+        for k, v in losses.items():  # some losses are not made every update (TD3's delayed actor)
+            self.loss_sums[k] = self.loss_sums.get(k, 0.0) + v
+            self.loss_counts[k] = self.loss_counts.get(k, 0) + 1
+
+    def flush(self, clock: Clock) -> dict[str, Any]:
+        """The row of means and speeds since the last flush; starts the next interval."""
+        now = clock.train_seconds()
+        dt = max(now - self.t, 1e-9)
+        row: dict[str, Any] = {f"loss_{k}": float(v) / self.loss_counts[k] for k, v in self.loss_sums.items()}
+        if self.episode_returns:
+            row["train_episode_return"] = sum(self.episode_returns) / len(self.episode_returns)
+        row["steps_per_s"] = self.frames / dt
+        row["updates_per_s"] = self.updates / dt
+        row["wall_time"] = clock.wall()
+        self._reset(now)
+        return row

@@ -1,0 +1,85 @@
+"""Where a run is: its counters, the work its current iteration still owes, and its rate limiter.
+
+Every checkpoint holds this state, so that ``--resume`` continues from the exact point where a run
+stopped: the updates a collected block paid for and not yet made, the triggers not yet run at
+that iteration, the background evaluations asked for and not yet back (with their weights).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+from tensordict import TensorDict, TensorDictBase
+
+from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.rate_limiter import SampleToInsertRatio
+
+__all__ = ["RunState"]
+
+
+@dataclass
+class RunState:
+    """Counters (``frames`` collected, ``updates`` made, ``iteration``: the frames' iteration) and
+    what is owed at that iteration."""
+
+    limiter: SampleToInsertRatio
+    frames: int = 0
+    updates: int = 0
+    iteration: int = 0
+    owed: list[str] = field(default_factory=list)
+    """names of the triggers still to run at ``iteration``, in order"""
+    pending_evals: deque[tuple[dict, TensorDictBase]] = field(default_factory=deque)
+    """background evaluations asked for and not back yet: (position, policy weights), oldest first"""
+
+    @classmethod
+    def fresh(cls, cfg: TrainConfig) -> RunState:
+        return cls(limiter=SampleToInsertRatio(1.0 / cfg.collect_steps_per_iteration, cfg.first_update_frame))
+
+    def position(self) -> dict[str, int]:
+        """Where the run is, as the first columns of a metrics row."""
+        return {"step": self.iteration, "frames": self.frames, "updates": self.updates}
+
+    def insert(self, frames: int, cfg: TrainConfig) -> tuple[int, int]:
+        """Count ``frames`` new frames; return the iterations ``(before, now)``."""
+        self.frames += frames
+        self.limiter.insert(frames)
+        before = self.iteration
+        self.iteration = max(0, self.frames - cfg.initial_collect_steps) // cfg.collect_steps_per_iteration
+        return before, self.iteration
+
+    def updated(self) -> int:
+        """Count one update made; return its number (1, 2, ...)."""
+        self.updates += 1
+        self.limiter.made(1)
+        return self.updates
+
+    def forget_done(self, rows: list[dict[str, str]]) -> None:
+        """On resume: drop owed work whose metrics rows were written after the checkpoint was saved."""
+        logged = {int(r["step"]) for r in rows if r.get("steps_per_s") not in ("", None)}
+        evaluated = {int(r["step"]) for r in rows if r.get("average_return") not in ("", None)}
+        if "log" in self.owed and self.iteration in logged:
+            self.owed.remove("log")
+        if "eval" in self.owed and self.iteration in evaluated:
+            self.owed.remove("eval")
+        self.pending_evals = deque((at, w) for at, w in self.pending_evals if at["step"] not in evaluated)
+
+    # --- in checkpoints (the keys of rlpipe-checkpoint/1) -----------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "counters": {"frames": self.frames, "updates": self.updates, "iteration": self.iteration,
+                         "triggers": list(self.owed)},
+            "limiter": self.limiter.state_dict(),
+            "background_evals": [{"at": dict(at), "weights": dict(w.flatten_keys("/").items())}
+                                 for at, w in self.pending_evals],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        counters = state["counters"]
+        self.frames, self.updates, self.iteration = (int(counters[k]) for k in ("frames", "updates", "iteration"))
+        self.owed = list(counters.get("triggers", []))
+        self.limiter.load_state_dict(state["limiter"])
+        self.pending_evals = deque((dict(e["at"]), TensorDict(e["weights"]).unflatten_keys("/"))
+                                   for e in state.get("background_evals", []))

@@ -1,0 +1,59 @@
+"""Tests of rlpipe.pipelines.files on real files in tmp_path."""
+
+from __future__ import annotations
+
+import json
+import stat
+
+import pytest
+
+from rlpipe.pipelines.files import (
+    atomic_path,
+    write_bytes_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
+
+
+def mode(path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+def test_atomic_path_moves_the_finished_file_into_place_readable(tmp_path):
+    target = tmp_path / "video.mp4"
+    with atomic_path(target, suffix=".mp4") as tmp:
+        assert tmp.parent == tmp_path
+        assert tmp.name.startswith(".video.mp4.") and tmp.suffix == ".mp4"  # a writer picks its format by it
+        assert not target.exists()
+        tmp.write_bytes(b"frames")
+    assert target.read_bytes() == b"frames"
+    assert mode(target) == 0o644  # mkstemp makes 0600; run files are readable like the rest
+    assert [p.name for p in tmp_path.iterdir()] == ["video.mp4"]
+
+
+def test_atomic_path_failure_keeps_the_old_file_and_leaves_no_temp(tmp_path):
+    target = tmp_path / "summary.json"
+    target.write_text("old\n")
+    with pytest.raises(RuntimeError, match="writer died"), atomic_path(target) as tmp:
+        tmp.write_text("half of the new")
+        raise RuntimeError("writer died")
+    assert target.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["summary.json"]
+
+
+def test_a_reader_of_the_old_file_keeps_reading_the_old_file(tmp_path):
+    target = write_text_atomic(tmp_path / "policy.json", "old contents\n")
+    with target.open() as reader:
+        write_text_atomic(target, "new\n")
+        assert reader.read() == "old contents\n"  # replaced, not rewritten in place
+    assert target.read_text() == "new\n"
+
+
+def test_write_helpers(tmp_path):
+    assert write_bytes_atomic(tmp_path / "a.bin", b"\x00\x01").read_bytes() == b"\x00\x01"
+    assert write_text_atomic(tmp_path / "a.md", "★ full\n").read_text(encoding="utf-8") == "★ full\n"
+    path = write_json_atomic(tmp_path / "a.json", {"x": [1, 2], "y": float("nan")})
+    text = path.read_text()
+    assert text == json.dumps({"x": [1, 2], "y": float("nan")}, indent=2) + "\n"  # NaN as json.dump writes it
+    assert mode(path) == 0o644
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "a.json", "a.md"]
