@@ -34,7 +34,7 @@ from rlpipe.pipelines.export import export_policy
 from rlpipe.pipelines.files import write_json_atomic
 from rlpipe.pipelines.meters import Clock, IntervalStats
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir
-from rlpipe.pipelines.runtime import DeferredInterrupt, Stopped, gc_frozen, sigint_blocked
+from rlpipe.pipelines.runtime import DeferredInterrupt, Stopped, fault_point, gc_frozen, sigint_blocked
 from rlpipe.pipelines.triggers import Trigger
 
 if TYPE_CHECKING:
@@ -209,13 +209,15 @@ class Loop:
 
     def evaluate_now(self, weights: TensorDictBase | None = None, at: dict[str, int] | None = None) -> None:
         """Evaluate the policy (or ``weights``, taken at ``at``) in this process."""
+        at = at or self.state.position()
+        fault_point("evaluate", at["step"])
         policy = self.pipeline.policy
         if weights is not None:
             policy = copy.deepcopy(policy)
             weights.to_module(policy)
         with self.clock.paused():
             result = evaluate(self.pipeline.eval_env, policy, self.config.num_eval_episodes, interrupt=self.stop.check)
-        self._record_evaluation(result, at or self.state.position())
+        self._record_evaluation(result, at)
 
     def take_background_results(self, block: bool = False, feed: bool = True) -> None:
         if self.background is not None:

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import os
 import signal
 import sys
 import threading
 import time
 
-__all__ = ["DeferredInterrupt", "Stopped", "gc_frozen", "sigint_blocked"]
+__all__ = ["DeferredInterrupt", "Stopped", "fault_point", "gc_frozen", "sigint_blocked"]
 
 
 class Stopped(Exception):
@@ -102,3 +103,30 @@ def sigint_blocked():
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+# --- the test hook: a signal at an exact point of a run ------------------------------------------------
+
+# RLPIPE_FAULT="NAME@STEP" (or "NAME@STEP:SIGTERM"): a process reaching point NAME at iteration STEP
+# sends the signal (default SIGINT) to its whole process group, as a terminal's Ctrl-C does.
+# RLPIPE_FAULT_ONCE=PATH: only the first process to get there (it creates PATH and writes its command
+# line into it), so a study's other runs reaching the same point later do not press again.
+_FAULT = os.environ.get("RLPIPE_FAULT", "")
+
+
+def fault_point(name: str, step: int) -> None:
+    """Where tests inject a fault (see ``RLPIPE_FAULT`` above); does nothing in normal runs."""
+    if not _FAULT:
+        return
+    point, _, signame = _FAULT.partition(":")
+    if point != f"{name}@{step}":
+        return
+    marker = os.environ.get("RLPIPE_FAULT_ONCE")
+    if marker:
+        try:
+            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            return
+        with os.fdopen(fd, "w") as fh:
+            fh.write(" ".join(sys.argv) + "\n")
+    os.killpg(os.getpgrp(), getattr(signal, signame or "SIGINT"))

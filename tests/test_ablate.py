@@ -71,29 +71,23 @@ def study(tmp_path_factory):
     command = [*CLI, *STUDY, "--out", str(out)]
     info = {"out": out}
 
-    # 1. Ctrl-C (SIGINT to the process group, as a terminal sends it) while runs are in flight:
-    #    the moment a run has logged iteration 250 and is evaluating it (its evaluation row not
-    #    written yet); the other run is mid-way too.
+    # 1. Ctrl-C (SIGINT to the process group, as a terminal sends it) while runs are in flight: the
+    #    moment the first run starts to evaluate iteration 250 (its log row written, its evaluation
+    #    row not), by rlpipe's test hook; the other run is mid-way too.
+    marker = out.parent / "pressed-by"
     t0 = time.monotonic()
-    first = subprocess.Popen(command, start_new_session=True, stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+    first = subprocess.Popen(command, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, env={**os.environ, "RLPIPE_FAULT": "evaluate@250", "RLPIPE_FAULT_ONCE": str(marker)})
     try:
-        deadline = time.monotonic() + 180
-        evaluating = None
-        while time.monotonic() < deadline and first.poll() is None and evaluating is None:
-            for v, s in RUNS:
-                steps = [(int(r["step"]), bool(r["average_return"])) for r in read_rows(run_dir(out, v, s))]
-                if (250, False) in steps and (250, True) not in steps:
-                    evaluating = (v, s)
-            time.sleep(0.01)
+        _, info["interrupt_stderr"] = first.communicate(timeout=180)  # the hook's Ctrl-C ends the study
+        info["interrupt_exit"] = first.returncode
         info["interrupt_at_s"] = time.monotonic() - t0
-        os.killpg(first.pid, signal.SIGINT)
+        pressed_by = Path(marker.read_text().split("--out", 1)[1].split()[0])
+        evaluating = next((v, s) for v, s in RUNS if run_dir(out, v, s) == pressed_by)
         info["evaluating"] = evaluating
         info["in_flight"] = {f"{v}/seed{s}": checkpoint_step(run_dir(out, v, s)) for v, s in RUNS}
         info["done_before_interrupt"] = [f"{v}/seed{s}" for v, s in RUNS
                                          if (run_dir(out, v, s) / "summary.json").exists()]
-        _, info["interrupt_stderr"] = first.communicate(timeout=60)
-        info["interrupt_exit"] = first.returncode
         time.sleep(0.5)
         info["interrupt_left"] = group_members(first.pid)
         info["report_after_interrupt"] = (out / "ablation.csv").exists()
@@ -155,9 +149,9 @@ def test_rerun_completes_every_run(study):
 
 def test_run_interrupted_while_evaluating_still_has_every_evaluation(study):
     run = study["evaluating"]
-    assert run is not None
-    if (250, True) in [(int(r["step"]), bool(r["average_return"])) for r in study["rows_after_interrupt"][run]]:
-        pytest.skip("the Ctrl-C landed after the evaluation had finished")
+    rows = study["rows_after_interrupt"][run]
+    assert (250, False) in [(int(r["step"]), bool(r["average_return"])) for r in rows]  # logged 250 ...
+    assert 250 not in eval_steps(rows)  # ... and was stopped while evaluating it
     assert eval_steps(read_rows(run_dir(study["out"], *run))) == [0, 250, 500, 550]
 
 

@@ -82,6 +82,7 @@ def commands(cli_run):
         "plot": ["plot", run, other, "--out", root / "both.png"],
         "presets": ["presets"],
         "keys": ["train", "dqn", "--keys"],
+        "keys-overridden": ["train", "dqn", "batch_size=7", "collector.workers=3", "--keys"],
     }
     with ThreadPoolExecutor(max_workers=2) as pool:
         results = dict(zip(jobs, pool.map(lambda args: run_cli(args, cwd=root), jobs.values())))
@@ -184,6 +185,12 @@ def test_keys_lists_every_key_with_value_and_help(commands):
     assert "batch_size=64" in out and "fc_layer_params=[100]" in out and 'env="CartPole-v0"' in out
     assert "collector.workers=1" in out
     assert "transitions per update" in out  # batch_size's help
+
+
+def test_keys_shows_the_values_the_overrides_give(commands):
+    proc = commands[2]["keys-overridden"]
+    assert proc.returncode == 0, proc.stderr
+    assert "\nbatch_size=7\n" in proc.stdout and "\ncollector.workers=3\n" in proc.stdout
 
 
 # --- bad input: one line, exit 2, nothing written --------------------------------------------------

@@ -155,6 +155,23 @@ def test_counters_match_the_config(tmp_path, extra, updates):
     assert s["updates"] == updates
 
 
+class _CountingExports(DQN):
+    """Counts the policy exports of a run (the export trigger and the run's end both export)."""
+
+    exports = 0
+
+    def export_module(self):
+        self.exports += 1
+        return super().export_module()
+
+
+def test_the_final_policy_is_exported_once(tmp_path):
+    # policy_save_interval=num_iterations: the trigger exports at the last iteration, the end must not again
+    pipeline = _CountingExports(tiny("policy_save_interval=300", "eval_interval=0", "num_eval_episodes=1"))
+    pipeline.train(tmp_path / "run", progress=False)
+    assert pipeline.exports == 1
+
+
 # --- the exported policy -------------------------------------------------------------------------
 
 _TORCH_ONLY = r"""

@@ -134,6 +134,29 @@ def test_target_networks_off_targets_equal_online_after_an_update():
     assert not same(params(loss.target_qvalue_network_params), params(loss.qvalue_network_params))
 
 
+def test_target_update_period_counts_actor_updates_between_target_updates():
+    pipeline = build("target_update_period=2")  # policy_delay=2: the targets move every 4th update
+    fill(pipeline)
+    loss = pipeline.loss_module
+    moved = []
+    for _ in range(8):
+        before = params(loss.target_actor_network_params)
+        step(pipeline)
+        moved.append(not same(before, params(loss.target_actor_network_params)))
+    assert moved == [False, False, False, True, False, False, False, True]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_every_module_and_the_buffer_live_on_the_configured_device(run_dir):
+    pipeline = build("device=cuda", "num_iterations=100", "initial_collect_steps=100", "learning_starts=100",
+                     "eval_interval=0", "num_eval_episodes=1", "collector.sync=true")
+    for module in (pipeline.policy, pipeline.collect_policy, pipeline.loss_module):
+        assert {p.device.type for p in module.parameters()} == {"cuda"}
+    result = pipeline.train(run_dir, progress=False)
+    assert result.summary["updates"] == 100
+    assert pipeline.replay_buffer.storage._storage.device.type == "cuda"
+
+
 def test_deterministic_policy_off_samples_in_collection_and_evaluates_deterministically():
     pipeline = build("deterministic_policy=false")
     obs = pipeline.env.reset()["observation"].expand(4, -1).clone()

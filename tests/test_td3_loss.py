@@ -282,6 +282,8 @@ def test_every_network_path_agrees_with_the_tensor_path(path):
     TensorDicts, critics that are not a TorchRL MLP through TensorDicts: all paths agree."""
     torch.manual_seed(8)
     fast = make_loss()
+    # the fast path is taken for rlpipe's own networks: the comparison below is against it
+    assert fast._actor_layers is not None and fast._critic_layers is not None and fast._actor_on_tensors
     slow = make_loss()
     slow._actor_layers = None  # as for a plain actor module that is not a TanhBoundedMLP
     if path == "tensordict":
