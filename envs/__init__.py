@@ -14,7 +14,6 @@ import re
 
 import gymnasium
 from torchrl.data import Categorical, OneHot, TensorSpec
-from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs import (
     Compose,
     DoubleToFloat,
@@ -25,6 +24,7 @@ from torchrl.envs import (
     StepCounter,
     TransformedEnv,
 )
+from torchrl.envs.batched_envs import BatchedEnvBase
 
 __all__ = [
     "EnvError", "MINITAUR_ID", "describe_action_space", "env_label", "is_discrete", "make_env", "resolve_env_id",

@@ -434,7 +434,7 @@ class EnvRandomizerBase:
     Implementations must draw from ``env.np_random`` so that seeding fixes the episode.
     """
 
-    def randomize_env(self, env: "MinitaurBulletEnv") -> None:  # pragma: no cover - interface
+    def randomize_env(self, env: MinitaurBulletEnv) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
 
@@ -460,7 +460,7 @@ class MinitaurEnvRandomizer(EnvRandomizerBase):
         self.motor_viscous_damping_range = tuple(motor_viscous_damping_range)
         self.foot_friction_range = tuple(foot_friction_range)
 
-    def randomize_env(self, env: "MinitaurBulletEnv") -> None:
+    def randomize_env(self, env: MinitaurBulletEnv) -> None:
         rng: np.random.Generator = env.np_random
         robot = env.minitaur
         lo, hi = self.minitaur_base_mass_err_range

@@ -219,7 +219,7 @@ class TanhNormalMode(nn.Module):
         return self.center + self.radius * torch.tanh(loc)
 
     @classmethod
-    def from_actor(cls, actor: ProbabilisticActor, action_spec) -> "TanhNormalMode":
+    def from_actor(cls, actor: ProbabilisticActor, action_spec) -> TanhNormalMode:
         """A CPU copy of ``actor``'s network (from ``make_tanh_normal_actor`` / ``make_gaussian_actor``)."""
         import copy
 

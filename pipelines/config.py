@@ -16,7 +16,7 @@ import difflib
 import inspect
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
@@ -63,7 +63,7 @@ class TrainConfig:
     """env steps taken with a uniformly random policy before the collect policy takes over"""
     collect_steps_per_iteration: int = 1
     """env steps per iteration (per update): the inverse of the update-to-data ratio"""
-    learning_starts: Optional[int] = None
+    learning_starts: int | None = None
     """env steps collected before updates begin; each later step pays for 1/`collect_steps_per_iteration` updates (null: `initial_collect_steps`, as TF-Agents does)"""
     replay_buffer_capacity: int = 100_000
     """transitions kept; the oldest are evicted first"""

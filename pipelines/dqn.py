@@ -13,10 +13,8 @@ them instead (``DQN(config, env=..., actor=..., loss_module=...)``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import List, Optional
-
 import copy
+from dataclasses import dataclass, field
 
 import torch
 from tensordict import TensorDictBase
@@ -25,10 +23,10 @@ from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from rlpipe.modules import epsilon_greedy, make_qvalue_actor
+from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
-from rlpipe.modules.plain_policy import TensorDictPolicy
 
 __all__ = ["DQNConfig", "DQN", "PRESETS", "preset"]
 
@@ -41,11 +39,11 @@ class DQNConfig(TrainConfig):
     """discount factor (DqnAgent's default of 1.0, which the tutorial relies on)"""
     learning_rate: float = 1e-3
     """Adam learning rate"""
-    fc_layer_params: List[int] = field(default_factory=lambda: [100])
+    fc_layer_params: list[int] = field(default_factory=lambda: [100])
     """hidden layer sizes of the Q-network"""
     epsilon_greedy: float = 0.1
     """probability of a random action in the collect policy"""
-    epsilon_greedy_end: Optional[float] = None
+    epsilon_greedy_end: float | None = None
     """if set, epsilon decays linearly from `epsilon_greedy` to this value over `epsilon_decay_steps` env steps"""
     epsilon_decay_steps: int = 1
     """env steps over which epsilon decays (with `epsilon_greedy_end`)"""
@@ -53,7 +51,7 @@ class DQNConfig(TrainConfig):
     """TD error loss: 'l2' (element-wise squared, the tutorial's) or 'smooth_l1' (Huber)"""
     double_dqn: bool = False
     """use the online network to pick the next action (Double DQN)"""
-    gradient_clipping: Optional[float] = None
+    gradient_clipping: float | None = None
     """clip the gradient norm to this value (null: no clipping)"""
 
     def validate_extra(self) -> None:

@@ -49,7 +49,7 @@ class RunDir:
         return self.config_path.exists()
 
     @classmethod
-    def create(cls, path: Path | str, algo: str, config: dict) -> "RunDir":
+    def create(cls, path: Path | str, algo: str, config: dict) -> RunDir:
         run = cls(path)
         if run.path.exists() and not run.path.is_dir():
             raise InputError(f"--out {run.path}: exists and is not a directory; expected a new or empty directory")
@@ -68,7 +68,7 @@ class RunDir:
         write_json_atomic(self.config_path, {"algo": algo, "config": config})
 
     @classmethod
-    def open(cls, path: Path | str) -> "RunDir":
+    def open(cls, path: Path | str) -> RunDir:
         run = cls(path)
         if not run.holds_run():
             raise InputError(f"{run.path}: not a run directory (no config.json); expected the --out folder of a run")

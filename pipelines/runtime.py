@@ -37,7 +37,7 @@ class DeferredInterrupt:
         self._installed = False
         self._previous = None
 
-    def __enter__(self) -> "DeferredInterrupt":
+    def __enter__(self) -> DeferredInterrupt:
         # A process started with SIGINT ignored (nohup, a background job) is meant to be immune to
         # Ctrl-C, as Python itself leaves it then: keep it so.
         if (threading.current_thread() is threading.main_thread()

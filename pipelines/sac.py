@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
-from typing import List, Optional
 
 import torch
 from tensordict import TensorDictBase
@@ -58,13 +57,13 @@ class SACConfig(TrainConfig):
     """discount factor"""
     reward_scale_factor: float = 1.0
     """rewards are multiplied by this in the critic's target"""
-    actor_fc_layer_params: List[int] = field(default_factory=lambda: [256, 256])
+    actor_fc_layer_params: list[int] = field(default_factory=lambda: [256, 256])
     """hidden layer sizes of the actor"""
-    critic_joint_fc_layer_params: List[int] = field(default_factory=lambda: [256, 256])
+    critic_joint_fc_layer_params: list[int] = field(default_factory=lambda: [256, 256])
     """hidden layer sizes of each critic (over observation and action joined)"""
     initial_alpha: float = 1.0
     """initial entropy temperature (SacAgent's initial_log_alpha=0)"""
-    target_entropy: Optional[float] = None
+    target_entropy: float | None = None
     """entropy target of the temperature (null: -|A|/2, SacAgent's default)"""
     eval_interval: int = 10_000
     """iterations between evaluations of the deterministic policy"""

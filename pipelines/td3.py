@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
-from typing import List
 
 import torch
 from tensordict import TensorDictBase
@@ -84,9 +83,9 @@ class TD3Config(TrainConfig):
     """discount factor (tutorial: discount)"""
     learning_rate: float = 3e-4
     """Adam learning rate of actor and critics (tutorial: lr)"""
-    actor_fc_layer_params: List[int] = field(default_factory=lambda: [256])
+    actor_fc_layer_params: list[int] = field(default_factory=lambda: [256])
     """hidden layer sizes of the actor (tutorial: hidden1_dim=256, hidden2_dim=0)"""
-    critic_fc_layer_params: List[int] = field(default_factory=lambda: [256])
+    critic_fc_layer_params: list[int] = field(default_factory=lambda: [256])
     """hidden layer sizes of each critic"""
     exploration_noise: float = 0.1
     """std of the Gaussian exploration noise as a fraction of the half action range (tutorial: expl_noise)"""

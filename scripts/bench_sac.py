@@ -9,7 +9,6 @@ cannot run here (it needs the dead ``gym`` package), so its figure is quoted, no
 from __future__ import annotations
 
 import functools
-import statistics
 import sys
 import time
 from pathlib import Path

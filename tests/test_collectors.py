@@ -23,7 +23,6 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
-
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from rlpipe.pipelines import checkpoint as ckpt

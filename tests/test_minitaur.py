@@ -282,7 +282,7 @@ def test_render_default_size_and_no_mode(make_env):
 def test_falling_policy_terminates(make_env, action, too_low):
     env = make_env(env_randomizer=None)
     env.reset(seed=0)
-    for t in range(200):
+    for t in range(200):  # noqa: B007 - t is read after the loop
         obs, _, terminated, truncated, _ = env.step(np.array(action, dtype=np.float32))
         assert not truncated
         if terminated:
@@ -298,7 +298,7 @@ def test_falling_policy_terminates(make_env, action, too_low):
 def test_distance_limit_terminates(make_env):
     env = make_env(env_randomizer=None, distance_limit=0.05)
     env.reset(seed=0)
-    for t, a in enumerate(gait_actions(600, random_every=0)):
+    for a in gait_actions(600, random_every=0):
         _, _, terminated, _, _ = env.step(a)
         if terminated:
             break
@@ -313,7 +313,7 @@ def test_truncation_at_1000_steps_via_make():
     try:
         env.reset(seed=0)
         action = np.zeros(8, dtype=np.float32)  # stand still
-        for t in range(1, 1001):
+        for t in range(1, 1001):  # noqa: B007 - t is read after the loop
             _, _, terminated, truncated, _ = env.step(action)
             assert not terminated
             if truncated:

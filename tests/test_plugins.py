@@ -26,7 +26,7 @@ from torchrl.objectives import DQNLoss, SACLoss, TD3Loss
 from torchrl.record.loggers import CSVLogger
 
 from rlpipe import pipelines
-from rlpipe.modules import make_qvalue_actor, make_qvalue_critic
+from rlpipe.modules import make_qvalue_actor
 from rlpipe.pipelines import dqn, sac, td3
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
