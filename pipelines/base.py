@@ -199,7 +199,10 @@ class OffPolicyPipeline:
                       init_random_frames=init_random_frames,
                       # a user's env without the transforms the policy reads (InitTracker) gets them
                       # appended, as TorchRL 0.15 will do by default
-                      auto_register_policy_transforms=True)
+                      auto_register_policy_transforms=True,
+                      # the env steps where it lives; its outputs go to the policy's device, and the
+                      # collected blocks to the learner's (where the replay buffer is)
+                      policy_device=self.device, storing_device=self.device)
         if c.workers == 1 and c.sync:
             return Collector(self.env, self.collect_policy, **common)
         if not c.sync and init_random_frames > 0:

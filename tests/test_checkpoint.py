@@ -154,7 +154,7 @@ def test_a_save_that_fails_midway_leaves_the_previous_checkpoint(saved_run, tmp_
     folder = run / "checkpoints"
     before = ckpt.latest_checkpoint(folder)
     listing = sorted(p.name for p in folder.iterdir())
-    with pytest.raises(pickle.PicklingError):
+    with pytest.raises((pickle.PicklingError, AttributeError)):  # AttributeError: a local object
         # a lambda cannot be pickled: torch.save fails after the temporary folder was made
         ckpt.save_checkpoint(folder, N + 1, {"algo": "dqn", "env": "CartPole-v0", "bad": lambda: 0})
     assert ckpt.latest_checkpoint(folder) == before

@@ -38,13 +38,13 @@ def test_the_first_example_prints_the_runs_own_final_return(tmp_path):
 
 def test_the_own_env_example_uses_a_batched_plain_env_a_logger_and_a_trigger(tmp_path):
     lines = _run(_python_blocks()[1], tmp_path)
-    assert lines[-1] == "Pendulum-v1 1000"
-    assert [line.split(":")[0] for line in lines[:-1]] == ["iteration 500", "iteration 1000"]  # the trigger
+    assert lines[-1] == "Pendulum-v1 400"
+    assert [line.split(":")[0] for line in lines[:-1]] == ["iteration 200", "iteration 400"]  # the trigger
     assert (tmp_path / "runs/readme-logs/td3/scalars/average_return.csv").exists()  # the logger
 
 
 def test_the_own_networks_example_trains_each_algorithm(tmp_path):
-    assert _run(_python_blocks()[2], tmp_path)[-3:] == ["300", "300", "300"]
+    assert _run(_python_blocks()[2], tmp_path)[-3:] == ["200", "200", "200"]
 
 
 def test_readme_opens_with_setup_and_test_commands():
