@@ -5,7 +5,8 @@ A pipeline (``dqn.DQN``, ``td3.TD3``, ``sac.SAC``) subclasses ``OffPolicyPipelin
 * ``algo``, ``Config`` (its typed config), ``action_space`` (``"discrete"`` or ``"continuous"``),
   ``presets`` (name -> function making a config) and ``loss_names`` (the losses ``update`` returns);
 * ``__init__``: ``super().__init__(...)`` (config, envs, device, observation key), then
-  ``self.assemble(self.build(...))`` with the user's modules, if any;
+  ``self.assemble(lambda: self.build(...))`` with the user's modules, if any (the base
+  constructor never calls ``build``: a subclass has its whole state before it runs);
 * ``build(actor=, qvalue=, loss_module=) -> Agent``: the policy, the exploring policy and the loss;
 * ``make_optimizers()``, ``make_target_updater()``: made after the loss is on its device;
 * ``update(batch, update_index) -> losses``: one gradient step (target updates included);
@@ -261,13 +262,13 @@ class OffPolicyPipeline:
         Ctrl-C (SIGINT) saves a checkpoint at the next safe point and raises ``KeyboardInterrupt``;
         ``train(out, resume=True)`` then continues from there.
         """
-        run, metrics, evaluations = self._resume(out) if resume else self._start(out)
-        self.run_dir = run
-        names = [t.name for t in [*default_triggers(self.config), *triggers]]
+        triggers = [*default_triggers(self.config), *triggers]
+        names = [t.name for t in triggers]
         if len(set(names)) != len(names):
             raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
-        loop = Loop(self, run, metrics, fresh=not resume, evaluations=evaluations,
-                    triggers=[*default_triggers(self.config), *triggers],
+        run, metrics, evaluations = self._resume(out) if resume else self._start(out)
+        self.run_dir = run
+        loop = Loop(self, run, metrics, fresh=not resume, evaluations=evaluations, triggers=triggers,
                     logger=logger or TensorboardLogger(exp_name="tb", log_dir=str(run.path)),
                     callbacks=callbacks, progress=progress)
         with _torch_threads(self.config.num_threads):

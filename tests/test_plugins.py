@@ -270,10 +270,11 @@ def test_custom_triggers_run_on_schedule_and_what_a_ctrl_c_left_owed_runs_on_res
     assert [int(r["step"]) for r in result.metrics if r["steps_per_s"]] == [50, 100]
 
 
-def test_trigger_names_must_be_unique(tmp_path):
+def test_trigger_names_must_be_unique_and_a_refused_run_writes_nothing(tmp_path):
     with pytest.raises(InputError, match="unique"):
         dqn.DQN(config("dqn")).train(tmp_path / "run", progress=False,
                                     triggers=[IntervalTrigger(5, lambda loop: None, name="eval")])
+    assert not (tmp_path / "run").exists()
 
 
 # --- rlpipe's parts in the user's own loop; the exported policy on its own ----------------------------
