@@ -300,6 +300,7 @@ def test_user_loss_alone_trains_the_policy_that_is_evaluated(tmp_path):
 # --- learning ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_dqn_preset_learns_cartpole(tmp_path):
     """The tutorial's preset (seed 0) learns CartPole-v0 well within its 20,000 iterations.
 
