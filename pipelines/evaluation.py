@@ -100,7 +100,7 @@ class BackgroundEvaluator:
     def _feed(self) -> None:
         if self.pending and self._in_flight is None:
             at, weights = self._in_flight = self.pending[0]
-            with sigint_blocked():  # the evaluator starts its worker (thread and process) lazily
+            with sigint_blocked():  # the evaluator starts its thread at the first request
                 self._evaluator.trigger_eval(weights, step=at["step"])
 
     def results(self, block: bool = False, feed: bool = True, interrupt: Callable[[], None] | None = None):
