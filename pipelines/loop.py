@@ -231,9 +231,9 @@ class Loop:
         self.evaluations.append({**at, **result})
         self.log({"average_return": result["average_return"],
                   "average_episode_length": result["average_episode_length"], "wall_time": self.clock.wall()}, at)
-        with self.clock.paused():
-            rows = [r for r in self.metrics.rows() if r.get("average_return") not in ("", None)]
-            plot_training_returns(rows, self.run_dir.returns_png, title=f"{self.pipeline.algo} on {self.config.env}")
+        with self.clock.paused():  # from the evaluations in memory: metrics.csv is not read again
+            plot_training_returns(self.evaluations, self.run_dir.returns_png,
+                                  title=f"{self.pipeline.algo} on {self.config.env}")
         self.bar.set_postfix(avg_return=f"{self.last_return:.1f}", refresh=False)
 
     def export(self) -> None:
