@@ -42,7 +42,7 @@ from torchrl.objectives import SoftUpdate, TD3Loss, ValueEstimators
 from torchrl.objectives.utils import distance_loss
 
 from rlpipe.modules.actors import TanhBoundedMLP
-from rlpipe.modules.tensor_nets import is_plain_module, mlp_layers, run_mlp, run_stacked_mlp
+from rlpipe.modules.tensor_nets import cached_flat_params, is_plain_module, mlp_layers, run_mlp, run_stacked_mlp
 
 __all__ = ["TD3AblationLoss", "td3_update"]
 
@@ -146,22 +146,11 @@ class TD3AblationLoss(TD3Loss):
     # -- networks on tensors ------------------------------------------------------------------
 
     def _flat_params(self, params_name: str) -> dict[str, torch.Tensor]:
-        """``{name inside module.module: tensor}`` of a parameter set, cached.
+        """``{name inside module.module: tensor}`` of a parameter set, cached (``cached_flat_params``).
 
-        The tensors are the loss's own parameters/buffers, updated in place by optimisers and
-        ``SoftUpdate``, so the cache stays valid; LossModule erases ``_cache*`` attributes when
-        the module is moved (``.to()``), and the cache is then rebuilt.
+        Keys start with "module" (TensorDictModule.module), which functional_call is given.
         """
-        cache = self.__dict__.get("_cache_flat_params")
-        if cache is None:
-            cache = self.__dict__["_cache_flat_params"] = {}
-        flat = cache.get(params_name)
-        if flat is None:
-            params = getattr(self, params_name)
-            # Keys start with "module" (TensorDictModule.module), which functional_call is given.
-            flat = {".".join(key[1:]): value for key, value in params.items(True, True)}
-            cache[params_name] = flat
-        return flat
+        return cached_flat_params(self, params_name)
 
     def _critic_slice(self, params_name: str, index: int) -> dict[str, torch.Tensor]:
         """Critic ``index``'s tensors out of the stacked ones, detached, cached.

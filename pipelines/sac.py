@@ -6,7 +6,8 @@
 TF-Agents' actor processes feeding a Reverb table become TorchRL collectors
 (``collector.workers=N``, ``collector.sync=false`` for ``MultiAsyncCollector``) feeding a TorchRL
 replay buffer; its ``SacAgent`` becomes TorchRL's ``SACLoss`` (TanhNormal actor, twin critics,
-learned temperature) with ``SoftUpdate``; its Learner and triggers are the shared loop.
+learned temperature; ``LeanSACLoss``, the same loss computed on tensors, unless you pass your own)
+with a soft target update; its Learner and triggers are the shared loop.
 """
 
 from __future__ import annotations
@@ -17,11 +18,14 @@ from dataclasses import dataclass, field
 import torch
 from tensordict import TensorDictBase
 from torch import nn
-from torchrl.objectives import SACLoss, SoftUpdate
+from torchrl.objectives import SACLoss
 
 from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
 from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.plain_policy import TensorDictPolicy
+from rlpipe.modules.sac_loss import LeanSACLoss
+from rlpipe.modules.target_updates import make_target_updater
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import CollectorConfig, TrainConfig
 from rlpipe.pipelines.errors import InputError
@@ -156,26 +160,35 @@ class SAC(OffPolicyPipeline):
             qvalue = make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_joint_fc_layer_params,
                                         observation_key=key)
         target_entropy = cfg.target_entropy if cfg.target_entropy is not None else -action_dim / 2
-        loss_module = SACLoss(actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2, loss_function="l2",
+        loss_module = LeanSACLoss(actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2, loss_function="l2",
                               alpha_init=cfg.initial_alpha, target_entropy=target_entropy, delay_qvalue=True)
         loss_module.make_value_estimator(gamma=cfg.gamma)
         return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        # Adam's fused kernel without Optimizer.step's per-call Python (modules/optim.py); the
+        # same arithmetic as torch.optim.Adam(fused=True).
         cfg, loss = self.config, self.loss_module
         return {
-            "actor": torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.actor_learning_rate),
-            "qvalue": torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.critic_learning_rate),
-            "alpha": torch.optim.Adam([loss.log_alpha], lr=cfg.alpha_learning_rate),
+            "actor": LeanAdam(list(loss.actor_network_params.flatten_keys().values()), lr=cfg.actor_learning_rate),
+            "qvalue": LeanAdam(list(loss.qvalue_network_params.flatten_keys().values()), lr=cfg.critic_learning_rate),
+            "alpha": LeanAdam([loss.log_alpha], lr=cfg.alpha_learning_rate),
         }
 
     def make_target_updater(self):
-        return SoftUpdate(self.loss_module, tau=self.config.target_update_tau)
+        return make_target_updater(self.loss_module, self.config.target_update_tau)
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
-        if self.config.reward_scale_factor != 1.0:
-            batch.set(("next", "reward"), batch.get(("next", "reward")) * self.config.reward_scale_factor)
-        out = self.loss_module(batch)
+        loss_module = self.loss_module
+        if isinstance(loss_module, LeanSACLoss) and loss_module.lean:
+            obs, action, next_obs, reward, terminated = loss_module.tensors_from(batch)
+            if self.config.reward_scale_factor != 1.0:
+                reward = reward * self.config.reward_scale_factor
+            out = loss_module.losses(obs, action, next_obs, reward, terminated)
+        else:
+            if self.config.reward_scale_factor != 1.0:
+                batch.set(("next", "reward"), batch.get(("next", "reward")) * self.config.reward_scale_factor)
+            out = loss_module(batch)
         loss = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
         loss.backward()
         for opt in self.optimizers.values():

@@ -135,9 +135,9 @@ def test_sac_learns_pendulum(run_dir):
 
 
 def test_ctrl_c_during_a_sac_update_checkpoints_and_resumes(run_dir, ctrl_c_on_call):
-    # A KeyboardInterrupt raised inside SACLoss's target computation (within tensordict's
-    # `to_module` context) would surface as an unrelated RuntimeError; the loop defers Ctrl-C to
-    # the end of the update instead.
+    # A KeyboardInterrupt raised inside the loss's target computation (within tensordict's
+    # `to_module` context in the stock SACLoss) would surface as an unrelated RuntimeError, or
+    # leave a half-made update; the loop defers Ctrl-C to the end of the update instead.
     cfg = apply_overrides(sac.preset("sac"), [
         "env=Pendulum-v1", "actor_fc_layer_params=[32]", "critic_joint_fc_layer_params=[32]", "batch_size=32",
         "collector.workers=1", "collector.sync=true", "eval_in_background=false", "num_iterations=300",
@@ -146,8 +146,9 @@ def test_ctrl_c_during_a_sac_update_checkpoints_and_resumes(run_dir, ctrl_c_on_c
     ])
     pipeline = sac.SAC(cfg)
     # where a Ctrl-C lands most of the time in SAC training: inside the loss's target computation
-    ctrl_c_inside_the_loss = ctrl_c_on_call("_compute_target_v2", 120)
-    hook = pipeline.policy.module[0].module[0].register_forward_pre_hook(ctrl_c_inside_the_loss)  # the actor's MLP
+    ctrl_c_inside_the_loss = ctrl_c_on_call("value_target", 120)
+    # the actor's NormalParamExtractor, which LeanSACLoss runs as a module
+    hook = pipeline.policy.module[0].module[1].register_forward_pre_hook(ctrl_c_inside_the_loss)
     handler = signal.getsignal(signal.SIGINT)
     with pytest.raises(KeyboardInterrupt):
         pipeline.train(run_dir, progress=False)
