@@ -19,6 +19,7 @@ from torchrl.envs import (
     DoubleToFloat,
     EnvBase,
     GymEnv,
+    GymWrapper,
     InitTracker,
     RewardSum,
     StepCounter,
@@ -66,6 +67,7 @@ def make_env(
     seed: int | None = None,
     device: str = "cpu",
     render_mode: str | None = None,
+    num_envs: int = 1,
     **gym_kwargs,
 ) -> TransformedEnv:
     """A TorchRL env for ``env_id`` with ``StepCounter``, ``RewardSum``, ``InitTracker`` and ``DoubleToFloat``.
@@ -73,11 +75,26 @@ def make_env(
     Discrete actions are integer indices (``categorical_action_encoding``), as in gymnasium, so an
     exported policy's action goes straight into ``gymnasium.Env.step``. Extra keywords go to
     ``gymnasium.make`` (for example Minitaur's ``env_randomizer=None``).
+
+    ``num_envs > 1`` makes one env of batch size ``[num_envs]``: gymnasium's ``SyncVectorEnv``
+    stepping the copies in this process as one call, wrapped by TorchRL's ``GymWrapper`` (which
+    resets finished copies itself, so the vector env's own autoreset is off). A collector then
+    runs the policy once per ``num_envs`` steps: TorchRL's per-step cost (~1.5 ms here, for a
+    CartPole step of ~25 us) is paid once for all copies. ``TorchRL``'s own ``GymEnv(num_envs=N)``
+    steps the copies in N processes instead (``AsyncVectorEnv``), which on a 2-core machine
+    costs more than it saves.
     """
     gym_id = resolve_env_id(env_id)
     if render_mode is not None:
         gym_kwargs["render_mode"] = render_mode
-    base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
+    if num_envs > 1:
+        vector = gymnasium.vector.SyncVectorEnv(
+            [lambda: gymnasium.make(gym_id, **gym_kwargs)] * num_envs,
+            autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
+        )
+        base = GymWrapper(vector, device=device, categorical_action_encoding=True)
+    else:
+        base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
     env = TransformedEnv(
         base,
         Compose(StepCounter(), RewardSum(), InitTracker(), DoubleToFloat()),

@@ -99,6 +99,8 @@ class OffPolicyPipeline:
         validate(cfg)
         self.device = torch.device(cfg.device)
         self.env_fn, self.env = _factory_and_env(env, cfg)
+        # Evaluation plays one env copy: the collection env may be a vector of them.
+        self.eval_env_fn = self.env_fn if cfg.collector.envs_per_worker == 1 else functools.partial(make_env, cfg.env, device="cpu")
         self.eval_env = self._eval_env(eval_env, cfg)
         self.env.set_seed(cfg.seed)
         self.eval_env.set_seed(cfg.seed + 10_000)
@@ -118,10 +120,10 @@ class OffPolicyPipeline:
 
     def _eval_env(self, eval_env: EnvArg, cfg: TrainConfig) -> EnvBase:
         if eval_env is None:
-            if self.env_fn is None:
+            if self.eval_env_fn is None:
                 raise InputError("env is an instance: pass eval_env as well (an env or a function making one), "
                                  "or pass env as a function that makes the env")
-            return self.env_fn()
+            return self.eval_env_fn()
         env = eval_env() if callable(eval_env) and not isinstance(eval_env, EnvBase) else eval_env
         if not isinstance(env, EnvBase):
             raise InputError(f"eval_env is a {type(env).__name__}; expected a TorchRL EnvBase or a function returning one")
@@ -336,8 +338,11 @@ def observation_key_of(*modules: nn.Module | None) -> str | None:
 
 def _factory_and_env(env: EnvArg, cfg: TrainConfig) -> tuple[Callable[[], EnvBase] | None, EnvBase]:
     """(a picklable factory, or None for an instance; the learner's env), with what the loop needs added."""
+    if env is not None and cfg.collector.envs_per_worker > 1:
+        raise InputError(f"collector.envs_per_worker={cfg.collector.envs_per_worker} makes vector envs from config.env; "
+                         "with env= given, expected collector.envs_per_worker=1 (batch your own env, e.g. a SerialEnv)")
     if env is None:
-        factory = functools.partial(make_env, cfg.env, device="cpu")
+        factory = functools.partial(make_env, cfg.env, device="cpu", num_envs=cfg.collector.envs_per_worker)
     elif isinstance(env, EnvBase):
         if cfg.collector.workers > 1 or not cfg.collector.sync:
             raise InputError("collector.workers>1 or collector.sync=false: pass env as a function that makes the env")

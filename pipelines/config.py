@@ -43,6 +43,8 @@ class CollectorConfig:
     """collector processes; 1 with sync=true steps the env in the learner's process (TorchRL `Collector`)"""
     sync: bool = True
     """true: `MultiSyncCollector` (workers step in lock-step); false: `MultiAsyncCollector` (collection overlaps learning)"""
+    envs_per_worker: int = 1
+    """env copies each worker steps as one batch (gymnasium's SyncVectorEnv): the policy and TorchRL's per-step work run once per batch; made from `env` (evaluation keeps one copy)"""
     frames_per_batch: int = 50
     """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
     weight_sync_interval: int = 1
@@ -112,7 +114,7 @@ _POSITIVE = {
     "num_iterations", "collect_steps_per_iteration", "replay_buffer_capacity", "batch_size",
     "target_update_period", "num_eval_episodes", "log_interval", "policy_save_interval",
     "checkpoint_interval", "collector.workers", "collector.frames_per_batch",
-    "collector.weight_sync_interval",
+    "collector.weight_sync_interval", "collector.envs_per_worker",
 }
 _NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval", "num_threads"}
 
@@ -141,9 +143,20 @@ def validate(cfg) -> None:
     try:
         import torch
 
-        torch.device(cfg.device)
+        device = torch.device(cfg.device)
     except (RuntimeError, TypeError) as exc:
         raise InputError(f"device={cfg.device!r}: expected a torch device such as 'cpu' or 'cuda:0'") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"device={cfg.device!r}: torch sees no CUDA device on this machine; expected device=cpu "
+                         "(or a CUDA build of torch on a machine with a GPU)")
+    c = cfg.collector
+    per_block = c.envs_per_worker * (c.workers if c.sync else 1)
+    if c.frames_per_batch % per_block:
+        raise InputError(
+            f"collector.frames_per_batch={c.frames_per_batch} does not split into whole steps of "
+            f"{per_block} envs (collector.workers={c.workers} x collector.envs_per_worker={c.envs_per_worker}"
+            f"{'' if c.sync else ', one worker per block'}): expected a multiple of {per_block}"
+        )
     if not 0.0 < cfg.gamma <= 1.0:
         raise InputError(f"gamma={cfg.gamma}: expected a discount in (0, 1]")
     if not 0.0 < cfg.target_update_tau <= 1.0:

@@ -34,7 +34,14 @@ from rlpipe.pipelines.export import export_policy
 from rlpipe.pipelines.files import write_json_atomic
 from rlpipe.pipelines.meters import Clock, IntervalStats
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir
-from rlpipe.pipelines.runtime import DeferredInterrupt, Stopped, fault_point, gc_frozen, sigint_blocked
+from rlpipe.pipelines.runtime import (
+    DeferredInterrupt,
+    Stopped,
+    fault_point,
+    gc_frozen,
+    keep_freed_memory,
+    sigint_blocked,
+)
 from rlpipe.pipelines.triggers import Trigger
 
 if TYPE_CHECKING:
@@ -81,6 +88,7 @@ class Loop:
     def run(self) -> TrainResult:
         # The deferred Ctrl-C handler stays on through the checkpoint saved on an interrupt: a SIGINT
         # delivered twice (the terminal's and a parent's) must not cut that save short.
+        keep_freed_memory()
         with self.stop, gc_frozen():
             with self._workers():
                 try:
@@ -112,7 +120,7 @@ class Loop:
             self.save()  # iteration 0: a run stopped at any point from here on can be resumed
         pending = self.state.pending_evals
         if self.config.eval_in_background:
-            self.background = BackgroundEvaluator(self.pipeline.env_fn, self.pipeline.policy,
+            self.background = BackgroundEvaluator(self.pipeline.eval_env_fn, self.pipeline.policy,
                                                   self.config.num_eval_episodes, pending)
         while pending and self.background is None:  # asked for in the background before a resume that turned it off
             at, weights = pending[0]

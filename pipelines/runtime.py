@@ -1,5 +1,6 @@
 """What a training process needs from the operating system: Ctrl-C at safe points, workers started
-deaf to Ctrl-C, and Python's garbage collector kept off long-lived objects.
+deaf to Ctrl-C, Python's garbage collector kept off long-lived objects, and freed memory kept for
+reuse.
 
 None of this is TorchRL's business (its collectors and evaluator leave signal handling to the
 caller), so it lives here, once, for the loop and for anyone driving rlpipe's parts by hand.
@@ -8,6 +9,7 @@ caller), so it lives here, once, for the loop and for anyone driving rlpipe's pa
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import gc
 import os
 import signal
@@ -15,7 +17,7 @@ import sys
 import threading
 import time
 
-__all__ = ["DeferredInterrupt", "Stopped", "fault_point", "gc_frozen", "sigint_blocked"]
+__all__ = ["DeferredInterrupt", "Stopped", "fault_point", "gc_frozen", "keep_freed_memory", "sigint_blocked"]
 
 
 class Stopped(Exception):
@@ -85,6 +87,33 @@ def gc_frozen():
         yield
     finally:
         gc.unfreeze()
+
+
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
+_kept_freed_memory = False
+
+
+def keep_freed_memory(mmap_threshold: int = 64 << 20, trim_threshold: int = 256 << 20) -> bool:
+    """Ask glibc's allocator to keep freed blocks for reuse instead of handing them back to the OS.
+
+    An update allocates and frees the same tensors again and again; blocks over glibc's mmap
+    threshold (128 KiB at first, e.g. [2, 256, 256] activations) go back to the OS when freed,
+    and touching them again costs page faults: 60-300 per SAC update here (a VM, where each
+    fault is dear), ~0.5 with this. The process then keeps up to ``trim_threshold`` bytes of freed
+    memory; blocks over ``mmap_threshold`` (a replay buffer's storage) are still mapped and
+    returned one by one. Process-wide and one-way (glibc has no getter to restore); a no-op
+    returning False where the C library is not glibc.
+    """
+    global _kept_freed_memory
+    if _kept_freed_memory:
+        return True
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    _kept_freed_memory = bool(mallopt(_M_MMAP_THRESHOLD, mmap_threshold) and mallopt(_M_TRIM_THRESHOLD, trim_threshold))
+    return _kept_freed_memory
 
 
 @contextlib.contextmanager

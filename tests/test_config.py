@@ -268,3 +268,20 @@ def test_field_docs_of_the_base_config_cover_the_collector_group():
     docs = field_docs(TrainConfig)
     for key in COLLECTOR_KEYS:
         assert docs.get(key, "").strip(), key
+
+
+def test_frames_per_batch_must_split_into_whole_vector_steps():
+    with pytest.raises(InputError) as info:
+        apply_overrides(preset("dqn"), ["collector.envs_per_worker=16", "collector.frames_per_batch=50"])
+    assert str(info.value).startswith("collector.frames_per_batch=50") and "multiple of 16" in str(info.value)
+    apply_overrides(preset("dqn"), ["collector.envs_per_worker=16", "collector.frames_per_batch=160"])
+
+
+def test_cuda_without_a_gpu_is_one_clear_line():
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    with pytest.raises(InputError) as info:
+        apply_overrides(preset("dqn"), ["device=cuda"])
+    assert str(info.value).startswith("device='cuda': torch sees no CUDA device") and "\n" not in str(info.value)

@@ -144,6 +144,9 @@ def test_counters(tiny_run):
         (["initial_collect_steps=0"], 300),
         (["learning_starts=200"], 200),  # updates begin after 200 env steps, 100 past the random ones
         (["num_iterations=333"], 333),  # not a multiple of the collector block
+        # 8 env copies stepped as one batch, in-process and in a collector process
+        (["collector.envs_per_worker=8", "collector.frames_per_batch=48"], 300),
+        (["collector.envs_per_worker=8", "collector.frames_per_batch=48", "collector.sync=false"], 300),
     ],
 )
 def test_counters_match_the_config(tmp_path, extra, updates):
@@ -153,6 +156,8 @@ def test_counters_match_the_config(tmp_path, extra, updates):
     assert s["frames"] == cfg.initial_collect_steps + cfg.num_iterations * cfg.collect_steps_per_iteration
     assert s["iterations"] == cfg.num_iterations
     assert s["updates"] == updates
+    if cfg.collector.envs_per_worker > 1:
+        assert result.evaluations and result.evaluations[-1]["average_return"] > 0  # on one env copy
 
 
 class _CountingExports(DQN):

@@ -103,3 +103,19 @@ def test_env_plugs_into_a_torchrl_collector():
         assert batch.numel() == 32
         assert batch["action"].dtype == torch.int64
         assert batch["next", "observation"].dtype == torch.float32
+
+
+def test_vector_env_steps_copies_as_one_batch_and_resets_each_on_its_own():
+    env = make_env("CartPole-v1", num_envs=4, seed=0)
+    assert env.batch_size == (4,) and env.action_spec_unbatched.space.n == 2
+    rollout = env.rollout(60, break_when_any_done=False)
+    done = rollout["next", "done"].squeeze(-1)
+    assert rollout.shape == (4, 60) and done.any()
+    # an episode's return is its length on CartPole, and each copy restarts after its own end
+    lengths = rollout["next", "step_count"].squeeze(-1)[done]
+    torch.testing.assert_close(rollout["next", "episode_reward"].squeeze(-1)[done], lengths.float())
+    first_end = int(done[0].nonzero()[0])
+    assert rollout["step_count"][0, first_end + 1].item() == 0
+    collector = Collector(env, None, frames_per_batch=40, total_frames=80)
+    assert [b.numel() for b in collector] == [40, 40]
+    collector.shutdown()
