@@ -4,6 +4,7 @@
     rlpipe bench td3 [--seeds 3] [--steps 30000]
     rlpipe bench sac [--iterations 2000]
     rlpipe bench minitaur [--steps 3000]
+    rlpipe bench floor [key=value ...]
 
 Each prints a Markdown table (paste it into BENCHMARKS.md with the command) and, with ``--json``,
 writes the raw figures. These machines are shared and noisy: compare the ratios within one run.
@@ -21,7 +22,7 @@ from pathlib import Path
 
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
-    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur"])
+    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor"])
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs")
     bench.add_argument("--seeds", type=int, default=3)
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
@@ -40,7 +41,8 @@ def run(args) -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix=f"rlpipe-bench-{args.target}-"))
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
-    figures = {"dqn": bench_dqn, "td3": bench_td3, "sac": bench_sac, "minitaur": bench_minitaur}[args.target](args, out)
+    figures = {"dqn": bench_dqn, "td3": bench_td3, "sac": bench_sac, "minitaur": bench_minitaur,
+               "floor": bench_floor}[args.target](args, out)
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
@@ -167,6 +169,12 @@ def bench_sac(args, out: Path) -> dict:
     from rlpipe.scripts.bench_sac import bench_sac as run_sac
 
     return run_sac(args, out)
+
+
+def bench_floor(args, out: Path) -> dict:
+    from rlpipe.scripts.bench_floor import bench_floor as run_floor
+
+    return run_floor(args, out)
 
 
 def bench_minitaur(args, out: Path) -> dict:
