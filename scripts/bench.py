@@ -5,6 +5,7 @@
     rlpipe bench sac [--iterations 2000]
     rlpipe bench minitaur [--steps 3000]
     rlpipe bench floor [key=value ...]
+    rlpipe bench cleanrl [--algos sac td3 dqn] [--envs Pendulum-v1 ...] [--lengths N1 N2] [--seed 0]
 
 Each prints a Markdown table (paste it into BENCHMARKS.md with the command) and, with ``--json``,
 writes the raw figures. These machines are shared and noisy: compare the ratios within one run.
@@ -22,7 +23,7 @@ from pathlib import Path
 
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
-    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor"])
+    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl"])
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs")
     bench.add_argument("--seeds", type=int, default=3)
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
@@ -30,6 +31,11 @@ def add_parser(sub) -> None:
     bench.add_argument("--out", type=Path, help="keep the runs here (default: a temporary folder)")
     bench.add_argument("--json", type=Path, help="also write the figures as JSON here")
     bench.add_argument("--peer-iterations", type=int, default=3000, help="iterations timed for the plain-PyTorch peer")
+    bench.add_argument("--algos", nargs="+", choices=["sac", "td3", "dqn"], help="cleanrl: algorithms to compare (default: all)")
+    bench.add_argument("--envs", nargs="+", help="cleanrl: env ids (default: Pendulum-v1 and HalfCheetah-v5; CartPole-v1 for dqn)")
+    bench.add_argument("--lengths", nargs=2, type=int, metavar=("N1", "N2"),
+                       help="cleanrl: env steps after learning_starts of the two timed runs")
+    bench.add_argument("--seed", type=int, default=0, help="cleanrl: seed of both sides")
     bench.set_defaults(func=run)
 
 
@@ -42,7 +48,7 @@ def run(args) -> int:
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
     figures = {"dqn": bench_dqn, "td3": bench_td3, "sac": bench_sac, "minitaur": bench_minitaur,
-               "floor": bench_floor}[args.target](args, out)
+               "floor": bench_floor, "cleanrl": bench_cleanrl}[args.target](args, out)
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
@@ -175,6 +181,12 @@ def bench_floor(args, out: Path) -> dict:
     from rlpipe.scripts.bench_floor import bench_floor as run_floor
 
     return run_floor(args, out)
+
+
+def bench_cleanrl(args, out: Path) -> dict:
+    from rlpipe.scripts.bench_cleanrl import bench_cleanrl as run_cleanrl
+
+    return run_cleanrl(args, out)
 
 
 def bench_minitaur(args, out: Path) -> dict:

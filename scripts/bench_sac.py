@@ -1,9 +1,12 @@
-"""``rlpipe bench sac``: SAC on Minitaur, iterations per second with 1 and 2 collector workers,
-sync and async, and collect-only env steps per second against the raw env, in one run.
+"""``rlpipe bench sac``: SAC on Minitaur against TF-Agents' actor-learner tutorial, both run here.
 
 An iteration is the tutorial's: one env step and one update (batch 256, (256, 256) networks).
-The TF-Agents actor-learner tutorial does ~21 iterations/s on this machine (0.048 s each); it
-cannot run here (it needs the dead ``gym`` package), so its figure is quoted, not re-measured.
+Both sides are timed over two lengths after the 10,000 random steps (``--steps N``: N and N + 1000
+iterations), so start-up cancels: iterations/s = (n2 - n1) / (t2 - t1). TF-Agents runs its own
+tutorial (``scripts/peers/tfagents.py``: TF-Agents 0.19, TensorFlow 2.15, Reverb 0.14 in a venv of
+their own, made on first use), rlpipe its ``sac`` preset (the env in a collector process beside the
+learner). Also reported: the raw env's speed, and collect-only env steps/s of TorchRL's collectors
+(random policy, no learning) with 1 and 2 workers.
 """
 
 from __future__ import annotations
@@ -12,8 +15,6 @@ import functools
 import sys
 import time
 from pathlib import Path
-
-TUTORIAL_ITERATIONS_PER_S = 21.0
 
 
 def collect_only_steps_per_s(workers: int, sync: bool, frames: int) -> float:
@@ -45,37 +46,48 @@ def collect_only_steps_per_s(workers: int, sync: bool, frames: int) -> float:
     return n / (time.perf_counter() - t0)
 
 
-def bench_sac(args, out: Path) -> dict:
+def rlpipe_iterations_per_s(iterations: tuple[int, int], out: Path, overrides: list[str]) -> dict:
+    """The ``sac`` preset's iterations/s from two runs of ``iterations`` after its 10k random steps."""
     from rlpipe.pipelines import resolve_preset
     from rlpipe.pipelines.config import apply_overrides
     from rlpipe.pipelines.sac import SAC
-    from rlpipe.scripts.bench_minitaur import bench_minitaur_raw
-    from rlpipe.scripts.bench_td3 import _after_startup_updates_per_s
 
-    iterations = args.steps or 2000
-    raw = bench_minitaur_raw(2000, seed=0)["steps_per_s"]
-    rows, figures = [], {"raw_env_steps_per_s": raw}
-    for workers, sync in ((1, True), (2, True), (1, False), (2, False)):
-        collect = collect_only_steps_per_s(workers, sync, 2000)
+    runs = []
+    for n in iterations:
         _, cfg = resolve_preset("sac")
-        cfg = apply_overrides(cfg, [
-            "initial_collect_steps=1000", f"num_iterations={iterations}", "eval_interval=0", "num_eval_episodes=1",
-            f"log_interval={max(100, iterations // 5)}", f"checkpoint_interval={iterations}",
-            f"collector.workers={workers}", f"collector.sync={str(sync).lower()}", *args.overrides,
-        ])
-        result = SAC(cfg).train(out / f"sac-w{workers}-{'sync' if sync else 'async'}", progress=False)
-        speed = _after_startup_updates_per_s(result.metrics)
-        figures[f"workers={workers} sync={sync}"] = {"iterations_per_s": speed, "collect_only_steps_per_s": collect,
-                                                    "summary": result.summary}
-        print(f"  workers={workers} sync={sync}: {speed:.1f} it/s, collect-only {collect:.0f} steps/s", file=sys.stderr)
-        rows.append(f"| {workers} | {'MultiSyncCollector' if sync and workers > 1 else 'Collector (in-process)' if sync else 'MultiAsyncCollector'} "
-                    f"| {speed:.1f} | {speed / TUTORIAL_ITERATIONS_PER_S:.2f} | {collect:.0f} | {collect / raw:.2f} |")
+        cfg = apply_overrides(cfg, [f"num_iterations={n}", "eval_interval=0", "num_eval_episodes=1",
+                                    f"log_interval={max(100, n // 5)}", f"checkpoint_interval={n}",
+                                    f"policy_save_interval={n}", *overrides])
+        t0 = time.perf_counter()
+        result = SAC(cfg).train(out / f"sac-{n}", progress=False)
+        runs.append({"iterations": n, "wall_s": time.perf_counter() - t0, "summary": result.summary})
+    return {"iterations_per_s": (iterations[1] - iterations[0]) / (runs[1]["wall_s"] - runs[0]["wall_s"]), "runs": runs}
+
+
+def bench_sac(args, out: Path) -> dict:
+    from rlpipe.scripts.bench_minitaur import bench_minitaur_raw
+    from rlpipe.scripts.peers import tfagents
+
+    n = args.steps or 500
+    iterations = (n, n + 1000)
+    raw = bench_minitaur_raw(2000, seed=0)["steps_per_s"]
+    collect = {workers: collect_only_steps_per_s(workers, workers == 1, 2000) for workers in (1, 2)}
+    ours = rlpipe_iterations_per_s(iterations, out, args.overrides)
+    print(f"  rlpipe sac preset: {ours['iterations_per_s']:.1f} it/s", file=sys.stderr)
+    peer = tfagents.sac_minitaur_iterations_per_s(iterations)
+    print(f"  TF-Agents tutorial: {peer['iterations_per_s']:.1f} it/s", file=sys.stderr)
+    ratio = ours["iterations_per_s"] / peer["iterations_per_s"]
     table = "\n".join([
-        f"SAC benchmark: Minitaur (rlpipe/MinitaurBullet-v0), tutorial settings, {iterations} iterations after "
-        f"1000 random steps, no evaluations. Raw env: {raw:.0f} steps/s (random actions, resets included).",
+        f"SAC on Minitaur, the tutorial's settings, timed over {iterations[0]} and {iterations[1]} iterations after "
+        f"the 10,000 random steps, no evaluations. Raw env: {raw:.0f} steps/s (random actions, resets included).",
         "",
-        "| workers | collector | iterations/s (1 step + 1 update) | x TF-Agents tutorial (21 it/s, quoted) | collect-only env steps/s | collect-only / raw env |",
-        "|---|---|---|---|---|---|",
-        *rows,
+        "| implementation | iterations/s (1 env step + 1 update) | ratio to TF-Agents |",
+        "|---|---|---|",
+        f"| TF-Agents 0.19 actor-learner tutorial (its own code, same run) | {peer['iterations_per_s']:.1f} | 1.00 |",
+        f"| rlpipe `sac` preset (collector process beside the learner) | {ours['iterations_per_s']:.1f} | **{ratio:.2f}** |",
+        "",
+        f"Collect-only (random policy, no learning): 1 worker in-process {collect[1]:.0f} env steps/s "
+        f"({collect[1] / raw:.2f} of raw), 2 workers {collect[2]:.0f} ({collect[2] / raw:.2f} of raw).",
     ])
-    return {**figures, "table": table}
+    return {"raw_env_steps_per_s": raw, "collect_only_steps_per_s": collect, "rlpipe": ours, "tfagents": peer,
+            "ratio": ratio, "table": table}

@@ -1,0 +1,106 @@
+"""``rlpipe bench cleanrl``: SAC, TD3 and DQN against CleanRL's single-file scripts, in one run.
+
+Each case runs CleanRL's script (``scripts/peers/cleanrl.py``: cleanrl 1.2.0 in a venv of its own)
+with its defaults, with torch's default threads and with one thread, and rlpipe with the same
+hyperparameters (taken from the script's own defaults). Both sides are timed over two lengths,
+``learning_starts + n1`` and ``learning_starts + n2`` env steps, so start-up (imports, the random
+warm-up, process starts) cancels: updates/s = (U2 - U1) / (t2 - t1), wall clock of each run.
+
+rlpipe runs on its presets' collection (SAC/TD3: the env steps in a collector process beside the
+learner; DQN: ``dqn-cleanrl``, 16 env copies stepped as one batch in that process) with its
+learner on one thread, the other core left to collection.
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import time
+from pathlib import Path
+
+CASES = {"sac": ("Pendulum-v1", "HalfCheetah-v5"), "td3": ("Pendulum-v1", "HalfCheetah-v5"), "dqn": ("CartPole-v1",)}
+# env steps after learning_starts of the two timed runs (DQN makes one update per 10 of them)
+LENGTHS = {"sac": (300, 1800), "td3": (300, 1800), "dqn": (5000, 35000)}
+
+
+def rlpipe_overrides(algo: str, env_id: str, hp: dict, act_dim: int) -> tuple[str, list[str]]:
+    """(preset, overrides) giving rlpipe CleanRL's hyperparameters ``hp`` (its script's defaults)."""
+    quiet = ["eval_interval=0", "num_eval_episodes=5", "log_interval=500", "checkpoint_interval=1000000",
+             "policy_save_interval=1000000"]
+    if algo == "dqn":
+        return "dqn-cleanrl", [f"env={env_id}", *quiet]
+    common = [f"env={env_id}", f"initial_collect_steps={hp['learning_starts']}", f"gamma={hp['gamma']}",
+              f"target_update_tau={hp['tau']}", f"batch_size={hp['batch_size']}",
+              f"replay_buffer_capacity={int(hp['buffer_size'])}", *quiet]
+    if algo == "sac":
+        return "sac", [*common, f"actor_learning_rate={hp['policy_lr']}", f"critic_learning_rate={hp['q_lr']}",
+                       f"alpha_learning_rate={hp['q_lr']}", f"target_entropy={-float(act_dim)}"]
+    return "td3", [*common, "actor_fc_layer_params=[256,256]", "critic_fc_layer_params=[256,256]",
+                   f"learning_rate={hp['learning_rate']}", f"exploration_noise={hp['exploration_noise']}",
+                   f"policy_noise={hp['policy_noise']}", f"noise_clip={hp['noise_clip']}",
+                   f"policy_delay={hp['policy_frequency']}", "learning_starts=null"]
+
+
+def rlpipe_speed(preset: str, overrides: list[str], lengths: tuple[int, int], steps_per_update: int,
+                 seed: int, out: Path) -> dict:
+    """rlpipe's updates/s from two runs (``lengths`` env steps after the start-up), wall clock of each."""
+    from rlpipe.pipelines import pipeline_class, resolve_preset
+    from rlpipe.pipelines.config import apply_overrides
+
+    runs = []
+    for n in lengths:
+        algo, cfg = resolve_preset(preset)
+        cfg = apply_overrides(cfg, [*overrides, f"num_iterations={n // steps_per_update}", f"seed={seed}"])
+        t0 = time.perf_counter()
+        result = pipeline_class(algo)(cfg).train(out / f"{preset}-{n}", progress=False)
+        runs.append({"wall_s": time.perf_counter() - t0, "updates": result.summary["updates"],
+                     "frames": result.summary["frames"], "summary": result.summary})
+    (a, b) = runs
+    dt = b["wall_s"] - a["wall_s"]
+    return {"updates_per_s": (b["updates"] - a["updates"]) / dt, "env_steps_per_s": (b["frames"] - a["frames"]) / dt,
+            "final_average_return": b["summary"]["final_average_return"], "runs": runs,
+            "overrides": overrides, "preset": preset}
+
+
+def bench_cleanrl(args, out: Path) -> dict:
+    import gymnasium
+
+    from rlpipe.scripts.peers import cleanrl
+
+    algos = args.algos or list(CASES)
+    rows, figures = [], {"cases": []}
+    for algo in algos:
+        hp = cleanrl.defaults(algo)
+        for env_id in (args.envs or CASES[algo]):
+            lengths = tuple(args.lengths) if args.lengths else LENGTHS[algo]
+            act_dim = 0 if algo == "dqn" else int(gymnasium.make(env_id).action_space.shape[-1])
+            preset, overrides = rlpipe_overrides(algo, env_id, hp, act_dim)
+            every = int(hp.get("train_frequency", 1))
+            ours = rlpipe_speed(preset, [*overrides, *args.overrides], lengths, every, args.seed, out / f"{algo}-{env_id}")
+            print(f"  rlpipe {algo} {env_id}: {ours['updates_per_s']:.1f} updates/s", file=sys.stderr)
+            peers = {}
+            for threads in (None, 1):
+                peers[threads or "default"] = peer = cleanrl.cleanrl_speed(algo, env_id, lengths, seed=args.seed, threads=threads)
+                print(f"  CleanRL {algo} {env_id} threads={threads or 'default'}: {peer['updates_per_s']:.1f} updates/s",
+                      file=sys.stderr)
+            best = max(p["updates_per_s"] for p in peers.values())
+            peer_returns = peers["default"]["episodic_returns"]
+            figures["cases"].append({"algo": algo, "env": env_id, "lengths": lengths, "rlpipe": ours,
+                                     "cleanrl": {str(k): v for k, v in peers.items()}})
+            rows.append(
+                f"| {algo.upper()} | {env_id} | {ours['updates_per_s']:.0f} ({ours['env_steps_per_s']:.0f}) | "
+                f"{peers['default']['updates_per_s']:.0f} ({peers['default']['env_steps_per_s']:.0f}) | "
+                f"{peers[1]['updates_per_s']:.0f} | **{ours['updates_per_s'] / best:.2f}** | "
+                f"{ours['final_average_return']:.1f} | "
+                f"{statistics.mean(peer_returns) if peer_returns else float('nan'):.1f} |"
+            )
+    table = "\n".join([
+        f"rlpipe against CleanRL 1.2.0 (its scripts, its defaults), seed {args.seed}; each side timed over two lengths "
+        "after learning_starts (start-up cancels); rlpipe's learner on 1 thread.",
+        "",
+        "| algorithm | env | rlpipe updates/s (env steps/s) | CleanRL, torch's default threads | CleanRL, 1 thread | "
+        "rlpipe / CleanRL's best | rlpipe final AverageReturn (greedy, 5 episodes) | CleanRL last 10 training episodes |",
+        "|---|---|---|---|---|---|---|---|",
+        *rows,
+    ])
+    return {**figures, "table": table}
