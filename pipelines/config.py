@@ -93,8 +93,8 @@ class TrainConfig:
     """iterations between checkpoints that `--resume` continues from"""
     compile: bool = False
     """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU)"""
-    num_threads: int = 1
-    """torch threads of the learner; 1 keeps a 2-core machine's other core for env stepping (0: torch's default)"""
+    num_threads: int = -1
+    """torch threads of the learner; -1: chosen at the start of training (the cores collector processes leave free, then the fastest count there by a short timing of the loss), recorded in config.json; 0: torch's default"""
     device: str = "cpu"
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
     collector: CollectorConfig = field(default_factory=CollectorConfig)
@@ -116,7 +116,7 @@ _POSITIVE = {
     "checkpoint_interval", "collector.workers", "collector.frames_per_batch",
     "collector.weight_sync_interval", "collector.envs_per_worker",
 }
-_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval", "num_threads"}
+_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval"}
 
 
 def _get(cfg, dotted: str):
@@ -149,6 +149,8 @@ def validate(cfg) -> None:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputError(f"device={cfg.device!r}: torch sees no CUDA device on this machine; expected device=cpu "
                          "(or a CUDA build of torch on a machine with a GPU)")
+    if cfg.num_threads < -1:
+        raise InputError(f"num_threads={cfg.num_threads}: expected -1 (chosen at start), 0 (torch's default) or a positive count")
     c = cfg.collector
     per_block = c.envs_per_worker * (c.workers if c.sync else 1)
     if c.frames_per_batch % per_block:
