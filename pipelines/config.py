@@ -153,7 +153,7 @@ def validate(cfg) -> None:
         raise InputError(f"num_threads={cfg.num_threads}: expected -1 (chosen at start), 0 (torch's default) or a positive count")
     c = cfg.collector
     per_block = c.envs_per_worker * (c.workers if c.sync else 1)
-    if c.frames_per_batch % per_block:
+    if c.envs_per_worker > 1 and c.frames_per_batch % per_block:
         raise InputError(
             f"collector.frames_per_batch={c.frames_per_batch} does not split into whole steps of "
             f"{per_block} envs (collector.workers={c.workers} x collector.envs_per_worker={c.envs_per_worker}"
