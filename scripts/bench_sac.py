@@ -1,8 +1,8 @@
 """``rlpipe bench sac``: SAC on Minitaur against TF-Agents' actor-learner tutorial, both run here.
 
 An iteration is the tutorial's: one env step and one update (batch 256, (256, 256) networks).
-Both sides are timed over two lengths after the 10,000 random steps (``--steps N``: N and N + 1000
-iterations), so start-up cancels: iterations/s = (n2 - n1) / (t2 - t1). TF-Agents runs its own
+Both sides are timed over two lengths after the 10,000 random steps (``--steps N``: N and N + 2000
+iterations, each run a fresh process), so start-up cancels: iterations/s = (n2 - n1) / (t2 - t1). TF-Agents runs its own
 tutorial (``scripts/peers/tfagents.py``: TF-Agents 0.19, TensorFlow 2.15, Reverb 0.14 in a venv of
 their own, made on first use), rlpipe its ``sac`` preset (the env in a collector process beside the
 learner). Also reported: the raw env's speed, and collect-only env steps/s of TorchRL's collectors
@@ -47,20 +47,14 @@ def collect_only_steps_per_s(workers: int, sync: bool, frames: int) -> float:
 
 
 def rlpipe_iterations_per_s(iterations: tuple[int, int], out: Path, overrides: list[str]) -> dict:
-    """The ``sac`` preset's iterations/s from two runs of ``iterations`` after its 10k random steps."""
-    from rlpipe.pipelines import resolve_preset
-    from rlpipe.pipelines.config import apply_overrides
-    from rlpipe.pipelines.sac import SAC
+    """The ``sac`` preset's iterations/s from two runs (fresh processes) of ``iterations`` after its
+    10k random steps."""
+    from rlpipe.scripts.bench_cleanrl import timed_train
 
-    runs = []
-    for n in iterations:
-        _, cfg = resolve_preset("sac")
-        cfg = apply_overrides(cfg, [f"num_iterations={n}", "eval_interval=0", "num_eval_episodes=1",
-                                    f"log_interval={max(100, n // 5)}", f"checkpoint_interval={n}",
-                                    f"policy_save_interval={n}", *overrides])
-        t0 = time.perf_counter()
-        result = SAC(cfg).train(out / f"sac-{n}", progress=False)
-        runs.append({"iterations": n, "wall_s": time.perf_counter() - t0, "summary": result.summary})
+    runs = [timed_train("sac", [f"num_iterations={n}", "eval_interval=0", "num_eval_episodes=1",
+                                f"log_interval={max(100, n // 5)}", f"checkpoint_interval={n}",
+                                f"policy_save_interval={n}", *overrides], out / f"sac-{n}")
+            for n in iterations]
     return {"iterations_per_s": (iterations[1] - iterations[0]) / (runs[1]["wall_s"] - runs[0]["wall_s"]), "runs": runs}
 
 
@@ -69,7 +63,7 @@ def bench_sac(args, out: Path) -> dict:
     from rlpipe.scripts.peers import tfagents
 
     n = args.steps or 500
-    iterations = (n, n + 1000)
+    iterations = (n, n + 2000)
     raw = bench_minitaur_raw(2000, seed=0)["steps_per_s"]
     collect = {workers: collect_only_steps_per_s(workers, workers == 1, 2000) for workers in (1, 2)}
     ours = rlpipe_iterations_per_s(iterations, out, args.overrides)
