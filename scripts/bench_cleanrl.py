@@ -13,6 +13,7 @@ learner on one thread and on all cores (``num_threads``), the best of the two co
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shlex
@@ -70,7 +71,24 @@ def rlpipe_speed(preset: str, overrides: list[str], lengths: tuple[int, int], st
     a, b = (r["summary"] for r in runs)
     dt = runs[1]["wall_s"] - runs[0]["wall_s"]
     return {"updates_per_s": (b["updates"] - a["updates"]) / dt, "env_steps_per_s": (b["frames"] - a["frames"]) / dt,
+            "updates_per_s_in_run": in_run_updates_per_s(out / f"{preset}-{lengths[1]}" / "metrics.csv"),
             "final_average_return": b["final_average_return"], "runs": runs, "overrides": overrides, "preset": preset}
+
+
+def in_run_updates_per_s(metrics_csv: Path) -> float | None:
+    """Updates/s inside a run, after learning starts: from its log rows past the first one that
+    counts updates (that one spans the random start-up). A second figure beside the two-length one,
+    which a start-up of varying length (random steps at the env's speed) can blur."""
+    with metrics_csv.open(newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("updates_per_s") and int(r["updates"]) > 0]
+    rows = rows[1:]
+    if not rows:
+        return None
+    return sum(float(r["updates_per_s"]) for r in rows) / len(rows)
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.0f}"
 
 
 def bench_cleanrl(args, out: Path) -> dict:
@@ -110,6 +128,8 @@ def bench_cleanrl(args, out: Path) -> dict:
                 f"({ours['env_steps_per_s']:.0f}) | "
                 f"{peers['default']['updates_per_s']:.0f} ({peers['default']['env_steps_per_s']:.0f}) | "
                 f"{peers[1]['updates_per_s']:.0f} | **{ours['updates_per_s'] / best:.2f}** | "
+                f"{_fmt(ours['updates_per_s_in_run'])} / {_fmt(peers['default'].get('updates_per_s_in_run'))} / "
+                f"{_fmt(peers[1].get('updates_per_s_in_run'))} | "
                 f"{ours['final_average_return']:.1f} | "
                 f"{statistics.mean(peer_returns) if peer_returns else float('nan'):.1f} |"
             )
@@ -119,8 +139,9 @@ def bench_cleanrl(args, out: Path) -> dict:
         "",
         f"| algorithm | env | rlpipe updates/s, learner on {' / '.join(str(k) for k in sorted({1, os.cpu_count() or 1}))} "
         "thread(s) (env steps/s of the best) | CleanRL, torch's default threads | CleanRL, 1 thread | "
-        "rlpipe / CleanRL's best | rlpipe final AverageReturn (greedy, 5 episodes) | CleanRL last 10 training episodes |",
-        "|---|---|---|---|---|---|---|---|",
+        "rlpipe / CleanRL's best | in-run updates/s: rlpipe (best) / CleanRL default / CleanRL 1 thread | "
+        "rlpipe final AverageReturn (greedy, 5 episodes) | CleanRL last 10 training episodes |",
+        "|---|---|---|---|---|---|---|---|---|",
         *rows,
     ])
     return {**figures, "table": table}
