@@ -286,10 +286,11 @@ class OffPolicyPipeline:
 
         Collector processes each keep a core busy stepping envs, so the learner gets the cores
         they leave (at least one); within those, the thread count whose forward and backward pass
-        of the loss on a replay-sized batch measured fastest (by 10% or more over fewer threads). The env steps in the learner's own
-        process (``collector.workers=1``, ``sync=true``) take turns with the updates, so there
-        every core is the learner's. Parameters, optimisers and the run's random state are left
-        as they were.
+        of the loss on a replay-sized batch measured fastest (by 10% or more over fewer threads).
+        The env steps in the learner's own process (``collector.workers=1``, ``sync=true``) take
+        turns with the updates, so there every core is the learner's. Parameters, optimisers and
+        the run's random state are left as they were; a loss that cannot run on the env's fake
+        batch (a plug-in's own keys) gets one thread.
         """
         c = self.config.collector
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
@@ -305,6 +306,8 @@ class OffPolicyPipeline:
                 for n in candidates:
                     torch.set_num_threads(n)
                     timings[n] = _loss_pass_seconds(self.loss_module, batch.to(self.device))
+            except Exception:  # the probe only picks a speed; it never stops a run
+                return 1
             finally:
                 torch.set_num_threads(before)
                 self.loss_module.zero_grad(set_to_none=True)
