@@ -36,19 +36,18 @@ first and last of them after ``learning_starts`` over the time between them is i
 from __future__ import annotations
 
 import ast
-import fcntl
 import os
 import re
 import shlex
-import shutil
 import subprocess
-import sys
 import tempfile
 import threading
 import time
 from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
+
+from rlpipe.scripts.peers import _venv
 
 ALGOS = {"sac": "sac_continuous_action.py", "td3": "td3_continuous_action.py", "dqn": "dqn.py"}
 CLEANRL = "cleanrl==1.2.0"  # installed with --no-deps: its metadata pins stable-baselines3==1.2.0, wandb, ...
@@ -106,7 +105,6 @@ PINS: tuple[str, ...] = (
 )
 # The distributions whose versions a benchmark report names.
 REPORTED: tuple[str, ...] = ("cleanrl", "torch", "gym", "gymnasium", "stable-baselines3", "numpy", "mujoco", "tensorboard")
-_STAMP = "rlpipe-pins.txt"
 _PATCHED = "rlpipe-patched"  # folder in the venv with the patched SAC/TD3 copies and the env plugin's source
 
 # The patch for sac_continuous_action.py and td3_continuous_action.py: (old, new) replacements, each of
@@ -193,32 +191,7 @@ _RESERVED = {"seed", "env_id", "total_timesteps", "track", "capture_video", "sav
 
 
 def venv_dir() -> Path:
-    """Where the peer venv lives: ``$RLPIPE_PEERS_DIR/cleanrl``, by default under ``~/.cache/rlpipe/peers``."""
-    peers = os.environ.get("RLPIPE_PEERS_DIR") or Path.home() / ".cache" / "rlpipe" / "peers"
-    return Path(peers).expanduser() / "cleanrl"
-
-
-def _base_python() -> str:
-    """A Python 3.11: the scripts import ``distutils`` (gone in 3.12); cleanrl 1.2.0 says <3.11, 3.11 runs them."""
-    if sys.version_info[:2] == (3, 11):
-        return sys.executable
-    found = shutil.which("python3.11")
-    if found is None:
-        raise RuntimeError("the CleanRL peer venv needs Python 3.11 (the scripts import distutils); none found on PATH")
-    return found
-
-
-def _step(cmd: list[str], log: Path, what: str) -> None:
-    """Run one build command, appending its output to ``log``; a failure raises with pip's own last error line."""
-    with log.open("a") as out:
-        out.write(f"$ {shlex.join(cmd)}\n")
-        out.flush()
-        rc = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, check=False).returncode
-    if rc:
-        lines = [line.strip() for line in log.read_text().splitlines() if line.strip()]
-        errors = [line for line in lines if line.startswith("ERROR")]
-        raise RuntimeError(f"CleanRL peer venv: {what} failed (exit {rc}): {(errors or lines or ['no output'])[-1]} "
-                           f"(full log: {log})")
+    return _venv.venv_dir("cleanrl")
 
 
 def _package_dir(root: Path) -> Path:
@@ -253,36 +226,18 @@ def _install_patched(root: Path, python: Path, log: Path) -> None:
     changed = _write_if_changed(source / "cleanrl_peer_envs.py", ENV_SHIM)
     changed |= _write_if_changed(source / "pyproject.toml", ENV_SHIM_PROJECT)
     if changed or not (package.parent / "cleanrl_peer_envs.py").exists():
-        _step([str(python), "-m", "pip", "install", "--disable-pip-version-check", "--no-input", "--no-deps",
-               "--no-build-isolation", "--force-reinstall", str(source)], log, "installing the env plugin")
+        _venv.run_step([str(python), *_venv.PIP, "--no-deps", "--no-build-isolation", "--force-reinstall", str(source)],
+                       log, "installing the env plugin")
 
 
 def ensure_venv(quiet: bool = False) -> Path:
     """The peer venv's python, building the venv first if it is missing or was built from other pins."""
-    root = venv_dir()
-    python = root / "bin" / "python"
-    wanted = "\n".join((*BUILD_PINS, *TORCH_PINS, *PINS, CLEANRL)) + "\n"
-    root.parent.mkdir(parents=True, exist_ok=True)
-    with (root.parent / "cleanrl.lock").open("w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # two benchmarks started together build it once
-        stamp, log = root / _STAMP, root.parent / "cleanrl-install.log"
-        if not (python.exists() and stamp.exists() and stamp.read_text() == wanted):
-            if not quiet:
-                print(f"building the CleanRL peer venv in {root} (once; ~1.3 GB, a few minutes)", file=sys.stderr)
-            start = time.perf_counter()
-            shutil.rmtree(root, ignore_errors=True)
-            log.write_text("")
-            pip = [str(python), "-m", "pip", "install", "--disable-pip-version-check", "--no-input"]
-            _step([_base_python(), "-m", "venv", str(root)], log, "creating the venv")
-            _step([*pip, *TORCH_PINS], log, "installing torch")
-            _step([*pip, *BUILD_PINS], log, "installing the build tools")
-            _step([*pip, "--no-build-isolation", *PINS], log, "pip install")
-            _step([*pip, "--no-deps", "--ignore-requires-python", CLEANRL], log, "installing cleanrl")
-            stamp.write_text(wanted)
-            if not quiet:
-                print(f"CleanRL peer venv ready in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-        _install_patched(root, python, log)
-    return python
+    return _venv.ensure("cleanrl", "CleanRL", "the scripts import distutils, gone in 3.12", [
+        (TORCH_PINS, "installing torch"),
+        (BUILD_PINS, "installing the build tools"),
+        (("--no-build-isolation", *PINS), "pip install"),
+        (("--no-deps", "--ignore-requires-python", CLEANRL), "installing cleanrl"),
+    ], quiet=quiet, then=_install_patched)
 
 
 def _script(algo: str) -> Path:

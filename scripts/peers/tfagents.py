@@ -17,17 +17,16 @@ so TensorFlow's tracing of the train step and the first iterations' warm-up canc
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import re
 import shlex
-import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
+
+from rlpipe.scripts.peers import _venv
 
 # Every distribution in the venv, exactly (``pip freeze --all`` of a working install, pip aside).
 # Installed first: the tools that build gym 0.23.0 (an sdist only on PyPI; built without build isolation
@@ -98,63 +97,18 @@ SCRIPT = Path(__file__).with_name("tfagents_sac_minitaur.py")
 DQN_SCRIPT = Path(__file__).with_name("tfagents_dqn_cartpole.py")
 # TensorFlow on the CPU, quiet C++ logs; thread pools stay at TensorFlow's defaults.
 RUN_ENV = {"CUDA_VISIBLE_DEVICES": "", "TF_CPP_MIN_LOG_LEVEL": "2"}
-_STAMP = "rlpipe-pins.txt"
 
 
 def venv_dir() -> Path:
-    """Where the peer venv lives: ``$RLPIPE_PEERS_DIR/tfagents``, by default under ``~/.cache/rlpipe/peers``."""
-    peers = os.environ.get("RLPIPE_PEERS_DIR") or Path.home() / ".cache" / "rlpipe" / "peers"
-    return Path(peers).expanduser() / "tfagents"
-
-
-def _base_python() -> str:
-    """A Python 3.11, the newest that TensorFlow 2.15 and dm-reverb 0.14 have wheels for."""
-    if sys.version_info[:2] == (3, 11):
-        return sys.executable
-    found = shutil.which("python3.11")
-    if found is None:
-        raise RuntimeError("the TF-Agents peer venv needs Python 3.11 (TensorFlow 2.15, dm-reverb 0.14); none found on PATH")
-    return found
-
-
-def _step(cmd: list[str], log: Path, what: str) -> None:
-    """Run one build command, appending its output to ``log``; a failure raises with pip's own last error line."""
-    with log.open("a") as out:
-        out.write(f"$ {shlex.join(cmd)}\n")
-        out.flush()
-        rc = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, check=False).returncode
-    if rc:
-        lines = [line.strip() for line in log.read_text().splitlines() if line.strip()]
-        errors = [line for line in lines if line.startswith("ERROR")]
-        raise RuntimeError(f"TF-Agents peer venv: {what} failed (exit {rc}): {(errors or lines or ['no output'])[-1]} "
-                           f"(full log: {log})")
+    return _venv.venv_dir("tfagents")
 
 
 def ensure_venv(quiet: bool = False) -> Path:
     """The peer venv's python, building the venv first if it is missing or was built from other pins."""
-    root = venv_dir()
-    python = root / "bin" / "python"
-    wanted = "\n".join(BUILD_PINS + PINS) + "\n"
-    root.parent.mkdir(parents=True, exist_ok=True)
-    with (root.parent / "tfagents.lock").open("w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # two benchmarks started together build it once
-        stamp = root / _STAMP
-        if python.exists() and stamp.exists() and stamp.read_text() == wanted:
-            return python
-        if not quiet:
-            print(f"building the TF-Agents peer venv in {root} (once; ~1.7 GB from PyPI)", file=sys.stderr)
-        start = time.perf_counter()
-        shutil.rmtree(root, ignore_errors=True)
-        log = root.parent / "tfagents-install.log"
-        log.write_text("")
-        pip = [str(python), "-m", "pip", "install", "--disable-pip-version-check", "--no-input"]
-        _step([_base_python(), "-m", "venv", str(root)], log, "creating the venv")
-        _step([*pip, *BUILD_PINS], log, "installing the build tools")
-        _step([*pip, "--no-build-isolation", *PINS], log, "pip install")
-        stamp.write_text(wanted)
-        if not quiet:
-            print(f"TF-Agents peer venv ready in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-    return python
+    return _venv.ensure("tfagents", "TF-Agents", "the newest TensorFlow 2.15 and dm-reverb 0.14 have wheels for", [
+        (BUILD_PINS, "installing the build tools"),
+        (("--no-build-isolation", *PINS), "pip install"),
+    ], quiet=quiet)
 
 
 def _versions(python: Path) -> dict[str, str]:
