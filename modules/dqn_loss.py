@@ -19,7 +19,7 @@ from torchrl.objectives import DQNLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
-from rlpipe.modules.tensor_nets import cached_flat_params, is_plain_module, mlp_layers, run_mlp
+from rlpipe.modules.tensor_nets import cached_flat_params, is_plain_module, mlp_layers, run_mlp, transition_tensors
 
 __all__ = ["LeanDQNLoss"]
 
@@ -50,22 +50,20 @@ class LeanDQNLoss(DQNLoss):
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         if not self.lean:
             return super().forward(tensordict)
-        keys, obs_key = self.tensor_keys, self._observation_key
-        action = tensordict.get(keys.action)
-        q = self._q("value_network_params", tensordict.get(obs_key))
+        keys = self.tensor_keys
+        observation, action, next_obs, reward, terminated = transition_tensors(tensordict, self._observation_key, keys)
+        q = self._q("value_network_params", observation)
         if action.ndim != q.ndim:
             action = action.unsqueeze(-1)
         predicted = q.gather(-1, action).squeeze(-1)
         with torch.no_grad():
-            next_obs = tensordict.get(("next", obs_key))
             next_q = self._q("target_value_network_params", next_obs)
             if self.double_dqn:
                 next_action = self._q("value_network_params", next_obs).argmax(-1, keepdim=True)
                 next_value = next_q.gather(-1, next_action)
             else:
                 next_value = next_q.max(-1, keepdim=True).values
-            reward = tensordict.get(("next", keys.reward))
-            not_terminated = (~tensordict.get(("next", keys.terminated))).int()
+            not_terminated = (~terminated).int()
             target = (reward + self.value_estimator.gamma * not_terminated * next_value).squeeze(-1)
             tensordict.set(keys.priority, (predicted - target).pow(2).unsqueeze(-1), inplace=True)
         loss = distance_loss(predicted, target, self.loss_function)

@@ -45,6 +45,7 @@ from rlpipe.modules.tensor_nets import (
     run_mlp,
     run_stacked_mlp,
     sequential_layers,
+    transition_tensors,
 )
 
 __all__ = ["LeanSACLoss", "tanh_normal_rsample"]
@@ -210,14 +211,7 @@ class LeanSACLoss(SACLoss):
 
     def tensors_from(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, ...]:
         """(observation, action, next observation, next reward, next terminated) of a batch."""
-        obs_key, keys = self._actor_parts[3], self.tensor_keys
-        return (
-            tensordict.get(obs_key),
-            tensordict.get(keys.action),
-            tensordict.get(("next", obs_key)),
-            tensordict.get(("next", keys.reward)),
-            tensordict.get(("next", keys.terminated)),
-        )
+        return transition_tensors(tensordict, self._actor_parts[3], self.tensor_keys)
 
     # -- TorchRL's TensorDict interface (SACLoss.forward calls these) ---------------------------
 

@@ -42,7 +42,14 @@ from torchrl.objectives import SoftUpdate, TD3Loss, ValueEstimators
 from torchrl.objectives.utils import distance_loss
 
 from rlpipe.modules.actors import TanhBoundedMLP
-from rlpipe.modules.tensor_nets import cached_flat_params, is_plain_module, mlp_layers, run_mlp, run_stacked_mlp
+from rlpipe.modules.tensor_nets import (
+    cached_flat_params,
+    is_plain_module,
+    mlp_layers,
+    run_mlp,
+    run_stacked_mlp,
+    transition_tensors,
+)
 
 __all__ = ["TD3AblationLoss", "td3_update"]
 
@@ -309,14 +316,7 @@ class TD3AblationLoss(TD3Loss):
 
     def tensors_from(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, ...]:
         """(observation, action, next observation, next reward, next terminated) of a batch."""
-        obs_key, keys = self._observation_key, self.tensor_keys
-        return (
-            tensordict.get(obs_key),
-            tensordict.get(keys.action),
-            tensordict.get(("next", obs_key)),
-            tensordict.get(("next", keys.reward)),
-            tensordict.get(("next", keys.terminated)),
-        )
+        return transition_tensors(tensordict, self._observation_key, self.tensor_keys)
 
     # -- TorchRL's TensorDict interface (TD3Loss.forward calls these) ---------------------------
 

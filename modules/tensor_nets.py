@@ -17,7 +17,8 @@ import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torchrl.modules import MLP
 
-__all__ = ["is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params"]
+__all__ = ["is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
+           "transition_tensors"]
 
 Layers = list[tuple[str, object]]
 
@@ -87,6 +88,18 @@ def cached_flat_params(loss: torch.nn.Module, params_name: str, drop: int = 1) -
         params = getattr(loss, params_name)
         flat = cache[(params_name, drop)] = {".".join(key[drop:]): value for key, value in params.items(True, True)}
     return flat
+
+
+def transition_tensors(tensordict, observation_key, tensor_keys) -> tuple[torch.Tensor, ...]:
+    """``(observation, action, next observation, next reward, next terminated)`` of a replay batch,
+    under a TorchRL loss's ``tensor_keys`` (``action``, ``reward``, ``terminated``)."""
+    return (
+        tensordict.get(observation_key),
+        tensordict.get(tensor_keys.action),
+        tensordict.get(("next", observation_key)),
+        tensordict.get(("next", tensor_keys.reward)),
+        tensordict.get(("next", tensor_keys.terminated)),
+    )
 
 
 def run_mlp(layers: Layers, params: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
