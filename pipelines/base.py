@@ -48,6 +48,7 @@ from rlpipe.pipelines.meters import Clock
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir
 from rlpipe.pipelines.state import RunState
 from rlpipe.pipelines.triggers import Trigger, default_triggers
+from rlpipe.pipelines.update_graph import GraphedUpdate
 
 __all__ = ["Agent", "OffPolicyPipeline", "seed_everything"]
 
@@ -182,7 +183,20 @@ class OffPolicyPipeline:
         # What the loop stores of each transition (None: everything the collector returns). The
         # loss's in_keys are 6 of the collector's 16: sampling them costs about a third less.
         self.replay_keys: list | None = None if self.config.replay_all_keys else list(self.loss_module.in_keys)
-        self.update_step = torch.compile(self.update) if self.config.compile else self.update
+        self.update_step = self.make_update_step()
+
+    def update_periods(self) -> list[int]:
+        """The index periods ``update`` branches on (``update_index % p == 0``), each dividing the
+        next: CUDA graphs record one graph per branch pattern (``pipelines/update_graph.py``)."""
+        return [self.config.target_update_period]
+
+    def make_update_step(self) -> Callable[[TensorDictBase, int], dict[str, torch.Tensor]]:
+        """``update``, compiled with ``compile=true``, replayed as CUDA graphs with ``cudagraph``."""
+        cfg = self.config
+        step = torch.compile(self.update) if cfg.compile else self.update
+        if self.device.type == "cuda" and (cfg.compile if cfg.cudagraph is None else cfg.cudagraph):
+            step = GraphedUpdate(step, self.update_periods())
+        return step
 
     def export_info(self) -> dict[str, Any]:
         spec = self.action_spec

@@ -92,7 +92,9 @@ class TrainConfig:
     checkpoint_interval: int = 5000
     """iterations between checkpoints that `--resume` continues from"""
     compile: bool = False
-    """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU)"""
+    """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU); on device=cuda also replays it as CUDA graphs (see `cudagraph`)"""
+    cudagraph: bool | None = None
+    """on device=cuda, replay the update as CUDA graphs (tensordict's CudaGraphModule: one launch instead of hundreds of small kernels); null: when `compile` is true"""
     num_threads: int = -1
     """torch threads of the learner; -1: chosen at the start of training (the cores collector processes leave free, then the fastest count there by a short timing of the loss), recorded in config.json; 0: torch's default"""
     device: str = "cpu"
@@ -149,6 +151,9 @@ def validate(cfg) -> None:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputError(f"device={cfg.device!r}: torch sees no CUDA device on this machine; expected device=cpu "
                          "(or a CUDA build of torch on a machine with a GPU)")
+    if cfg.cudagraph and device.type != "cuda":
+        raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
+                         "cudagraph=false or null on this device")
     if cfg.num_threads < -1:
         raise InputError(f"num_threads={cfg.num_threads}: expected -1 (chosen at start), 0 (torch's default) or a positive count")
     c = cfg.collector

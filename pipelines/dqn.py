@@ -6,8 +6,8 @@
     result.summary["final_average_return"]
 
 The pieces are TorchRL's: ``QValueActor`` over an MLP (TF-Agents' ``QNetwork``), ``EGreedyModule``
-for the collect policy, ``DQNLoss`` with the element-wise squared TD error, ``HardUpdate`` /
-``SoftUpdate`` for the target network, ``Adam``. Hand in your own env, Q-network or loss to use
+for the collect policy, ``DQNLoss`` with the element-wise squared TD error, ``SoftUpdate`` for the
+target network (a copy with tau=1, every ``target_update_period`` updates), ``Adam``. Hand in your own env, Q-network or loss to use
 them instead (``DQN(config, env=..., actor=..., loss_module=...)``).
 """
 
@@ -20,12 +20,13 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.modules import QValueActor
-from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
+from torchrl.objectives import DQNLoss
 
 from rlpipe.modules import epsilon_greedy, make_qvalue_actor
 from rlpipe.modules.dqn_loss import LeanDQNLoss
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.plain_policy import TensorDictPolicy
+from rlpipe.modules.target_updates import make_target_updater
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import CollectorConfig, TrainConfig
 from rlpipe.pipelines.errors import InputError
@@ -199,9 +200,10 @@ class DQN(OffPolicyPipeline):
     def make_target_updater(self):
         if not self.loss_module.delay_value:
             return None
-        if self.config.target_update_tau == 1.0:
-            return HardUpdate(self.loss_module, value_network_update_interval=1)
-        return SoftUpdate(self.loss_module, tau=self.config.target_update_tau)
+        # TorchRL's HardUpdate is not used for tau=1: its step() copies on every second call only (a
+        # Python counter), so targets moved every 2 * target_update_period updates; and that counter
+        # is Python state a CUDA graph cannot replay. A lerp with weight 1 copies exactly.
+        return make_target_updater(self.loss_module, self.config.target_update_tau)
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         optimizer = self.optimizers["q"]

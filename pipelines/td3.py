@@ -246,6 +246,10 @@ class TD3(OffPolicyPipeline):
         # Ingredient 2 off: learn from the latest transition only.
         return ReplayBuffer(storage=LazyTensorStorage(1, device=self.device), batch_size=1)
 
+    def update_periods(self) -> list[int]:
+        actor_every = self.config.policy_delay if self.config.delayed_policy_updates else 1
+        return [actor_every, actor_every * self.config.target_update_period]
+
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         cfg = self.config
         out = td3_update(

@@ -23,7 +23,7 @@ from pathlib import Path
 
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
-    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl"])
+    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu"])
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs")
     bench.add_argument("--seeds", type=int, default=3)
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
@@ -35,6 +35,8 @@ def add_parser(sub) -> None:
     bench.add_argument("--envs", nargs="+", help="cleanrl: env ids (default: Pendulum-v1 and HalfCheetah-v5; CartPole-v1 for dqn)")
     bench.add_argument("--lengths", nargs=2, type=int, metavar=("N1", "N2"),
                        help="cleanrl: env steps after learning_starts of the two timed runs")
+    bench.add_argument("--parts", nargs="+", choices=["updates", "training"], default=["updates", "training"],
+                       help="gpu: which tables to measure (default: both)")
     bench.add_argument("--seed", type=int, default=0, help="cleanrl: seed of both sides")
     bench.set_defaults(func=run)
 
@@ -48,7 +50,7 @@ def run(args) -> int:
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
     figures = {"dqn": bench_dqn, "td3": bench_td3, "sac": bench_sac, "minitaur": bench_minitaur,
-               "floor": bench_floor, "cleanrl": bench_cleanrl}[args.target](args, out)
+               "floor": bench_floor, "cleanrl": bench_cleanrl, "gpu": bench_gpu}[args.target](args, out)
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
@@ -197,6 +199,12 @@ def bench_cleanrl(args, out: Path) -> dict:
     from rlpipe.scripts.bench_cleanrl import bench_cleanrl as run_cleanrl
 
     return run_cleanrl(args, out)
+
+
+def bench_gpu(args, out: Path) -> dict:
+    from rlpipe.scripts.bench_gpu import bench_gpu as run_gpu
+
+    return run_gpu(args, out)
 
 
 def bench_minitaur(args, out: Path) -> dict:

@@ -102,17 +102,20 @@ def update_seconds(pipeline, chunks: int = 12, per_chunk: int = 20) -> float:
                  "truncated": torch.zeros(b, 1, dtype=torch.bool)},
     }, [b])
     keys = pipeline.replay_keys
-    batch = batch.select(*keys, strict=False) if keys else batch
+    batch = (batch.select(*keys, strict=False) if keys else batch).to(pipeline.device)
+    sync = torch.cuda.synchronize if pipeline.device.type == "cuda" else (lambda: None)
     index = 0
     for _ in range(30):
         index += 1
         pipeline.update_step(batch.clone(), index)
     times = []
     for _ in range(chunks):
+        sync()
         t0 = time.perf_counter()
         for _ in range(per_chunk):
             index += 1
             pipeline.update_step(batch.clone(), index)
+        sync()
         times.append((time.perf_counter() - t0) / per_chunk)
     return statistics.median(times)
 

@@ -342,3 +342,22 @@ def test_compiled_update_gives_the_eager_parameters(tmp_path):
     for (name, a), b in zip(eager.loss_module.state_dict().items(), compiled.loss_module.state_dict().values(), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)
     assert any(not torch.equal(before[k], v) for k, v in eager.loss_module.state_dict().items())  # it learned
+
+
+@pytest.mark.parametrize("tau", [1.0, 0.5])
+def test_the_target_network_moves_every_target_update_period_updates(tau):
+    # tau=1 copies the online network every target_update_period updates (TorchRL's HardUpdate,
+    # used before, copied on every second call only: every 6th update for a period of 3).
+    pipeline = DQN(tiny(f"target_update_tau={tau}", "target_update_period=3", "fc_layer_params=[8]", "batch_size=8"))
+    pipeline.replay_buffer.extend(pipeline.env.rollout(50, break_when_any_done=False))
+    loss = pipeline.loss_module
+    moved, equal = [], []
+    for index in range(1, 10):
+        before = [t.clone() for t in loss.target_value_network_params.values(True, True)]
+        pipeline.update_step(pipeline.replay_buffer.sample(), index)
+        targets = list(loss.target_value_network_params.values(True, True))
+        moved.append(any(not torch.equal(a, b) for a, b in zip(before, targets)))
+        equal.append(all(torch.equal(a, b) for a, b in zip(loss.value_network_params.values(True, True), targets)))
+    assert moved == [False, False, True] * 3
+    if tau == 1.0:
+        assert equal == [False, False, True] * 3
