@@ -118,3 +118,13 @@ def test_a_short_run_trains_with_graphed_updates(tmp_path, td_pytree_restored):
     result = pipeline.train(tmp_path / "run", progress=False)
     assert result.summary["updates"] == 60
     assert len(pipeline.update_step.graphs) == 3
+
+
+@pytest.mark.unit
+def test_cudagraph_on_a_cpu_device_is_one_clear_line():
+    from rlpipe.pipelines.errors import InputError
+
+    with pytest.raises(InputError) as info:
+        apply_overrides(td3.preset("td3"), ["cudagraph=true", "device=cpu"])
+    assert str(info.value).startswith("cudagraph=true with device='cpu'") and "\n" not in str(info.value)
+    assert apply_overrides(td3.preset("td3"), ["compile=true"]).cudagraph is None  # follows compile, on CUDA only
