@@ -239,6 +239,11 @@ class ExportedPolicy(nn.Module):
         """A batch ``[B, D]`` -> actions ``[B, ...]``."""
         raise NotImplementedError
 
+    def train(self, mode: bool = True) -> ExportedPolicy:
+        # An exported policy has no training mode; torch.export's modules refuse to be told one.
+        self.training = mode
+        return self
+
 
 class OnnxPolicy(ExportedPolicy):
     """An ONNX policy, run by ONNX Runtime on one thread (a policy's matmuls are too small for more)."""
@@ -303,7 +308,7 @@ def load_policy(folder: Path, *, step: int | None = None, trust: bool = False) -
     else:
         raise InputError(f"{folder / 'policy.onnx'}: no exported policy; expected a run that finished or saved its policy")
     policy.path = onnx_path if onnx_path.exists() else pt2_path
-    return policy.eval(), info
+    return policy, info
 
 
 def _load(path: Path, make):
