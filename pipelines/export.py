@@ -45,7 +45,7 @@ import torch
 from torch import nn
 
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.files import atomic_path, write_bytes_atomic, write_json_atomic
+from rlpipe.pipelines.files import write_bytes_atomic, write_json_atomic
 
 __all__ = ["ExportedPolicy", "OnnxExportWarning", "available_steps", "export_policy", "load_policy"]
 
@@ -100,27 +100,26 @@ def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: d
     example = torch.zeros(2, observation_dim)
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
     program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},), strict=False)
-    onnx_model = _onnx_model(module, observation_dim)
-
-    names = ["policy.pt2"] if onnx_model is None else ["policy.onnx", "policy.pt2"]
-    if step is not None:
-        names = [step_name(step, Path(n).suffix) for n in names] + names
-    for name in names:
-        if name.endswith(".onnx"):
-            write_bytes_atomic(folder / name, onnx_model)
-        else:
-            with atomic_path(folder / name, suffix=".pt2") as tmp:
-                torch.export.save(program, tmp)
+    pt2 = io.BytesIO()
+    torch.export.save(program, pt2)
+    files = {".pt2": pt2.getvalue(), ".onnx": _onnx_model(module, observation_dim)}
+    for suffix, data in files.items():
+        if data is not None:
+            if step is not None:
+                write_bytes_atomic(folder / step_name(step, suffix), data)
+            write_bytes_atomic(folder / f"policy{suffix}", data)
+    onnx_model = files[".onnx"]
     if onnx_model is None:  # an older export's ONNX is not this policy
         (folder / "policy.onnx").unlink(missing_ok=True)
     if step is not None and keep > 0:
         for old in available_steps(folder)[:-keep]:
             for suffix in (".onnx", ".pt2"):
                 (folder / step_name(old, suffix)).unlink(missing_ok=True)
-    files = {name: text for name, text in FILES.items() if name.startswith("step_") or (folder / name).exists()}
+    steps = available_steps(folder)
     write_json_atomic(folder / "policy.json", {
-        "observation_dim": observation_dim, **info, "step": step, "steps": available_steps(folder),
-        "env_recipe": _env_recipe(info.get("env")), "files": files,
+        "observation_dim": observation_dim, **info, "step": step, "steps": steps,
+        "env_recipe": _env_recipe(info.get("env")),
+        "files": {name: text for name, text in FILES.items() if (folder / name).exists() or name.startswith("step_") and steps},
     })
     return folder / ("policy.pt2" if onnx_model is None else "policy.onnx")
 

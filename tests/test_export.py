@@ -304,7 +304,7 @@ def test_minitaurs_recipe_imports_rlpipe_envs_first(tmp_path):
 
 @pytest.fixture(scope="module")
 def commands(runs):
-    """The commands run as a user runs them, two at a time: on the runs, and on copies with a crafted .pt2."""
+    """Commands in real processes, two at a time: on copies of a run with a crafted .pt2, and a video."""
     run = runs / "cartpole"
     only_pt2 = runs / "only-pt2"  # an exported policy that exists only as a crafted .pt2
     shutil.copytree(run, only_pt2)
@@ -318,9 +318,7 @@ def commands(runs):
         "eval-only-pt2": ["eval", only_pt2, "--episodes", "2"],
         "video-only-pt2": ["video", only_pt2, "--episodes", "1"],
         "eval-beside-onnx": ["eval", beside_onnx, "--episodes", "2", "--json"],
-        "eval-step": ["eval", run, "--step", "200", "--episodes", "2", "--json"],
         "video-step": ["video", run, "--step", "200", "--episodes", "1"],
-        "eval-random-env": ["eval", "--env", "CartPole-v1", "--random", "--episodes", "5", "--json"],
     }
     with ThreadPoolExecutor(max_workers=2) as pool:
         results = dict(zip(jobs, pool.map(lambda args: rlpipe(*args, cwd=runs), jobs.values())))
@@ -354,11 +352,11 @@ def test_eval_loads_the_onnx_and_never_the_pt2_beside_it(commands):
     assert not (runs / "pwned-beside-onnx").exists(), "the crafted file ran"
 
 
-def test_eval_and_video_of_an_earlier_step(commands):
+def test_eval_and_video_of_an_earlier_step(commands, capfd):
     runs, results = commands
-    proc = results["eval-step"]
-    assert proc.returncode == 0, proc.stderr
-    data = json.loads(proc.stdout.strip().splitlines()[-1])
+    code, out, err = in_process(["eval", runs / "cartpole", "--step", "200", "--episodes", "2", "--json"], capfd)
+    assert code == 0, err
+    data = json.loads(out.strip().splitlines()[-1])
     assert data["policy"] == str(runs / "cartpole" / "policy" / "step_0000200.onnx")
     assert len(data["returns"]) == 2 and data["AverageEpisodeLength"] == pytest.approx(data["AverageReturn"])
     proc = results["video-step"]
@@ -367,10 +365,12 @@ def test_eval_and_video_of_an_earlier_step(commands):
     assert "trained-agent-step_200.mp4" in proc.stdout
 
 
-def test_random_agent_on_an_env_id(commands):
-    proc = commands[1]["eval-random-env"]
-    assert proc.returncode == 0, proc.stderr
-    data = json.loads(proc.stdout.strip().splitlines()[-1])
+def test_random_agent_on_an_env_id(tmp_path, monkeypatch, capfd):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = in_process(["eval", "--env", "CartPole-v1", "--random", "--episodes", "5", "--json"], capfd)
+    assert code == 0, err
+    assert list(tmp_path.iterdir()) == [], "no run directory, no files"
+    data = json.loads(out.strip().splitlines()[-1])
     assert data["policy"] == "random" and data["env"] == "CartPole-v1" and len(data["returns"]) == 5
     # CartPole pays 1 per step; a random agent falls within a few dozen steps
     assert data["AverageEpisodeLength"] == pytest.approx(data["AverageReturn"]) and 8 <= data["AverageReturn"] < 100
