@@ -47,7 +47,8 @@ from torch import nn
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.files import write_bytes_atomic, write_json_atomic
 
-__all__ = ["ExportedPolicy", "OnnxExportWarning", "available_steps", "export_policy", "load_policy"]
+__all__ = ["ExportedPolicy", "OnnxExportWarning", "OnnxPolicy", "TorchExportPolicy", "available_steps", "export_policy",
+           "load_policy"]
 
 ONNX_OPSET = 17
 """ONNX Runtime 1.14 and later run it: old enough for the runtimes robots ship"""
@@ -260,7 +261,8 @@ class OnnxPolicy(ExportedPolicy):
         self.input_name = self.session.get_inputs()[0].name
 
     def act(self, observations: torch.Tensor) -> torch.Tensor:
-        return torch.from_numpy(self.session.run(None, {self.input_name: observations.numpy()})[0])
+        observations = np.ascontiguousarray(observations.numpy())
+        return torch.from_numpy(self.session.run(None, {self.input_name: observations})[0])
 
 
 class TorchExportPolicy(ExportedPolicy):
@@ -295,24 +297,28 @@ def load_policy(folder: Path, *, step: int | None = None, trust: bool = False) -
         info = json.loads((folder / "policy.json").read_text())
     except (OSError, ValueError):
         info = {}
+    dim = info.get("observation_dim")
     if onnx_path.exists():
-        policy = _load(onnx_path, lambda: OnnxPolicy(onnx_path.read_bytes()))
+        policy = _load(onnx_path, lambda: OnnxPolicy(onnx_path.read_bytes()), dim)
     elif pt2_path.exists():
         if not trust:
             raise InputError(
                 f"{pt2_path}: this policy exists only as a torch.export archive, and loading one unpickles parts of it, "
                 f"which can run code; pass --trust (trust=True) to load it if you trust where it came from "
                 f"(a policy.onnx, data only, would load without)")
-        policy = _load(pt2_path, lambda: TorchExportPolicy(_torch_export_load(pt2_path)))
+        policy = _load(pt2_path, lambda: TorchExportPolicy(_torch_export_load(pt2_path)), dim)
     else:
         raise InputError(f"{folder / 'policy.onnx'}: no exported policy; expected a run that finished or saved its policy")
     policy.path = onnx_path if onnx_path.exists() else pt2_path
     return policy, info
 
 
-def _load(path: Path, make):
+def _load(path: Path, make, observation_dim: int | None) -> ExportedPolicy:
     try:
-        return make()
+        policy = make()
+        if isinstance(observation_dim, int):  # a file that loads but is not this run's policy fails here, not mid-episode
+            policy(torch.zeros(1, observation_dim))
+        return policy
     except Exception as exc:  # onnxruntime and torch.export raise many kinds on a damaged file
         raise InputError(f"{path}: corrupt or not an exported policy ({type(exc).__name__}); "
                          "expected the policy a run exported") from exc

@@ -116,10 +116,14 @@ def test_load_policy_keeps_the_callers_logging_disable_level(tmp_path, caller_di
     assert logging.root.manager.disable == caller_disables_info
 
 
-def test_a_damaged_onnx_file_is_one_clear_error(tmp_path):
+def test_a_damaged_or_foreign_onnx_file_is_one_clear_error(tmp_path):
     folder = tmp_path / "policy"
     export_policy(nn.Linear(3, 2), 3, folder, {})
     (folder / "policy.onnx").write_bytes(b"\x08\x07 not an onnx model" * 10)
+    with pytest.raises(InputError, match=r"policy\.onnx: corrupt or not an exported policy"):
+        load_policy(folder)
+    export_policy(nn.Linear(5, 2), 5, tmp_path / "other", {})  # a valid ONNX policy, of another env
+    shutil.copy(tmp_path / "other" / "policy.onnx", folder / "policy.onnx")
     with pytest.raises(InputError, match=r"policy\.onnx: corrupt or not an exported policy"):
         load_policy(folder)
 
