@@ -371,10 +371,11 @@ def test_eval_and_video_of_an_earlier_step(commands, capfd):
 
 def test_random_agent_on_an_env_id(tmp_path, monkeypatch, capfd):
     monkeypatch.chdir(tmp_path)
-    code, out, err = in_process(["eval", "--env", "CartPole-v1", "--random", "--episodes", "5", "--json"], capfd)
+    code, out, err = in_process(["eval", "--env", "CartPole-v1", "--random", "--episodes", "5", "--json", "--ecdf"], capfd)
     assert code == 0, err
-    assert list(tmp_path.iterdir()) == [], "no run directory, no files"
+    assert [p.name for p in tmp_path.iterdir()] == ["ecdf-random.png"], "no run directory: the plot lands here"
     data = json.loads(out.strip().splitlines()[-1])
+    assert data["ecdf_png"] == str(tmp_path / "ecdf-random.png")
     assert data["policy"] == "random" and data["env"] == "CartPole-v1" and len(data["returns"]) == 5
     # CartPole pays 1 per step; a random agent falls within a few dozen steps
     assert data["AverageEpisodeLength"] == pytest.approx(data["AverageReturn"]) and 8 <= data["AverageReturn"] < 100
