@@ -89,6 +89,8 @@ class TrainConfig:
     """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
     policy_save_interval: int = 5000
     """iterations between exports of the deterministic policy (the tutorials' saved policy)"""
+    policy_keep: int = 0
+    """exports kept in policy/ as step_NNNNNNN.onnx/.pt2 (the newest; 0: all, as the tutorials keep every saved policy); policy.onnx/.pt2 is always the latest"""
     checkpoint_interval: int = 5000
     """iterations between checkpoints that `--resume` continues from"""
     compile: bool = False

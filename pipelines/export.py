@@ -1,73 +1,335 @@
-"""The exported policy: TF-Agents' saved policy, as a ``torch.export`` program.
+"""The exported policy: TF-Agents' saved policy, as ONNX (data only) and as a ``torch.export`` program.
 
-``policy/policy.pt2`` loads with torch alone — no rlpipe, no config — and maps a batch of
-observations to actions::
+Each export writes, in ``RUN/policy``::
 
-    import torch
-    policy = torch.export.load("RUN/policy/policy.pt2").module()
-    action = policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0]
+    policy.onnx          ONNX: a graph and its weights, data only (nothing in it runs as code):
+                         safe to load from anyone; ONNX Runtime and robots' stacks run it
+    policy.pt2           a torch.export archive: ``torch.export.load`` unpickles parts of it, so a
+                         crafted file runs code: load it only from a source you trust
+    step_NNNNNNN.onnx    the same two files of each export (the tutorials' ``policy_checkpoint_N``);
+    step_NNNNNNN.pt2     the newest ``policy_keep`` are kept (0: all); ``policy.*`` is the latest
+    policy.json          what goes in and out, how to make the env, which files exist
 
-``policy/policy.json`` says what goes in and comes out.
+Both map a batch of observations ``[B, D]`` (float32) to actions ``[B, ...]``, without grad; with
+ONNX Runtime alone::
+
+    import numpy as np, onnxruntime
+    policy = onnxruntime.InferenceSession("RUN/policy/policy.onnx")
+    actions = policy.run(None, {"observation": np.asarray(observations, dtype=np.float32)})[0]
+
+``load_policy`` is rlpipe's loader (``rlpipe eval`` and ``rlpipe video`` use it): ONNX by default,
+a ``.pt2`` only when the caller says it trusts the file; what it returns takes one observation ``[D]``
+as well as a batch, numpy (gives numpy) or torch (gives torch).
+
+A module ONNX cannot express (an operator without an ONNX equivalent in a user's plug-in actor) is
+exported as ``policy.pt2`` only, with a warning; ``load_policy`` then needs ``trust=True``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import copy
+import io
 import json
 import logging
+import os
+import re
+import tempfile
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
-from rlpipe.pipelines.files import atomic_path, write_json_atomic
+from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.files import write_bytes_atomic, write_json_atomic
 
-__all__ = ["export_policy", "load_policy"]
+__all__ = ["ExportedPolicy", "OnnxExportWarning", "OnnxPolicy", "TorchExportPolicy", "available_steps", "export_policy",
+           "load_policy"]
+
+ONNX_OPSET = 17
+"""ONNX Runtime 1.14 and later run it: old enough for the runtimes robots ship"""
+
+_STEP_FILE = re.compile(r"step_(\d+)\.(onnx|pt2)")
+
+FILES = {
+    "policy.onnx": "ONNX (onnxruntime.InferenceSession): data only, nothing in it runs as code; safe to load from "
+                   "anyone. Observations float32 [B, D] -> actions [B, ...]",
+    "policy.pt2": "torch.export archive (torch.export.load(...).module()): loading it unpickles parts of it, which "
+                  "can run code; load it only from a source you trust. Observations float32 [B, D] -> actions [B, ...]",
+    "step_NNNNNNN.onnx, step_NNNNNNN.pt2": "the same two formats, one pair per export at that iteration",
+}
 
 
-def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: dict) -> Path:
-    """Export ``module`` (observations ``[B, observation_dim]`` -> actions ``[B, ...]``) atomically."""
+class OnnxExportWarning(UserWarning):
+    """A policy could not be exported as ONNX; only the ``.pt2`` (trusted sources only) was written."""
+
+
+def step_name(step: int, suffix: str) -> str:
+    return f"step_{step:07d}{suffix}"
+
+
+def available_steps(folder: Path) -> list[int]:
+    """The iterations at which the exports kept in ``folder`` were made, oldest first."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return sorted({int(m.group(1)) for p in folder.iterdir() if (m := _STEP_FILE.fullmatch(p.name))})
+
+
+# --- writing -----------------------------------------------------------------------------------------
+
+
+def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: dict, *, step: int | None = None,
+                  keep: int = 0) -> Path:
+    """Export ``module`` (observations ``[B, observation_dim]`` -> actions ``[B, ...]``) to ``folder``.
+
+    Writes ``policy.onnx`` (unless ONNX cannot express the module: then a warning), ``policy.pt2``
+    and ``policy.json``, each atomically; with ``step``, also ``step_NNNNNNN.onnx/.pt2``, keeping the
+    newest ``keep`` steps (0: all). Returns the path of the latest policy, ``.onnx`` where written.
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    module = module.eval()
+    # A copy: the caller's module keeps training; here its parameters stop asking for grad, so
+    # the exported programs give actions without grad (the .pt2 keeps each parameter's flag).
+    module = copy.deepcopy(module).eval()
+    for parameter in module.parameters():
+        parameter.requires_grad_(False)
     example = torch.zeros(2, observation_dim)
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
     program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},), strict=False)
-    with atomic_path(folder / "policy.pt2", suffix=".pt2") as tmp:
-        torch.export.save(program, tmp)
-    write_json_atomic(folder / "policy.json", {"observation_dim": observation_dim, **info})
-    return folder / "policy.pt2"
+    pt2 = io.BytesIO()
+    torch.export.save(program, pt2)
+    files = {".pt2": pt2.getvalue(), ".onnx": _onnx_model(module, observation_dim)}
+    for suffix, data in files.items():
+        if data is not None:
+            if step is not None:
+                write_bytes_atomic(folder / step_name(step, suffix), data)
+            write_bytes_atomic(folder / f"policy{suffix}", data)
+    onnx_model = files[".onnx"]
+    if onnx_model is None:  # an older export's ONNX is not this policy
+        (folder / "policy.onnx").unlink(missing_ok=True)
+    if step is not None and keep > 0:
+        for old in available_steps(folder)[:-keep]:
+            for suffix in (".onnx", ".pt2"):
+                (folder / step_name(old, suffix)).unlink(missing_ok=True)
+    steps = available_steps(folder)
+    write_json_atomic(folder / "policy.json", {
+        "observation_dim": observation_dim, **info, "step": step, "steps": steps,
+        "env_recipe": _env_recipe(info.get("env")),
+        "files": {name: text for name, text in FILES.items() if (folder / name).exists() or name.startswith("step_") and steps},
+    })
+    return folder / ("policy.pt2" if onnx_model is None else "policy.onnx")
 
 
-class _AnyBatch(nn.Module):
-    """Lets the exported program (batched input) also take a single observation."""
+def _env_recipe(env: str | None) -> dict[str, Any]:
+    """How a person makes the env the policy acts in, with gymnasium alone (and rlpipe for Minitaur)."""
+    from rlpipe.envs import EnvError, resolve_env_id
+
+    try:
+        gym_id = resolve_env_id(env) if env else None
+    except EnvError:
+        gym_id = None
+    if gym_id is None:
+        return {"gymnasium_id": None, "imports": [], "make": None,
+                "note": f"{env!r} is not a gymnasium id: the env came from the trainer's own code"}
+    imports = ["rlpipe.envs"] if gym_id.startswith("rlpipe/") else []  # registers rlpipe's envs with gymnasium
+    make = "".join(f"import {m}; " for m in imports) + f"import gymnasium; env = gymnasium.make({gym_id!r})"
+    return {"gymnasium_id": gym_id, "imports": imports, "make": make,
+            "observations": "the env's own, as float32 (no normalisation)"}
+
+
+def _onnx_model(module: nn.Module, observation_dim: int) -> bytes | None:
+    """``module`` as an ONNX model (``observation [batch, D] -> action [batch, ...]``), checked against
+    the module; None with a warning if ONNX cannot express it.
+
+    torch 2.13's TorchScript-based exporter (``dynamo=False``) is used on purpose: it is still
+    supported there, exports our policies in ~0.02 s (the dynamo exporter takes ~1.3 s per export
+    and needs onnxscript), and traces the TensorDict policies of plug-in actors as well.
+    """
+    import onnx
+
+    buffer = io.BytesIO()
+    try:
+        with warnings.catch_warnings(), _stderr_kept_on_success():
+            warnings.simplefilter("ignore")  # its DeprecationWarning, and tracer notes on TensorDict code
+            torch.onnx.export(module, (torch.zeros(2, observation_dim),), buffer, dynamo=False,
+                              opset_version=ONNX_OPSET, input_names=["observation"], output_names=["action"],
+                              dynamic_axes={"observation": {0: "batch"}, "action": {0: "batch"}})
+        data = buffer.getvalue()
+        onnx.checker.check_model(onnx.load_from_string(data), full_check=True)
+        _check_same_actions(module, data, observation_dim)
+    except Exception as exc:  # an operator ONNX lacks, a graph the tracer cannot follow, different actions
+        message = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        warnings.warn(f"the policy could not be exported as ONNX ({type(exc).__name__}: {message[:200]}); "
+                      "only policy.pt2 is written, which rlpipe eval/video load only with --trust",
+                      OnnxExportWarning, stacklevel=3)
+        return None
+    return data
+
+
+@contextlib.contextmanager
+def _stderr_kept_on_success() -> Iterator[None]:
+    """Hold back what is written to fd 2 in the block; pass it on unless the block raises.
+
+    torch 2.13's TorchScript ONNX exporter turns its C++ log on for every export
+    (``setup_onnx_logging`` tests the function ``_jit_is_onnx_log_enabled`` instead of calling it)
+    and so prints the whole graph to stderr when an export fails; the warning says why instead.
+    Delete this when torch's check calls the function.
+    """
+    import sys
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        ok = False
+        try:
+            yield
+            ok = True
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            if ok:
+                held.seek(0)
+                if text := held.read():
+                    os.write(2, text)
+
+
+def _check_same_actions(module: nn.Module, onnx_model: bytes, observation_dim: int) -> None:
+    """Raise if ONNX Runtime's actions differ from the module's (a tracer can miss Python control flow)."""
+    generator = torch.Generator().manual_seed(0)
+    observations = torch.randn(8, observation_dim, generator=generator) * 3
+    with torch.no_grad():
+        expected = module(observations)
+    got = OnnxPolicy(onnx_model)(observations)
+    if got.dtype.is_floating_point:
+        torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-5, check_dtype=False)
+    elif not torch.equal(got, expected):
+        raise ValueError("ONNX Runtime's actions differ from the module's")
+
+
+# --- loading -----------------------------------------------------------------------------------------
+
+
+class ExportedPolicy(nn.Module):
+    """An exported policy as a module: observations ``[D]`` or ``[..., D]`` -> actions, without grad.
+
+    Takes a torch tensor (gives one back) or anything numpy takes (gives a numpy array); ``path``
+    is the file it came from.
+    """
+
+    path: Path
+
+    def forward(self, observation):
+        as_numpy = not isinstance(observation, torch.Tensor)
+        obs = torch.as_tensor(np.asarray(observation, dtype=np.float32) if as_numpy else observation,
+                              dtype=torch.float32)
+        with torch.no_grad():
+            batch = obs.reshape(-1, obs.shape[-1])
+            action = self.act(batch.cpu())
+        action = action.reshape((*obs.shape[:-1], *action.shape[1:])).to(obs.device)
+        return action.numpy() if as_numpy else action
+
+    def act(self, observations: torch.Tensor) -> torch.Tensor:
+        """A batch ``[B, D]`` -> actions ``[B, ...]``."""
+        raise NotImplementedError
+
+    def train(self, mode: bool = True) -> ExportedPolicy:
+        # An exported policy has no training mode; torch.export's modules refuse to be told one.
+        self.training = mode
+        return self
+
+
+class OnnxPolicy(ExportedPolicy):
+    """An ONNX policy, run by ONNX Runtime on one thread (a policy's matmuls are too small for more)."""
+
+    def __init__(self, model: bytes):
+        super().__init__()
+        import onnxruntime
+
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = options.inter_op_num_threads = 1
+        options.log_severity_level = 3  # errors only: the caller gets them as exceptions
+        # From bytes, not a path: weights stored outside the file ("external data") have nothing to
+        # resolve against, so a crafted model cannot make the runtime read other files.
+        self.session = onnxruntime.InferenceSession(model, options, providers=["CPUExecutionProvider"])
+        self.input_name = self.session.get_inputs()[0].name
+
+    def act(self, observations: torch.Tensor) -> torch.Tensor:
+        observations = np.ascontiguousarray(observations.numpy())
+        return torch.from_numpy(self.session.run(None, {self.input_name: observations})[0])
+
+
+class TorchExportPolicy(ExportedPolicy):
+    """A ``.pt2`` program (batched input), loaded by ``torch.export.load``: trusted files only."""
 
     def __init__(self, program: nn.Module):
         super().__init__()
         self.program = program
 
-    def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        if observation.dim() == 1:
-            return self.program(observation.unsqueeze(0)).squeeze(0)
-        return self.program(observation)
+    def act(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.program(observations)
 
 
-def load_policy(folder: Path) -> tuple[nn.Module, dict]:
-    """The exported policy of a run (``RUN/policy``) and its description; ``InputError`` if unusable."""
-    from rlpipe.pipelines.errors import InputError
+def load_policy(folder: Path, *, step: int | None = None, trust: bool = False) -> tuple[ExportedPolicy, dict]:
+    """The exported policy of a run (``RUN/policy``), the latest or that of ``step``, and its description.
 
+    ONNX (``.onnx``, data only) is loaded when there is one. A ``.pt2`` alone is loaded only with
+    ``trust=True``: ``torch.export.load`` unpickles parts of it, so a crafted file runs code.
+    ``InputError`` if there is no such policy, it is only a ``.pt2`` and not trusted, or it is unusable.
+    """
     folder = Path(folder)
-    path = folder / "policy.pt2"
-    if not path.exists():
-        raise InputError(f"{path}: no exported policy; expected a run that finished or saved its policy")
+    if step is None:
+        onnx_path, pt2_path = folder / "policy.onnx", folder / "policy.pt2"
+    else:
+        steps = available_steps(folder)
+        if step not in steps:
+            have = ", ".join(map(str, steps)) if steps else "none (the run kept no policy history)"
+            raise InputError(f"--step {step}: {folder} holds no policy exported at iteration {step}; "
+                             f"expected one of the exported steps: {have}")
+        onnx_path, pt2_path = folder / step_name(step, ".onnx"), folder / step_name(step, ".pt2")
+    try:
+        info = json.loads((folder / "policy.json").read_text())
+    except (OSError, ValueError):
+        info = {}
+    dim = info.get("observation_dim")
+    if onnx_path.exists():
+        policy = _load(onnx_path, lambda: OnnxPolicy(onnx_path.read_bytes()), dim)
+    elif pt2_path.exists():
+        if not trust:
+            raise InputError(
+                f"{pt2_path}: this policy exists only as a torch.export archive, and loading one unpickles parts of it, "
+                f"which can run code; pass --trust (trust=True) to load it if you trust where it came from "
+                f"(a policy.onnx, data only, would load without)")
+        policy = _load(pt2_path, lambda: TorchExportPolicy(_torch_export_load(pt2_path)), dim)
+    else:
+        raise InputError(f"{folder / 'policy.onnx'}: no exported policy; expected a run that finished or saved its policy")
+    policy.path = onnx_path if onnx_path.exists() else pt2_path
+    return policy, info
+
+
+def _load(path: Path, make, observation_dim: int | None) -> ExportedPolicy:
+    try:
+        policy = make()
+        if isinstance(observation_dim, int):  # a file that loads but is not this run's policy fails here, not mid-episode
+            policy(torch.zeros(1, observation_dim))
+        return policy
+    except Exception as exc:  # onnxruntime and torch.export raise many kinds on a damaged file
+        raise InputError(f"{path}: corrupt or not an exported policy ({type(exc).__name__}); "
+                         "expected the policy a run exported") from exc
+
+
+def _torch_export_load(path: Path) -> nn.Module:
     # torch.export logs a traceback of its own for a damaged file; the caller's own
     # logging.disable level is kept while loading and restored after.
     disabled = logging.root.manager.disable
     logging.disable(max(disabled, logging.WARNING))
     try:
-        program = torch.export.load(path).module()
-        info = json.loads((folder / "policy.json").read_text())
-    except Exception as exc:  # torch.export raises many kinds on a damaged file
-        raise InputError(f"{path}: corrupt or not an exported policy ({type(exc).__name__})") from exc
+        return torch.export.load(path).module()
     finally:
         logging.disable(disabled)
-    return _AnyBatch(program), info

@@ -247,7 +247,7 @@ class Loop:
     def export(self) -> None:
         with self.clock.paused():
             export_policy(self.pipeline.export_module(), self.pipeline.observation_dim, self.run_dir.policy_dir,
-                          self.pipeline.export_info())
+                          self.pipeline.export_info(), step=self.state.iteration, keep=self.config.policy_keep)
         self.exported_at = self.state.iteration
 
     def save(self) -> None:

@@ -89,7 +89,8 @@ class EvalTrigger(Trigger):
 
 
 class ExportTrigger(Trigger):
-    """The deterministic policy exported to ``RUN/policy`` (TF-Agents' PolicySavedModelTrigger)."""
+    """The deterministic policy exported to ``RUN/policy`` as ``step_NNNNNNN.onnx/.pt2`` and ``policy.onnx/.pt2``
+    (TF-Agents' PolicySavedModelTrigger; ``policy_keep`` says how many steps stay)."""
 
     name = "export"
 

@@ -1,8 +1,9 @@
 """The ``rlpipe`` command line.
 
     rlpipe train PRESET [key=value ...] [--out DIR] [--resume DIR]
-    rlpipe eval RUN_DIR [--episodes N] [--json] [--ecdf]
-    rlpipe video RUN_DIR [--episodes N] [--random] [--out FILE]
+    rlpipe eval RUN_DIR [--step N] [--trust] [--episodes N] [--json] [--ecdf]
+    rlpipe eval RUN_DIR --random | rlpipe eval --env ID --random
+    rlpipe video RUN_DIR [--step N] [--trust] [--episodes N] [--random] [--out FILE]
     rlpipe plot RUN_DIR [RUN_DIR ...] [--out FILE]
     rlpipe presets
     rlpipe ablate td3 --envs A,B --seeds N --steps S [--workers W] [--out DIR]
@@ -34,6 +35,10 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
+_TRUST_HELP = ("also load a policy that exists only as policy.pt2 (torch.export): loading one unpickles parts of it, "
+               "which can run code; only for runs you trust (policy.onnx, data only, needs no flag)")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="rlpipe", description="RL pipelines (SAC, TD3, DQN) on TorchRL.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -46,8 +51,12 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
     train.add_argument("--keys", action="store_true", help="list the preset's keys with their values and meaning, then exit")
 
-    ev = sub.add_parser("eval", help="evaluate a run's exported policy")
-    ev.add_argument("run_dir", type=Path)
+    ev = sub.add_parser("eval", help="evaluate a run's exported policy (or a random agent)")
+    ev.add_argument("run_dir", type=Path, nargs="?", help="the run whose policy/policy.onnx to evaluate")
+    ev.add_argument("--step", type=int, help="the policy exported at this iteration (policy/step_NNNNNNN.onnx) instead of the latest")
+    ev.add_argument("--trust", action="store_true", help=_TRUST_HELP)
+    ev.add_argument("--random", action="store_true", help="a uniformly random agent instead (the tutorials' baseline), on the run's env or --env")
+    ev.add_argument("--env", metavar="ID", help="with --random and no RUN_DIR: the env to evaluate the random agent on")
     ev.add_argument("--episodes", type=int, default=10)
     ev.add_argument("--seed", type=int, default=12345)
     ev.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -55,9 +64,11 @@ def _parser() -> argparse.ArgumentParser:
 
     video = sub.add_parser("video", help="an mp4 of a run's policy acting (or of a random policy)")
     video.add_argument("run_dir", type=Path)
+    video.add_argument("--step", type=int, help="the policy exported at this iteration (policy/step_NNNNNNN.onnx) instead of the latest")
+    video.add_argument("--trust", action="store_true", help=_TRUST_HELP)
     video.add_argument("--episodes", type=int, default=3)
     video.add_argument("--random", action="store_true", help="a random policy instead, for comparison")
-    video.add_argument("--out", type=Path, help="mp4 path (default RUN_DIR/trained-agent.mp4 or random-agent.mp4)")
+    video.add_argument("--out", type=Path, help="mp4 path (default RUN_DIR/trained-agent.mp4, trained-agent-step_N.mp4 with --step, or random-agent.mp4)")
     video.add_argument("--seed", type=int, default=0)
 
     plot = sub.add_parser("plot", help="return curves of one or more runs in one PNG")
@@ -135,22 +146,50 @@ def cmd_eval(args) -> int:
     from tensordict.nn import TensorDictModule
 
     from rlpipe.envs import make_env
+    from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.evaluation import evaluate
     from rlpipe.pipelines.export import load_policy
 
     _positive("--episodes", args.episodes)
-    run, cfg = _run_config(args.run_dir)
-    module, _ = load_policy(run.policy_dir)
-    env = make_env(cfg.env, seed=args.seed)
-    policy = TensorDictModule(module, in_keys=["observation"], out_keys=["action"])
+    if args.run_dir is None and args.env is None:
+        raise InputError("no run directory: expected `rlpipe eval RUN_DIR`, or `rlpipe eval --env ID --random` for a random agent")
+    if args.env is not None and not args.random:
+        raise InputError(f"--env {args.env} without --random: a run's policy is evaluated on the run's own env; "
+                         "expected --random with --env")
+    if args.env is not None and args.run_dir is not None:
+        raise InputError(f"both {args.run_dir} and --env {args.env}: expected one of them (a run names its own env)")
+    _check_random_without_step(args)
+    run, env_id = None, args.env
+    if args.run_dir is not None:
+        run, cfg = _run_config(args.run_dir)
+        env_id = cfg.env
+    if args.random:
+        module, source = None, "random"
+    else:
+        module, _ = load_policy(run.policy_dir, step=args.step, trust=args.trust)
+        source = str(module.path)
+    env = make_env(env_id, seed=args.seed)
+    if module is None:
+        import torch
+        from torchrl.envs.utils import RandomPolicy
+
+        torch.manual_seed(args.seed)  # RandomPolicy draws from the action spec with torch's generator
+        policy = RandomPolicy(env.action_spec)
+    else:
+        policy = TensorDictModule(module, in_keys=["observation"], out_keys=["action"])
     result = evaluate(env, policy, args.episodes)
     if args.ecdf:
         from rlpipe.pipelines.analysis import plot_ecdf
 
-        result["ecdf_png"] = str(plot_ecdf(result["returns"], run.path / "ecdf.png", title=f"{cfg.env}: {args.episodes} episodes"))
+        folder = run.path if run is not None else Path.cwd()
+        name = "ecdf-random.png" if args.random else "ecdf.png" if args.step is None else f"ecdf-step_{args.step}.png"
+        what = "random agent" if args.random else "policy" if args.step is None else f"policy at iteration {args.step}"
+        result["ecdf_png"] = str(plot_ecdf(result["returns"], folder / name,
+                                           title=f"{env_id}: {what}, {args.episodes} episodes"))
     if args.json:
         print(json.dumps({"AverageReturn": result["average_return"], "AverageEpisodeLength": result["average_episode_length"],
-                          "returns": result["returns"], **({"ecdf_png": result["ecdf_png"]} if args.ecdf else {})}))
+                          "returns": result["returns"], "policy": source, "env": env_id,
+                          **({"ecdf_png": result["ecdf_png"]} if args.ecdf else {})}))
     else:
         print(f"AverageReturn = {result['average_return']:.2f}")
         print(f"AverageEpisodeLength = {result['average_episode_length']:.1f}")
@@ -159,15 +198,23 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _check_random_without_step(args) -> None:
+    from rlpipe.pipelines.errors import InputError
+
+    if args.random and args.step is not None:
+        raise InputError(f"--step {args.step} picks an exported policy and --random acts without one; expected one of them")
+
+
 def cmd_video(args) -> int:
     from rlpipe.pipelines.export import load_policy
     from rlpipe.pipelines.video import record_video
 
     _positive("--episodes", args.episodes)
+    _check_random_without_step(args)
     run, cfg = _run_config(args.run_dir)
-    policy = None if args.random else load_policy(run.policy_dir)[0]
-    out = args.out or run.path / ("random-agent.mp4" if args.random else "trained-agent.mp4")
-    path = record_video(cfg.env, policy, out, episodes=args.episodes, seed=args.seed)
+    policy = None if args.random else load_policy(run.policy_dir, step=args.step, trust=args.trust)[0]
+    name = "random-agent.mp4" if args.random else "trained-agent.mp4" if args.step is None else f"trained-agent-step_{args.step}.mp4"
+    path = record_video(cfg.env, policy, args.out or run.path / name, episodes=args.episodes, seed=args.seed)
     print(f"video: {path}")
     return 0
 

@@ -197,7 +197,7 @@ def test_keys_shows_the_values_the_overrides_give(commands):
 
 
 def _damage_policy(run: Path) -> None:
-    (run / "policy" / "policy.pt2").write_bytes(b"PK\x03\x04 not a torch.export archive" * 10)
+    (run / "policy" / "policy.onnx").write_bytes(b"\x08\x07 not an ONNX model" * 10)
 
 
 BAD_INPUTS = {
@@ -219,8 +219,8 @@ BAD_INPUTS = {
     "video-not-a-run": (["video", ".", "--episodes", "1"], ["not a run directory"], None),
     "plot-not-a-run": (["plot", "RUN", ".", "--out", "x.png"], ["not a run directory"], None),
     "eval-zero-episodes": (["eval", "RUN", "--episodes", "0"], ["--episodes"], None),
-    "eval-corrupt-policy": (["eval", "RUN", "--episodes", "2"], ["policy.pt2"], _damage_policy),
-    "video-corrupt-policy": (["video", "RUN", "--episodes", "1"], ["policy.pt2"], _damage_policy),
+    "eval-corrupt-policy": (["eval", "RUN", "--episodes", "2"], ["policy.onnx", "corrupt"], _damage_policy),
+    "video-corrupt-policy": (["video", "RUN", "--episodes", "1"], ["policy.onnx", "corrupt"], _damage_policy),
     "bad-device": (["train", "dqn", "device=foo", "--out", "new"], ["device"], None),
     "override-after-options": (["train", "dqn", "--out", "new", "batch_size=0"], ["batch_size"], None),
     "argparse-error": (["eval", "RUN", "--episodes", "abc"], ["--episodes"], None),
