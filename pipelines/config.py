@@ -91,6 +91,8 @@ class TrainConfig:
     """iterations between exports of the deterministic policy (the tutorials' saved policy)"""
     checkpoint_interval: int = 5000
     """iterations between checkpoints that `--resume` continues from"""
+    video: bool = False
+    """at the end of training, film the trained policy to RUN/trained-agent.mp4 (as `rlpipe video RUN`) and show it on RUN/report.html"""
     compile: bool = False
     """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU)"""
     num_threads: int = -1
