@@ -188,7 +188,7 @@ def test_collect_runs_and_ablation_report(ablation_runs, tmp_path):
     paths = A.write_ablation_report(records, curves, out)
     names = sorted(p.name for p in paths)
     assert names == sorted(["ablation.csv", "ablation.md", "curves_Pendulum-v1.png",
-                            "curves_rlpipe_MinitaurBullet-v0.png", "ecdf_final_returns.png"])
+                            "curves_rlpipe_MinitaurBullet-v0.png", "ecdf_final_returns.png", "report.html"])
     assert all(p.parent == out and p.is_file() for p in paths)
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temp files left
 

@@ -227,7 +227,7 @@ def write_comparison_report(run_dirs: Sequence[str | os.PathLike], out: str | os
     return write_comparison_page(records, curves, out, title=title)
 
 
-def write_comparison_page(records: pd.DataFrame, curves: pd.DataFrame, out: str | os.PathLike, *,
+def write_comparison_page(records: pd.DataFrame, curves: pd.DataFrame | Mapping | None, out: str | os.PathLike, *,
                           reference: str | None = None, title: str = "Comparison of runs",
                           notes: Sequence[str] = ()) -> Path:
     """The comparison page of :func:`collect_runs`' tables at ``out`` (the ablation report's page too).
@@ -265,13 +265,14 @@ def write_comparison_page(records: pd.DataFrame, curves: pd.DataFrame, out: str 
     runs = []
     series = []
     for r in records.sort_values(["env", "variant", "seed"], kind="mergesort").itertuples(index=False):
-        run_dir = Path(getattr(r, "run_dir", "") or "")
-        page = run_dir / REPORT_FILE
+        run_dir = Path(r.run_dir) if getattr(r, "run_dir", None) else None  # records made elsewhere may lack it
+        page = run_dir / REPORT_FILE if run_dir is not None else None
         label = f"{r.variant} / seed {r.seed}" if str(r.seed) not in ("nan", "") else str(r.variant)
         runs.append({"label": label, "env": r.env, "variant": r.variant, "seed": r.seed,
-                     "final": _fmt(r.final_return), "auc": _fmt(r.auc), "frames": _count(r.frames),
-                     "dir": str(run_dir), "page": os.path.relpath(page, out.parent) if page.is_file() else None})
-        if run_dir.is_dir():
+                     "final": _fmt(r.final_return), "auc": _fmt(r.auc), "frames": _count(getattr(r, "frames", None)),
+                     "dir": str(run_dir or ""),
+                     "page": os.path.relpath(page, out.parent) if page is not None and page.is_file() else None})
+        if run_dir is not None and (run_dir / "metrics.csv").is_file():
             xs, ys = _xy(read_metrics(run_dir))
             series.append((f"{r.env}: {label}" if len(envs) > 1 else label, xs, ys))
     figures = {

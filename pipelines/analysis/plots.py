@@ -83,6 +83,20 @@ def _variant_styles(variants: Iterable[str], reference: str | None) -> dict[str,
     return styles
 
 
+def _long_labels(labels: Iterable[str]) -> bool:
+    """Whether legend labels are too long to stand beside a plot without squeezing it."""
+    return max((len(str(label)) for label in labels), default=0) > 32
+
+
+def _side_legend(fig: Figure, ax) -> None:
+    """The legend right of the axes, or below the figure when its labels are long (config differences)."""
+    handles, labels = ax.get_legend_handles_labels()
+    if _long_labels(labels):
+        fig.legend(handles, labels, loc="outside lower center", fontsize="small", frameon=False)
+    else:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
+
+
 def _xy(frame: pd.DataFrame, x: str = STEP_COL) -> tuple[np.ndarray, np.ndarray]:
     """Finite ``(x, average_return)`` pairs of a metrics table, sorted by x."""
     if x not in frame.columns or RETURN_COL not in frame.columns:
@@ -262,7 +276,7 @@ def _env_curves_figure(
     ax.set_ylabel("Average Return")
     ax.set_title(f"{env}: mean over seeds, band = 95% bootstrap CI of the mean")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
+    _side_legend(fig, ax)
     return fig
 
 
@@ -311,7 +325,8 @@ def _final_ecdfs_figure(
     for ax in axes[len(envs):]:
         ax.set_visible(False)
     fig.suptitle("ECDF of final returns over seeds")
-    fig.legend(list(handles.values()), list(handles.keys()), loc="outside right upper",
+    below = _long_labels(handles)
+    fig.legend(list(handles.values()), list(handles.keys()), loc="outside lower center" if below else "outside right upper",
                fontsize="small", frameon=False)
     return fig
 
@@ -383,12 +398,18 @@ def runs_returns_figure(series: Sequence[tuple[str, np.ndarray, np.ndarray]], ti
     """Each run's own return curve, one line per ``(label, steps, returns)`` (``rlpipe plot`` as a figure)."""
     fig = _new_figure((8.0, 4.5))
     ax = fig.add_subplot()
+    many = len(series) > _MAX_LEGEND
     for label, xs, ys in series:
-        ax.plot(xs, ys, marker=_marker(xs.size), markersize=3, linewidth=1.6, label=label)
+        ax.plot(xs, ys, marker=None if many else _marker(xs.size), markersize=3, linewidth=1.0 if many else 1.6,
+                alpha=0.6 if many else 1.0, label=label)
     ax.set_xlabel("Iterations")
     ax.set_ylabel("Average Return")
-    ax.set_title(title)
+    ax.set_title(title if not many else f"{title} ({len(series)} runs; the table below names them)")
     ax.grid(True, alpha=0.3)
-    if series:
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
+    if series and not many:
+        _side_legend(fig, ax)
     return fig
+
+
+_MAX_LEGEND = 12
+"""more runs than this in one figure: no legend (it would crowd out the plot)"""
