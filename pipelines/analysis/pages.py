@@ -191,8 +191,13 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
 # --- the comparison page ---------------------------------------------------------------------------------
 
 
+_NOT_VARIANT = {"seed", "video", "num_threads", "log_interval", "checkpoint_interval", "policy_save_interval"}
+"""config keys that say how a run is recorded or seeded, not what it learns: runs differing only here are one variant"""
+
+
 def run_labels(run_dirs: Sequence[str | os.PathLike]) -> dict[str, str]:
-    """A variant name per run directory: runs whose configs differ only in ``seed`` share one.
+    """A variant name per run directory: runs whose configs differ only in the seed (or in how they are
+    recorded: ``video``, intervals of logs, checkpoints and exports, threads) share one.
 
     The name lists the keys in which the run's config differs from the others' (``clipped_double_q=false``),
     or is the algorithm and env when every run has the same config.
@@ -200,8 +205,7 @@ def run_labels(run_dirs: Sequence[str | os.PathLike]) -> dict[str, str]:
     configs = {}
     for run in run_dirs:
         saved = _read_json(Path(run) / "config.json") or {}
-        flat = dict(_flatten(saved.get("config", {})))
-        flat.pop("seed", None)
+        flat = {k: v for k, v in _flatten(saved.get("config", {})) if k not in _NOT_VARIANT}
         configs[str(run)] = (saved.get("algo", "?"), flat)
     keys = sorted({k for _, flat in configs.values() for k in flat} - {"env"})  # env is a section of its own
     varying = [k for k in keys if len({flat.get(k) for _, flat in configs.values()}) > 1]
