@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import logging
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -29,6 +30,7 @@ from torch import nn
 from torchrl.envs.utils import RandomPolicy
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines.evaluation import BackgroundEvaluator, evaluate
@@ -49,7 +51,12 @@ from rlpipe.pipelines.triggers import Trigger, eval_line
 if TYPE_CHECKING:
     from rlpipe.pipelines.base import OffPolicyPipeline
 
-__all__ = ["Loop", "TrainResult"]
+__all__ = ["LIVE_LOG", "Loop", "TrainResult"]
+
+LIVE_LOG = logging.getLogger("rlpipe.train")
+"""The live log, the tutorials' printed lines (``step = 1000: AverageReturn = ...``), as INFO records.
+``rlpipe train`` shows them on stdout; from Python, ``logging.basicConfig(level=logging.INFO,
+format="%(message)s")`` does (a library leaves where its records go to the application)."""
 
 
 @dataclass
@@ -92,7 +99,8 @@ class Loop:
         # The deferred Ctrl-C handler stays on through the checkpoint saved on an interrupt: a SIGINT
         # delivered twice (the terminal's and a parent's) must not cut that save short.
         keep_freed_memory()
-        with self.stop, gc_frozen():
+        # Console log handlers write through tqdm while the bar is up, so no line breaks it.
+        with self.stop, gc_frozen(), logging_redirect_tqdm([logging.root, LIVE_LOG.parent]):
             with self._workers():
                 try:
                     self.start()
@@ -260,8 +268,8 @@ class Loop:
         write_run_report(self.run_dir.path)
 
     def echo(self, line: str) -> None:
-        """A line of the live log: above the progress bar when there is one, else as it is (a batch job's log)."""
-        self.bar.write(line)
+        """A line of the live log (``LIVE_LOG``): above the progress bar when there is one."""
+        LIVE_LOG.info(line)
 
     def speeds(self) -> tuple[float, float]:
         """Env steps and updates per second of training time in this session (evaluations and saving left out)."""

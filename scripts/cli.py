@@ -113,6 +113,7 @@ def cmd_train(args) -> int:
         return 0
     pipeline = Pipeline(cfg)
     out = args.resume if args.resume is not None else args.out
+    _show_live_log()
     try:
         result = pipeline.train(out, resume=args.resume is not None, progress=not args.no_progress)
     except KeyboardInterrupt:
@@ -125,6 +126,20 @@ def cmd_train(args) -> int:
           f"({s['env_steps_per_s'] or 0:.0f} env steps/s, {s['updates_per_s'] or 0:.0f} updates/s while training)")
     print(f"run directory: {result.run_dir}")
     return 0
+
+
+def _show_live_log() -> None:
+    """The run's live log (rlpipe's INFO records: the tutorials' `step = N: ...` lines) on stdout."""
+    import logging
+
+    log = logging.getLogger("rlpipe")
+    if not any(getattr(h, "rlpipe_live_log", False) for h in log.handlers):
+        handler = logging.StreamHandler(sys.stdout)
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        handler.rlpipe_live_log = True
+        log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    log.propagate = False  # not twice where the root logger prints too
 
 
 def _run_config(run_dir: Path):
