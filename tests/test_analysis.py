@@ -213,6 +213,13 @@ def test_collect_runs_and_ablation_report(ablation_runs, tmp_path):
     for p in paths:
         if p.suffix == ".png":
             check_png(p, 10_000)
+    # the same study as one page: a table per env, every variant, the full agent marked, figures inline
+    page = (out / "report.html").read_text()
+    for variant in VARIANTS:
+        assert f">{variant}" in page
+    assert page.count("★") >= 2 and page.count('<table class="variants"') == 2
+    assert page.count('src="data:image/svg+xml;base64,') == 2 + 1 + 1  # curves per env, ECDFs, every run
+    assert "http://" not in page and "https://" not in page  # opens offline
     img = mpimg.imread(out / "curves_rlpipe_MinitaurBullet-v0.png")
     assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 300
     assert img[..., :3].std() > 0.05  # not a blank image

@@ -237,6 +237,24 @@ def test_the_comparison_page_in_chromium(runs, browser):
         page.close()
 
 
+@pytest.mark.unit
+def test_comparison_pools_seeds_of_one_config_and_names_variants_by_what_differs(tmp_path):
+    from rlpipe.pipelines.analysis.pages import run_labels
+
+    def run(name, **config):
+        folder = tmp_path / name
+        folder.mkdir()
+        base = {"env": "Pendulum-v1", "seed": 0, "clipped_double_q": True, "video": False, "log_interval": 100}
+        (folder / "config.json").write_text(json.dumps({"algo": "td3", "config": {**base, **config}}))
+        return str(folder)
+
+    runs = [run("a", seed=0), run("b", seed=1, video=True, log_interval=50), run("c", clipped_double_q=False)]
+    labels = run_labels(runs)
+    assert labels[runs[0]] == labels[runs[1]] == "clipped_double_q=true"
+    assert labels[runs[2]] == "clipped_double_q=false"
+    assert run_labels(runs[:2]) == {runs[0]: "td3", runs[1]: "td3"}  # nothing differs but the seed
+
+
 # --- bad input ---------------------------------------------------------------------------------------------
 
 

@@ -134,7 +134,7 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
 
     Works on a run in progress (the page says where it is), a stopped one and a finished one. The
     tables show ``metrics.csv``'s figures as written there; the video is linked when
-    ``trained-agent.mp4`` exists (a WebM copy is made beside it for browsers without H.264).
+    ``trained-agent.mp4`` exists.
     """
     run = Path(run_dir)
     out = Path(out) if out is not None else run / REPORT_FILE
@@ -143,7 +143,8 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
     summary = _read_json(run / "summary.json")
     baseline = read_baseline(run)
     rows = _csv_rows(run / "metrics.csv")
-    eval_rows = [r for r in rows if r.get("average_return")]
+    # by step: a background evaluation's row is written when its result is back, after later rows
+    eval_rows = sorted((r for r in rows if r.get("average_return")), key=lambda r: float(r["step"]))
     loss_columns = [c for c in (rows[0] if rows else {}) if c.startswith("loss_")]
     log_rows = [r for r in rows if any(r.get(c) for c in [*loss_columns, *_SPEED_COLUMNS])]
     env = (summary or {}).get("env") or config.get("env", "?")
@@ -162,7 +163,7 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
                                             _SPEED_COLUMNS)),
     }
     last_log = log_rows[-1] if log_rows else {}
-    iteration = int(float(rows[-1]["step"])) if rows else 0
+    iteration = max((int(float(r["step"])) for r in rows), default=0)  # background evaluations land late
     facts = [
         ("status", "finished" if summary else f"at iteration {iteration:,} of {config.get('num_iterations', 0):,}"),
         ("final AverageReturn" if summary else "last AverageReturn", eval_rows[-1]["average_return"] if eval_rows else "n/a"),
