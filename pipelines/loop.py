@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs.utils import RandomPolicy
@@ -282,22 +281,24 @@ class Loop:
     def measure_random_baseline(self) -> None:
         """The random agent's return on the eval env (the DQN tutorial's baseline), once per run: RUN/baseline.json.
 
-        Played on an env of its own, with the caller's torch random state forked, so the run's own
-        evaluations and draws are those of a run without it. A pipeline handed env instances (no
-        function to make another) has no baseline.
+        Played on an env of its own, with the run's random generators (torch, numpy, Python) put back
+        afterwards, so the run's own evaluations and draws are those of a run without it, and a run
+        resumed from its first checkpoint (saved before this) goes on as the uninterrupted one. A
+        pipeline handed env instances (no function to make another) has no baseline.
         """
         from rlpipe.pipelines.analysis.pages import read_baseline, write_baseline
 
         if read_baseline(self.run_dir.path) is not None or self.pipeline.eval_env_fn is None:
             return
+        generators = ckpt.rng_state()
         env = self.pipeline.eval_env_fn()
         try:
             env.set_seed(self.config.seed + 20_000)
-            with torch.random.fork_rng(devices=[]):
-                result = evaluate(env, RandomPolicy(env.full_action_spec), self.config.num_eval_episodes,
-                                  interrupt=self.stop.check)
+            result = evaluate(env, RandomPolicy(env.full_action_spec), self.config.num_eval_episodes,
+                              interrupt=self.stop.check)
         finally:
             env.close()
+            ckpt.set_rng_state(generators)
         write_baseline(self.run_dir.path, result)
         self.echo(f"random agent: AverageReturn = {result['average_return']:.6f}, "
                   f"AverageEpisodeLength = {result['average_episode_length']:.6f} "
