@@ -285,3 +285,11 @@ def test_safe_filename():
     assert A.safe_filename("rlpipe/MinitaurBullet-v0") == "rlpipe_MinitaurBullet-v0"
     assert A.safe_filename("../x y") == "x_y"
     assert "/" not in A.safe_filename("a/b/c")
+
+
+def test_read_run_info_of_a_run_in_progress_reads_its_config(tmp_path):
+    # a run writes config.json as {"algo", "config"}; summary.json comes only at its end
+    (tmp_path / "config.json").write_text(json.dumps({"algo": "dqn", "config": {"env": "CartPole-v1", "seed": 4}}))
+    assert A.read_run_info(tmp_path) == {"algo": "dqn", "env": "CartPole-v1", "seed": 4}
+    (tmp_path / "summary.json").write_text(json.dumps({"env": "CartPole-v1", "final_average_return": 9.5}))
+    assert A.read_run_info(tmp_path)["final_average_return"] == 9.5
