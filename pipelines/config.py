@@ -93,6 +93,8 @@ class TrainConfig:
     """exports kept in policy/ as step_NNNNNNN.onnx/.pt2 (the newest; 0: all, as the tutorials keep every saved policy); policy.onnx/.pt2 is always the latest"""
     checkpoint_interval: int = 5000
     """iterations between checkpoints that `--resume` continues from"""
+    video: bool = False
+    """at the end of training, film the trained policy to RUN/trained-agent.mp4 (as `rlpipe video RUN`) and show it on RUN/report.html"""
     compile: bool = False
     """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU); on device=cuda also replays it as CUDA graphs (see `cudagraph`)"""
     cudagraph: bool | None = None

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import logging
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -25,8 +26,10 @@ from typing import TYPE_CHECKING, Any
 
 from tensordict import TensorDictBase
 from torch import nn
+from torchrl.envs.utils import RandomPolicy
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines.evaluation import BackgroundEvaluator, evaluate
@@ -42,12 +45,17 @@ from rlpipe.pipelines.runtime import (
     keep_freed_memory,
     sigint_blocked,
 )
-from rlpipe.pipelines.triggers import Trigger
+from rlpipe.pipelines.triggers import Trigger, eval_line
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.base import OffPolicyPipeline
 
-__all__ = ["Loop", "TrainResult"]
+__all__ = ["LIVE_LOG", "Loop", "TrainResult"]
+
+LIVE_LOG = logging.getLogger("rlpipe.train")
+"""The live log, the tutorials' printed lines (``step = 1000: AverageReturn = ...``), as INFO records.
+``rlpipe train`` shows them on stdout; from Python, ``logging.basicConfig(level=logging.INFO,
+format="%(message)s")`` does (a library leaves where its records go to the application)."""
 
 
 @dataclass
@@ -78,6 +86,7 @@ class Loop:
         self.logger, self.callbacks = logger, list(callbacks)
         self.clock, self.interval_stats, self.stop = Clock(), IntervalStats(), DeferredInterrupt()
         self.collector = self.background = self.exported_at = None
+        self._counts_at_start = (self.state.frames, self.state.updates)  # this session's speeds
         self.bar = tqdm(total=self.config.num_iterations, initial=self.state.iteration, unit="it", disable=not progress,
                         desc=f"{pipeline.algo} {self.config.env}", dynamic_ncols=True)
 
@@ -89,7 +98,8 @@ class Loop:
         # The deferred Ctrl-C handler stays on through the checkpoint saved on an interrupt: a SIGINT
         # delivered twice (the terminal's and a parent's) must not cut that save short.
         keep_freed_memory()
-        with self.stop, gc_frozen():
+        # Console log handlers write through tqdm while the bar is up, so no line breaks it.
+        with self.stop, gc_frozen(), logging_redirect_tqdm([logging.root, LIVE_LOG.parent]):
             with self._workers():
                 try:
                     self.start()
@@ -111,6 +121,8 @@ class Loop:
             if self.exported_at != self.state.iteration:
                 self.export()
             self.save()
+            if self.config.video:
+                self.make_video()
             return self.finish()
 
     # --- the steps of a run ---------------------------------------------------------------------
@@ -118,6 +130,7 @@ class Loop:
     def start(self) -> None:
         if self.fresh:
             self.save()  # iteration 0: a run stopped at any point from here on can be resumed
+        self.measure_random_baseline()
         pending = self.state.pending_evals
         if self.config.eval_in_background:
             self.background = BackgroundEvaluator(self.pipeline.eval_env_fn, self.pipeline.policy,
@@ -192,6 +205,7 @@ class Loop:
     def finish(self) -> TrainResult:
         summary = self.pipeline.summary(self.state, self.evaluations, self.clock)
         write_json_atomic(self.run_dir.summary_path, summary)
+        self.write_report()
         return TrainResult(policy=self.pipeline.policy, run_dir=self.run_dir.path, metrics=self.metrics.rows(),
                            summary=summary, evaluations=self.evaluations)
 
@@ -234,15 +248,73 @@ class Loop:
                     self._record_evaluation(result, at)
 
     def _record_evaluation(self, result: dict[str, Any], at: dict[str, int]) -> None:
-        from rlpipe.pipelines.analysis import plot_training_returns
+        from rlpipe.pipelines.analysis import plot_training_returns  # matplotlib: imported when first needed
 
         self.evaluations.append({**at, **result})
         self.log({"average_return": result["average_return"],
                   "average_episode_length": result["average_episode_length"], "wall_time": self.clock.wall()}, at)
+        self.echo(eval_line(at["step"], result, *self.speeds()))
         with self.clock.paused():  # from the evaluations in memory: metrics.csv is not read again
             plot_training_returns(self.evaluations, self.run_dir.returns_png,
                                   title=f"{self.pipeline.algo} on {self.config.env}")
+            self.write_report()
         self.bar.set_postfix(avg_return=f"{self.last_return:.1f}", refresh=False)
+
+    def write_report(self) -> None:
+        """RUN/report.html from what the run directory holds now."""
+        from rlpipe.pipelines.analysis.pages import write_run_report
+
+        write_run_report(self.run_dir.path)
+
+    def echo(self, line: str) -> None:
+        """A line of the live log (``LIVE_LOG``): above the progress bar when there is one."""
+        LIVE_LOG.info(line)
+
+    def speeds(self) -> tuple[float, float]:
+        """Env steps and updates per second of training time in this session (evaluations and saving left out)."""
+        seconds = self.clock.train_seconds()
+        if seconds <= 0:
+            return math.nan, math.nan
+        frames, updates = self._counts_at_start
+        return (self.state.frames - frames) / seconds, (self.state.updates - updates) / seconds
+
+    def measure_random_baseline(self) -> None:
+        """The random agent's return on the eval env (the DQN tutorial's baseline), once per run: RUN/baseline.json.
+
+        Played on an env of its own, with the run's random generators (torch, numpy, Python) put back
+        afterwards, so the run's own evaluations and draws are those of a run without it, and a run
+        resumed from its first checkpoint (saved before this) goes on as the uninterrupted one. A
+        pipeline handed env instances (no function to make another) has no baseline.
+        """
+        from rlpipe.pipelines.analysis.pages import read_baseline, write_baseline
+
+        if read_baseline(self.run_dir.path) is not None or self.pipeline.eval_env_fn is None:
+            return
+        generators = ckpt.rng_state()
+        env = self.pipeline.eval_env_fn()
+        try:
+            env.set_seed(self.config.seed + 20_000)
+            result = evaluate(env, RandomPolicy(env.full_action_spec), self.config.num_eval_episodes,
+                              interrupt=self.stop.check)
+        finally:
+            env.close()
+            ckpt.set_rng_state(generators)
+        write_baseline(self.run_dir.path, result)
+        self.echo(f"random agent: AverageReturn = {result['average_return']:.6f}, "
+                  f"AverageEpisodeLength = {result['average_episode_length']:.6f} "
+                  f"({self.config.num_eval_episodes} episodes)")
+
+    def make_video(self) -> None:
+        """``video=true``: the trained policy filmed to RUN/trained-agent.mp4, as ``rlpipe video RUN`` does."""
+        from rlpipe.pipelines.analysis.pages import VIDEO_FILE
+        from rlpipe.pipelines.export import load_policy
+        from rlpipe.pipelines.video import record_video
+
+        # the policy this run exported a moment ago: its own file, so a .pt2-only export (a plug-in
+        # actor ONNX cannot express) is trusted here, as it would not be from someone else's run
+        policy = load_policy(self.run_dir.policy_dir, trust=True)[0]
+        path = record_video(self.config.env, policy, self.run_dir.path / VIDEO_FILE)
+        self.echo(f"video: {path}")
 
     def export(self) -> None:
         with self.clock.paused():

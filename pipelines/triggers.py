@@ -15,8 +15,9 @@ own by passing them to ``train(triggers=[...])``::
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import TYPE_CHECKING
+import math
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
 from rlpipe.pipelines.config import TrainConfig
 
@@ -25,8 +26,12 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CheckpointTrigger", "EvalTrigger", "ExportTrigger", "IntervalTrigger", "LogTrigger", "Trigger",
-    "crossed", "default_triggers",
+    "crossed", "default_triggers", "eval_line", "log_line",
 ]
+
+# What a pipeline's update returns besides the terms of its objective (SAC's temperature and policy
+# entropy): left out of the total ``loss`` the tutorials print, shown after it.
+DIAGNOSTICS = ("alpha_value", "entropy")
 
 
 def crossed(previous: int, now: int, interval: int) -> bool:
@@ -75,7 +80,10 @@ class LogTrigger(Trigger):
     name = "log"
 
     def __call__(self, loop: Loop) -> None:
-        loop.log(loop.interval_stats.flush(loop.clock))
+        row = loop.interval_stats.flush(loop.clock)
+        loop.log(row)
+        if any(k.startswith("loss_") for k in row):  # nothing to say before the first update
+            loop.echo(log_line(loop.state.iteration, row))
 
 
 class EvalTrigger(Trigger):
@@ -117,3 +125,38 @@ def default_triggers(cfg: TrainConfig) -> list[Trigger]:
         ExportTrigger(cfg.policy_save_interval),
         CheckpointTrigger(cfg.checkpoint_interval),
     ]
+
+
+# --- the live log: the tutorials' printed lines ------------------------------------------------------
+
+
+def _num(value: float) -> str:
+    return f"{value:.6g}" if math.isfinite(value) else "nan"
+
+
+def log_line(step: int, row: Mapping[str, Any]) -> str:
+    """``step = 200: loss = 0.41, ...``: the tutorials' loss line for a log row.
+
+    ``loss`` is the total the TF-Agents agents report (SAC: actor + critic + alpha losses, TD3: actor
+    + critic, DQN: its one loss), each term after it, then the diagnostics and the training episodes'
+    mean return.
+    """
+    terms = {k.removeprefix("loss_"): float(v) for k, v in row.items() if k.startswith("loss_")}
+    losses = {k: v for k, v in terms.items() if k not in DIAGNOSTICS}
+    parts = [f"loss = {_num(sum(losses.values()))}"]
+    if len(losses) > 1:
+        parts += [f"{k}_loss = {_num(v)}" for k, v in losses.items()]
+    parts += [f"{k} = {_num(v)}" for k, v in terms.items() if k in DIAGNOSTICS]
+    if "train_episode_return" in row:
+        parts.append(f"train episode return = {_num(float(row['train_episode_return']))}")
+    return f"step = {step}: " + ", ".join(parts)
+
+
+def eval_line(step: int, result: Mapping[str, Any], steps_per_s: float, updates_per_s: float) -> str:
+    """``step = 1000: AverageReturn = ..., AverageEpisodeLength = ..., ...``: the tutorials' evaluation line.
+
+    The speeds are training time's (evaluations and saving left out) since this session started.
+    """
+    return (f"step = {step}: AverageReturn = {result['average_return']:.6f}, "
+            f"AverageEpisodeLength = {result['average_episode_length']:.6f}, "
+            f"env steps/s = {steps_per_s:.1f}, updates/s = {updates_per_s:.1f}")

@@ -5,8 +5,9 @@
 Runs the full agent and the six leave-one-out variants on every env and seed, each as its own run
 (`rlpipe train` in a child process, so a crash or Ctrl-C loses at most the runs in flight), up to
 ``--workers`` at a time. Rerunning the same command skips finished runs and resumes interrupted ones
-from their checkpoints. Then it writes ``ablation.csv``, ``ablation.md``, ``curves_<env>.png`` and
-``ecdf_final_returns.png`` into ``--out``.
+from their checkpoints. Then it writes ``ablation.csv``, ``ablation.md``, ``curves_<env>.png``,
+``ecdf_final_returns.png`` and ``report.html`` (the same tables and figures on one page, each run
+linked to its own page) into ``--out``; each run's log (``seedN.log``) holds its live log lines.
 """
 
 from __future__ import annotations

@@ -5,6 +5,7 @@
     rlpipe eval RUN_DIR --random | rlpipe eval --env ID --random
     rlpipe video RUN_DIR [--step N] [--trust] [--episodes N] [--random] [--out FILE]
     rlpipe plot RUN_DIR [RUN_DIR ...] [--out FILE]
+    rlpipe report RUN_DIR [RUN_DIR ...] [--out FILE]
     rlpipe presets
     rlpipe ablate td3 --envs A,B --seeds N --steps S [--workers W] [--out DIR]
     rlpipe bench {dqn,td3,sac,minitaur} [...]
@@ -75,6 +76,11 @@ def _parser() -> argparse.ArgumentParser:
     plot.add_argument("run_dirs", type=Path, nargs="+")
     plot.add_argument("--out", type=Path, default=Path("returns.png"))
 
+    report = sub.add_parser("report", help="a run's report.html again, or one HTML page comparing several runs")
+    report.add_argument("run_dirs", type=Path, nargs="+")
+    report.add_argument("--out", type=Path,
+                        help="HTML file (default: RUN_DIR/report.html for one run, compare.html for several)")
+
     sub.add_parser("presets", help="list the presets")
 
     from rlpipe.scripts import ablate, bench
@@ -118,6 +124,7 @@ def cmd_train(args) -> int:
         return 0
     pipeline = Pipeline(cfg)
     out = args.resume if args.resume is not None else args.out
+    _show_live_log()
     try:
         result = pipeline.train(out, resume=args.resume is not None, progress=not args.no_progress)
     except KeyboardInterrupt:
@@ -130,6 +137,20 @@ def cmd_train(args) -> int:
           f"({s['env_steps_per_s'] or 0:.0f} env steps/s, {s['updates_per_s'] or 0:.0f} updates/s while training)")
     print(f"run directory: {result.run_dir}")
     return 0
+
+
+def _show_live_log() -> None:
+    """The run's live log (rlpipe's INFO records: the tutorials' `step = N: ...` lines) on stdout."""
+    import logging
+
+    log = logging.getLogger("rlpipe")
+    if not any(getattr(h, "rlpipe_live_log", False) for h in log.handlers):
+        handler = logging.StreamHandler(sys.stdout)
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        handler.rlpipe_live_log = True
+        log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    log.propagate = False  # not twice where the root logger prints too
 
 
 def _run_config(run_dir: Path):
@@ -206,6 +227,7 @@ def _check_random_without_step(args) -> None:
 
 
 def cmd_video(args) -> int:
+    from rlpipe.pipelines.analysis.pages import VIDEO_FILE, write_run_report
     from rlpipe.pipelines.export import load_policy
     from rlpipe.pipelines.video import record_video
 
@@ -216,6 +238,8 @@ def cmd_video(args) -> int:
     name = "random-agent.mp4" if args.random else "trained-agent.mp4" if args.step is None else f"trained-agent-step_{args.step}.mp4"
     path = record_video(cfg.env, policy, args.out or run.path / name, episodes=args.episodes, seed=args.seed)
     print(f"video: {path}")
+    if not args.random and path == run.path / VIDEO_FILE:  # the page shows the trained agent's video
+        print(f"report: {write_run_report(run.path)}")
     return 0
 
 
@@ -226,6 +250,28 @@ def cmd_plot(args) -> int:
     for run_dir in args.run_dirs:
         RunDir.open(run_dir)
     print(f"plot: {plot_return_curves(list(args.run_dirs), args.out)}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from rlpipe.pipelines.analysis.pages import write_comparison_report, write_run_report
+    from rlpipe.pipelines.errors import InputError
+    from rlpipe.pipelines.rundir import RunDir
+
+    for run_dir in args.run_dirs:
+        RunDir.open(run_dir)
+    if args.out is not None and args.out.suffix.lower() not in (".html", ".htm"):
+        raise InputError(f"--out {args.out}: expected an .html file")
+    if args.out is not None and args.out.is_dir():
+        raise InputError(f"--out {args.out}: is a directory; expected an .html file")
+    if len(args.run_dirs) == 1:
+        print(f"report: {write_run_report(args.run_dirs[0], args.out)}")
+        return 0
+    try:
+        path = write_comparison_report(args.run_dirs, args.out or Path("compare.html"))
+    except ValueError as exc:  # a run without an evaluation
+        raise InputError(f"{exc}; expected runs with at least one evaluation") from exc
+    print(f"report: {path}")
     return 0
 
 
@@ -250,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     commands = {"train": cmd_train, "eval": cmd_eval, "video": cmd_video, "plot": cmd_plot,
-                "presets": cmd_presets}
+                "report": cmd_report, "presets": cmd_presets}
     try:
         if args.command in commands:
             return commands[args.command](args)

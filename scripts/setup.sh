@@ -10,4 +10,15 @@ fi
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q torch==2.13.0
 .venv/bin/python -m pip install -q -e ".[test]"
+# The report page's browser test drives Debian's chromium through Playwright (Playwright's own browser
+# download is not reachable here). Installed where apt-get and root are at hand; elsewhere the test
+# says it skipped and why.
+if ! command -v chromium >/dev/null 2>&1; then
+  if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+      || echo "setup: could not install chromium with apt-get; the report page's browser test will be skipped" >&2
+  else
+    echo "setup: chromium not installed (needs apt-get as root); the report page's browser test will be skipped" >&2
+  fi
+fi
 echo "rlpipe is set up in .venv (activate with: source .venv/bin/activate)"

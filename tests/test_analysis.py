@@ -188,7 +188,7 @@ def test_collect_runs_and_ablation_report(ablation_runs, tmp_path):
     paths = A.write_ablation_report(records, curves, out)
     names = sorted(p.name for p in paths)
     assert names == sorted(["ablation.csv", "ablation.md", "curves_Pendulum-v1.png",
-                            "curves_rlpipe_MinitaurBullet-v0.png", "ecdf_final_returns.png"])
+                            "curves_rlpipe_MinitaurBullet-v0.png", "ecdf_final_returns.png", "report.html"])
     assert all(p.parent == out and p.is_file() for p in paths)
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temp files left
 
@@ -213,6 +213,13 @@ def test_collect_runs_and_ablation_report(ablation_runs, tmp_path):
     for p in paths:
         if p.suffix == ".png":
             check_png(p, 10_000)
+    # the same study as one page: a table per env, every variant, the full agent marked, figures inline
+    page = (out / "report.html").read_text()
+    for variant in VARIANTS:
+        assert f">{variant}" in page
+    assert page.count("★") >= 2 and page.count('<table class="variants"') == 2
+    assert page.count('src="data:image/svg+xml;base64,') == 2 + 1 + 1  # curves per env, ECDFs, every run
+    assert "http://" not in page and "https://" not in page  # opens offline
     img = mpimg.imread(out / "curves_rlpipe_MinitaurBullet-v0.png")
     assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 300
     assert img[..., :3].std() > 0.05  # not a blank image
@@ -278,3 +285,11 @@ def test_safe_filename():
     assert A.safe_filename("rlpipe/MinitaurBullet-v0") == "rlpipe_MinitaurBullet-v0"
     assert A.safe_filename("../x y") == "x_y"
     assert "/" not in A.safe_filename("a/b/c")
+
+
+def test_read_run_info_of_a_run_in_progress_reads_its_config(tmp_path):
+    # a run writes config.json as {"algo", "config"}; summary.json comes only at its end
+    (tmp_path / "config.json").write_text(json.dumps({"algo": "dqn", "config": {"env": "CartPole-v1", "seed": 4}}))
+    assert A.read_run_info(tmp_path) == {"algo": "dqn", "env": "CartPole-v1", "seed": 4}
+    (tmp_path / "summary.json").write_text(json.dumps({"env": "CartPole-v1", "final_average_return": 9.5}))
+    assert A.read_run_info(tmp_path)["final_average_return"] == 9.5

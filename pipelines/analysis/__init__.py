@@ -6,9 +6,12 @@
   IQM, mean curves with bands);
 * :mod:`~rlpipe.pipelines.analysis.plots` draws the figures (``rlpipe plot``, ``rlpipe eval
   --ecdf``, a run's ``returns.png``);
-* :mod:`~rlpipe.pipelines.analysis.report` writes the ablation report.
+* :mod:`~rlpipe.pipelines.analysis.report` writes the ablation report;
+* :mod:`~rlpipe.pipelines.analysis.pages` writes the HTML pages: a run's ``report.html`` and the
+  comparison page of several runs (``rlpipe report``, the ablation's ``report.html``).
 """
 
+from rlpipe.pipelines.analysis.pages import write_comparison_report, write_run_report
 from rlpipe.pipelines.analysis.plots import (
     plot_ecdf,
     plot_return_curves,
@@ -47,6 +50,8 @@ __all__ = [
     "aggregate_curves",
     "safe_filename",
     "write_ablation_report",
+    "write_comparison_report",
+    "write_run_report",
     "plot_return_curves",
     "plot_ecdf",
     "plot_training_returns",

@@ -13,6 +13,7 @@ pyplot's registry, so hundreds of calls leak nothing. Every PNG is written throu
 
 from __future__ import annotations
 
+import io
 import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
@@ -35,7 +36,10 @@ from rlpipe.pipelines.analysis.runs import (
 )
 from rlpipe.pipelines.files import atomic_path
 
-__all__ = ["plot_return_curves", "plot_ecdf", "plot_training_returns"]
+__all__ = [
+    "figure_svg", "plot_ecdf", "plot_return_curves", "plot_training_returns", "run_returns_figure",
+    "run_series_figure", "runs_returns_figure",
+]
 
 _DPI = 100
 _REFERENCE_COLOR = "black"
@@ -77,6 +81,20 @@ def _variant_styles(variants: Iterable[str], reference: str | None) -> dict[str,
     if reference is not None:
         styles[reference] = {"color": _REFERENCE_COLOR, "linewidth": _REFERENCE_LW, "zorder": 3}
     return styles
+
+
+def _long_labels(labels: Iterable[str]) -> bool:
+    """Whether legend labels are too long to stand beside a plot without squeezing it."""
+    return max((len(str(label)) for label in labels), default=0) > 32
+
+
+def _side_legend(fig: Figure, ax) -> None:
+    """The legend right of the axes, or below the figure when its labels are long (config differences)."""
+    handles, labels = ax.get_legend_handles_labels()
+    if _long_labels(labels):
+        fig.legend(handles, labels, loc="outside lower center", fontsize="small", frameon=False)
+    else:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
 
 
 def _xy(frame: pd.DataFrame, x: str = STEP_COL) -> tuple[np.ndarray, np.ndarray]:
@@ -228,6 +246,17 @@ def _plot_env_curves(
     reference: str | None,
     out_png: Path,
 ) -> Path:
+    return _save_figure(_env_curves_figure(agg, env, order, styles, reference), out_png)
+
+
+def _env_curves_figure(
+    agg: pd.DataFrame,
+    env: str,
+    order: Sequence[str],
+    styles: Mapping[str, Mapping[str, Any]],
+    reference: str | None,
+) -> Figure:
+    """Mean return over seeds per variant on ``env``, with the 95% bootstrap band where n > 1."""
     fig = _new_figure((9.0, 5.0))
     ax = fig.add_subplot()
     for variant in order:
@@ -247,8 +276,8 @@ def _plot_env_curves(
     ax.set_ylabel("Average Return")
     ax.set_title(f"{env}: mean over seeds, band = 95% bootstrap CI of the mean")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
-    return _save_figure(fig, out_png)
+    _side_legend(fig, ax)
+    return fig
 
 
 def _plot_final_ecdfs(
@@ -259,6 +288,17 @@ def _plot_final_ecdfs(
     reference: str | None,
     out_png: Path,
 ) -> Path:
+    return _save_figure(_final_ecdfs_figure(records, envs, orders, styles, reference), out_png)
+
+
+def _final_ecdfs_figure(
+    records: pd.DataFrame,
+    envs: Sequence[str],
+    orders: Mapping[str, Sequence[str]],
+    styles: Mapping[str, Mapping[str, Any]],
+    reference: str | None,
+) -> Figure:
+    """One panel per env: the ECDF of final returns over seeds, one line per variant."""
     import seaborn as sns  # lazy, see plot_ecdf
 
     ncols = min(len(envs), 3)
@@ -285,6 +325,91 @@ def _plot_final_ecdfs(
     for ax in axes[len(envs):]:
         ax.set_visible(False)
     fig.suptitle("ECDF of final returns over seeds")
-    fig.legend(list(handles.values()), list(handles.keys()), loc="outside right upper",
+    below = _long_labels(handles)
+    fig.legend(list(handles.values()), list(handles.keys()), loc="outside lower center" if below else "outside right upper",
                fontsize="small", frameon=False)
-    return _save_figure(fig, out_png)
+    return fig
+
+
+# --- figures for the HTML pages (inline SVG) ----------------------------------------------------
+
+
+def figure_svg(fig: Figure) -> str:
+    """``fig`` as an SVG document (text glyphs drawn as paths: no font needed to view it); releases it."""
+    buf = io.StringIO()
+    try:
+        fig.savefig(buf, format="svg")
+    finally:
+        fig.clear()
+    return buf.getvalue()
+
+
+def run_returns_figure(evaluations: pd.DataFrame, title: str, baseline: float | None = None,
+                       baseline_label: str = "random agent") -> Figure:
+    """A run's return curve (the tutorials' plot), with the random agent's return as a dashed line."""
+    xs, ys = _xy(evaluations)
+    fig = _new_figure((7.0, 4.0))
+    ax = fig.add_subplot()
+    if xs.size:
+        ax.plot(xs, ys, marker=_marker(xs.size), markersize=4, linewidth=1.8, color="tab:blue",
+                label="trained policy (AverageReturn)")
+    else:
+        ax.text(0.5, 0.5, "no evaluation yet", ha="center", va="center", transform=ax.transAxes)
+    if baseline is not None and math.isfinite(baseline):
+        ax.axhline(baseline, color="tab:gray", linestyle="--", linewidth=1.4,
+                   label=f"{baseline_label}: {_fmt(baseline)}")
+    ax.set_xlabel("Iterations")
+    ax.set_ylabel("Average Return")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize="small", loc="best")
+    return fig
+
+
+def run_series_figure(metrics: pd.DataFrame, columns: Sequence[str], title: str,
+                      labels: Mapping[str, str] | None = None) -> Figure:
+    """One small panel per column of ``metrics`` against ``step`` (losses, speeds); empty cells skipped."""
+    labels = labels or {}
+    present = [c for c in columns if c in metrics.columns and pd.to_numeric(metrics[c], errors="coerce").notna().any()]
+    ncols = min(max(len(present), 1), 3)
+    nrows = max(1, math.ceil(len(present) / ncols))
+    fig = _new_figure((3.6 * ncols + 0.6, 2.7 * nrows + 0.5))
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    if not present:
+        axes[0].text(0.5, 0.5, "nothing logged yet", ha="center", va="center", transform=axes[0].transAxes)
+        axes[0].set_axis_off()
+    steps = pd.to_numeric(metrics.get(STEP_COL, pd.Series(dtype=float)), errors="coerce")
+    for ax, col in zip(axes, present):
+        ys = pd.to_numeric(metrics[col], errors="coerce")
+        keep = steps.notna() & ys.notna()
+        xs_, ys_ = steps[keep].to_numpy(float), ys[keep].to_numpy(float)
+        ax.plot(xs_, ys_, marker=_marker(xs_.size), markersize=3, linewidth=1.4)
+        ax.set_title(labels.get(col, col), fontsize="medium")
+        ax.set_xlabel("Iterations", fontsize="small")
+        ax.grid(True, alpha=0.3)
+    for ax in axes[len(present):]:
+        ax.set_visible(False)
+    fig.suptitle(title)
+    return fig
+
+
+def runs_returns_figure(series: Sequence[tuple[str, np.ndarray, np.ndarray]], title: str) -> Figure:
+    """Each run's own return curve, one line per ``(label, steps, returns)`` (``rlpipe plot`` as a figure)."""
+    fig = _new_figure((8.0, 4.5))
+    ax = fig.add_subplot()
+    many = len(series) > _MAX_LEGEND
+    for label, xs, ys in series:
+        ax.plot(xs, ys, marker=None if many else _marker(xs.size), markersize=3, linewidth=1.0 if many else 1.6,
+                alpha=0.6 if many else 1.0, label=label)
+    ax.set_xlabel("Iterations")
+    ax.set_ylabel("Average Return")
+    ax.set_title(title if not many else f"{title} ({len(series)} runs; the table below names them)")
+    ax.grid(True, alpha=0.3)
+    if series and not many:
+        _side_legend(fig, ax)
+    return fig
+
+
+_MAX_LEGEND = 12
+"""more runs than this in one figure: no legend (it would crowd out the plot)"""

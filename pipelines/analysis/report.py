@@ -16,6 +16,7 @@ from typing import Any
 
 import pandas as pd
 
+from rlpipe.pipelines.analysis.pages import REPORT_FILE, write_comparison_page
 from rlpipe.pipelines.analysis.plots import (
     _fmt,
     _plot_env_curves,
@@ -123,10 +124,13 @@ def write_ablation_report(
         * ``curves_<env>.png`` per env with curve data (env id made safe by
           :func:`safe_filename`) -- mean over seeds per variant with a shaded 95% percentile
           bootstrap band (see :func:`aggregate_curves` for the step alignment);
-        * ``ecdf_final_returns.png`` -- one panel per env, one ECDF per variant.
+        * ``ecdf_final_returns.png`` -- one panel per env, one ECDF per variant;
+        * ``report.html`` -- the same tables and figures on one page that opens from disk, with a
+          table of the runs linking to each run's own ``report.html`` (see
+          :func:`~rlpipe.pipelines.analysis.pages.write_comparison_page`).
 
     Returns:
-        the paths written: csv, md, the curve PNGs (env order), the ECDF PNG.
+        the paths written: csv, md, the curve PNGs (env order), the ECDF PNG, the HTML page.
     """
     missing = [c for c in RECORD_COLUMNS if c not in records.columns]
     if missing:
@@ -185,4 +189,9 @@ def write_ablation_report(
     written.append(
         _plot_final_ecdfs(table, envs, orders, styles, reference, out / "ecdf_final_returns.png")
     )
+    written.append(write_comparison_page(
+        records, curves, out / REPORT_FILE,
+        reference=reference_variant, title="Ablation report",
+        notes=["Each variant leaves one ingredient out of the full agent (the TD3 tutorial's exercise)."]
+        if reference == "full" else ()))
     return written

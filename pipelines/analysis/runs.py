@@ -116,7 +116,8 @@ def read_metrics(run_dir: str | os.PathLike, eval_only: bool = True) -> pd.DataF
 
 
 def read_run_info(run_dir: str | os.PathLike) -> dict[str, Any]:
-    """``config.json`` updated with ``summary.json`` of a run (either may be missing: ``{}``).
+    """``config.json`` (the config's keys and ``algo``) updated with ``summary.json`` of a run
+    (either may be missing: ``{}``); a run still in progress has no ``summary.json`` yet.
 
     Files that are absent or not valid JSON objects are ignored.
     """
@@ -128,6 +129,8 @@ def read_run_info(run_dir: str | os.PathLike) -> dict[str, Any]:
         except (OSError, ValueError):
             continue
         if isinstance(data, dict):
+            if name == CONFIG_FILE and isinstance(data.get("config"), dict):  # a run's {"algo", "config"}
+                data = {"algo": data.get("algo"), **data["config"]}
             info.update(data)
     return info
 
