@@ -84,7 +84,7 @@ def plan(args) -> list[Job]:
         raise InputError("--envs is empty; expected comma-separated env ids such as Pendulum-v1,HalfCheetah-v5")
     jobs = []
     for env in envs:
-        resolve_env_id(env)
+        resolve_env_id(env)  # an unknown id first, with the closest known ones
         preset = _preset_for(env)
         _, base = resolve_preset(preset)
         # Budgets in whole collector blocks, so evaluations land on the iterations they name.
@@ -109,6 +109,7 @@ def plan(args) -> list[Job]:
             # busy with --workers runs side by side (user overrides, after these, still win).
             "collector.sync=true",
         ]
+        _check_env(base, [*budget, *args.overrides])
         for variant in variants:
             switch = [] if variant == "full" else [f"{variant.removeprefix('no_')}=false"]
             for seed in range(args.seeds):
@@ -119,6 +120,17 @@ def plan(args) -> list[Job]:
     return jobs
 
 
+def _check_env(base, overrides: list[str]) -> None:
+    """The env as every run of the study will make it (its action space, the extra it needs, the
+    memory the run takes): an env that cannot work stops the study before any run starts."""
+    from rlpipe.pipelines.config import apply_overrides
+    from rlpipe.pipelines.td3 import TD3
+
+    pipeline = TD3(apply_overrides(base, overrides))
+    pipeline.env.close()
+    pipeline.eval_env.close()
+
+
 def run(args) -> int:
     from tqdm.auto import tqdm
 
@@ -126,7 +138,10 @@ def run(args) -> int:
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.files import write_json_atomic
 
+    from rlpipe.scripts.cli import check_output_dir
+
     jobs = plan(args)
+    check_output_dir(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
     study_file = args.out / "study.json"
     study = {"algo": args.algo, "envs": args.envs, "seeds": args.seeds, "steps": args.steps, "overrides": args.overrides,
