@@ -137,7 +137,6 @@ def run(args) -> int:
     from rlpipe.pipelines.analysis import collect_runs, write_ablation_report
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.files import write_json_atomic
-
     from rlpipe.scripts.cli import check_output_dir
 
     jobs = plan(args)

@@ -245,9 +245,9 @@ def cmd_presets(args) -> int:
     return 0
 
 
-def _error_log(args, exc: BaseException) -> Path:
+def _error_log(args, argv: list[str], exc: BaseException) -> Path:
     """Write ``exc``'s traceback to RUN/error.log (the run's, where one exists) or a temporary file."""
-    text = f"{time.strftime('%Y-%m-%d %H:%M:%S')} rlpipe {' '.join(sys.argv[1:])}\n" + "".join(
+    text = f"{time.strftime('%Y-%m-%d %H:%M:%S')} rlpipe {' '.join(map(str, argv))}\n" + "".join(
         traceback.format_exception(exc))
     run = getattr(getattr(args, "pipeline", None), "run_dir", None)
     run_path = getattr(run, "path", None)
@@ -294,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
         print("rlpipe: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:
-        log = _error_log(args, exc)
+        log = _error_log(args, sys.argv[1:] if argv is None else argv, exc)
         first = (str(exc).strip().splitlines() or [""])[0][:300]
         print(f"rlpipe: error: {type(exc).__name__}{': ' + first if first else ''} (full traceback in {log})",
               file=sys.stderr)
