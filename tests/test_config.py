@@ -285,3 +285,92 @@ def test_cuda_without_a_gpu_is_one_clear_line():
     with pytest.raises(InputError) as info:
         apply_overrides(preset("dqn"), ["device=cuda"])
     assert str(info.value).startswith("device='cuda': torch sees no CUDA device") and "\n" not in str(info.value)
+
+
+# --- issue 11: NaN and inf, seeds, this machine's limits ---------------------------------------------
+
+
+def _float_keys(cls: type) -> list[str]:
+    cfg = cls()
+    keys = []
+    for key in flat_keys(cls):
+        owner, *rest = key.split(".")
+        value = getattr(getattr(cfg, owner), rest[0]) if rest else getattr(cfg, owner)
+        hint = str(typing.get_type_hints(type(cfg) if not rest else type(getattr(cfg, owner)))[rest[0] if rest else owner])
+        if isinstance(value, float) or "float" in hint:
+            keys.append(key)
+    return keys
+
+
+def _all_configs():
+    from rlpipe.pipelines.sac import SACConfig
+    from rlpipe.pipelines.td3 import TD3Config
+
+    return [DQNConfig, TD3Config, SACConfig]
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("cls", _all_configs(), ids=lambda c: c.__name__)
+def test_nan_and_inf_are_refused_for_every_float_key(cls):
+    keys = _float_keys(cls)
+    assert "learning_rate" in keys or "actor_learning_rate" in keys
+    for key in keys:
+        for bad in ("nan", "inf", "-inf"):
+            with pytest.raises(InputError) as info:
+                apply_overrides(cls(), [f"{key}={bad}"])
+            message = str(info.value)
+            assert message.startswith(f"{key}=") and "expected a finite number" in message, (key, bad, message)
+            assert "\n" not in message
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("seed, ok", [(0, True), (2**31 - 1, True), (-1, False), (2**31, False), (10**30, False)])
+def test_seeds_torch_numpy_and_gymnasium_all_take(seed, ok):
+    if ok:
+        assert apply_overrides(preset("dqn"), [f"seed={seed}"]).seed == seed
+    else:
+        with pytest.raises(InputError, match=r"^seed=.*expected an integer from 0 to 2147483647"):
+            apply_overrides(preset("dqn"), [f"seed={seed}"])
+
+
+@pytest.mark.unit
+def test_devices_this_machine_lacks_are_refused_naming_those_it_has():
+    from rlpipe.pipelines.config import available_devices
+
+    devices = available_devices()
+    assert devices[0] == "cpu"
+    for device in ("meta", "cuda:99", "mps" if "mps" not in devices else "xpu"):
+        with pytest.raises(InputError) as info:
+            apply_overrides(preset("dqn"), [f"device={device}"])
+        assert str(info.value).startswith(f"device='{device}': ") and f"devices: {', '.join(devices)}" in str(info.value)
+    apply_overrides(preset("dqn"), ["device=cpu:0"])
+
+
+@pytest.mark.unit
+def test_thread_and_worker_counts_beyond_this_machine_are_refused(monkeypatch):
+    import os
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    apply_overrides(preset("dqn"), ["num_threads=4", "collector.workers=32"])
+    with pytest.raises(InputError, match=r"^num_threads=5: .*at most 4"):
+        apply_overrides(preset("dqn"), ["num_threads=5"])
+    with pytest.raises(InputError, match=r"^collector.workers=33: .*at most 32"):
+        apply_overrides(preset("dqn"), ["collector.workers=33"])
+
+
+@pytest.mark.unit
+def test_a_saved_config_from_a_bigger_machine_loads_and_the_overrides_fix_it():
+    data = config_to_dict(preset("dqn"))
+    data["num_threads"] = 10_000
+    cfg = config_from_dict(DQNConfig, data)  # a run saved elsewhere can be resumed here ...
+    with pytest.raises(InputError, match="num_threads"):
+        apply_overrides(cfg, [])
+    assert apply_overrides(cfg, ["num_threads=-1"]).num_threads == -1  # ... with the key changed
+
+
+@pytest.mark.unit
+def test_initial_collect_policy_is_random_or_collect():
+    assert preset("dqn").initial_collect_policy == "random"
+    assert apply_overrides(preset("dqn"), ["initial_collect_policy=collect"]).initial_collect_policy == "collect"
+    with pytest.raises(InputError, match=r"^initial_collect_policy='greedy': expected one of 'random', 'collect'"):
+        apply_overrides(preset("dqn"), ["initial_collect_policy=greedy"])
