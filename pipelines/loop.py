@@ -160,7 +160,7 @@ class Loop:
         batch = batch.reshape(-1)[: cfg.total_frames - self.state.frames]
         keys = pipeline.replay_keys
         pipeline.replay_buffer.extend(batch if keys is None else batch.select(*keys))
-        self.interval_stats.add_frames(batch)
+        self.state.episodes += self.interval_stats.add_frames(batch)
         pipeline.on_frames(batch.numel())
         before, now = self.state.insert(batch.numel(), cfg)
         self.state.owed = [t.name for t in self.triggers.values() if t.due(before, now, cfg.num_iterations)]

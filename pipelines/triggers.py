@@ -70,12 +70,14 @@ class IntervalTrigger(Trigger):
 
 
 class LogTrigger(Trigger):
-    """A metrics row of losses, speeds and training returns (TF-Agents' StepPerSecondLogTrigger)."""
+    """A metrics row of losses, speeds, training episodes' mean return and length, and the episodes
+    finished so far (TF-Agents' StepPerSecondLogTrigger and train metrics: NumberOfEpisodes,
+    AverageReturnMetric, AverageEpisodeLengthMetric)."""
 
     name = "log"
 
     def __call__(self, loop: Loop) -> None:
-        loop.log(loop.interval_stats.flush(loop.clock))
+        loop.log({**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes})
 
 
 class EvalTrigger(Trigger):

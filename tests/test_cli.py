@@ -474,3 +474,18 @@ def test_a_learning_rate_that_diverges_stops_the_run(tmp_path, monkeypatch, capf
     err = capfd.readouterr().err.strip().splitlines()
     assert code == 1 and len(err) == 1 and "training diverged by iteration" in err[0], err
     assert (tmp_path / "run" / "checkpoints" / "latest").read_text().strip() == "step_0000000000"
+
+
+def test_metrics_hold_training_episode_length_and_count(cli_run):
+    """CartPole pays 1 a step: a training episode's mean length is its mean return; the count only grows."""
+    import csv
+
+    with (cli_run[1] / "metrics.csv").open(newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["steps_per_s"]]
+    assert rows and all(r["train_episode_length"] and r["episodes"] for r in rows)
+    for r in rows:
+        assert float(r["train_episode_length"]) == pytest.approx(float(r["train_episode_return"]), rel=1e-4)
+    counts = [int(r["episodes"]) for r in rows]
+    assert counts == sorted(counts) and counts[0] > 0
+    # 400 env steps of CartPole episodes: about 400 / mean length of them
+    assert counts[-1] >= 400 // max(float(r["train_episode_length"]) for r in rows) - 1
