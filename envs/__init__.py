@@ -194,7 +194,7 @@ def describe_action_space(env_or_spec: EnvBase | TensorSpec) -> str:
     """A short phrase for error messages, e.g. 'continuous Box of shape (1,)'."""
     spec = _action_spec(env_or_spec)
     if is_discrete(spec):
-        return f"discrete with {spec.space.n} actions"
+        return f"discrete action space of {spec.space.n} actions"
     return f"continuous Box of shape {tuple(spec.shape)}"
 
 

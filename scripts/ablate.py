@@ -67,13 +67,17 @@ def _preset_for(env: str) -> str:
 def plan(args) -> list[Job]:
     from rlpipe.envs import resolve_env_id
     from rlpipe.pipelines import resolve_preset
-    from rlpipe.pipelines.config import apply_overrides
+    from rlpipe.pipelines.config import WORKERS_PER_CPU, apply_overrides
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.td3 import INGREDIENTS
 
     for name in ("seeds", "steps", "evals", "eval_episodes", "workers"):
         if getattr(args, name) <= 0:
             raise InputError(f"--{name.replace('_', '-')}={getattr(args, name)}: expected a positive integer")
+    most = WORKERS_PER_CPU * (os.cpu_count() or 1)
+    if args.workers > most:
+        raise InputError(f"--workers={args.workers}: each run is a process of its own; expected at most {most} on this "
+                         f"machine's {os.cpu_count() or 1} CPUs")
     all_variants = ("full", *(f"no_{i}" for i in INGREDIENTS))
     variants = all_variants if not args.variants else tuple(v.strip() for v in args.variants.split(","))
     for v in variants:

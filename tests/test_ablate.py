@@ -204,6 +204,7 @@ BAD = {
     "discrete env": (["--envs", "Pendulum-v1,CartPole-v1"], "CartPole-v1"),
     "extra not installed": (["--envs", "Pendulum-v1,ALE/Pong-v5"], "gymnasium[atari]"),
     "memory": (["replay_buffer_capacity=1000000000000"], "replay_buffer_capacity"),
+    "absurd workers": (["--workers", "100000"], "--workers=100000"),
     "out under a file": (["--out", "FILE/study"], "is a file"),
 }
 
