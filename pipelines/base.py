@@ -270,7 +270,9 @@ class OffPolicyPipeline:
         ``callbacks``: functions called with each metrics row as it is written.
         ``triggers``: more ``Trigger``s, run after the built-in ones (log, eval, export, save).
         Ctrl-C (SIGINT) saves a checkpoint at the next safe point and raises ``KeyboardInterrupt``;
-        ``train(out, resume=True)`` then continues from there.
+        ``train(out, resume=True)`` then continues from there. A loss or parameter that turns NaN or
+        infinite raises ``TrainingDiverged`` at the end of that collected block, saving nothing more:
+        the last checkpoint is the run's last finite state.
         """
         triggers = [*default_triggers(self.config), *triggers]
         names = [t.name for t in triggers]

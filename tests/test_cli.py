@@ -373,6 +373,12 @@ def test_check_output_file_refuses_a_directory_a_file_parent_and_a_read_only_pla
         with pytest.raises(InputError) as info:
             check_output_file(path)
         assert str(info.value).startswith(f"--out {path}: ") and words in str(info.value) and "expected" in str(info.value)
+    if os.geteuid() != 0:  # root writes into a read-only folder (the /sys case above covers root)
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o555)
+        with pytest.raises(InputError, match="cannot write"):
+            check_output_file(locked / "video.mp4")
+        locked.rmdir()
     check_output_file(tmp_path / "new" / "video.mp4")  # a new folder is fine
     check_output_file(tmp_path / "a-file")  # replacing a file is fine
     assert snapshot(tmp_path) == before
