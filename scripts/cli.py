@@ -136,7 +136,7 @@ def cmd_train(args) -> int:
     from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.pipelines.rundir import RunDir
+    from rlpipe.pipelines.rundir import RunDir, default_run_dir
 
     algo, cfg = resolve_preset(args.preset)
     Pipeline = pipeline_class(algo)
@@ -160,7 +160,8 @@ def cmd_train(args) -> int:
     pipeline = Pipeline(cfg)
     args.pipeline = pipeline  # where main() writes a traceback, once the run directory exists
     out = args.resume if args.resume is not None else args.out
-    check_output_dir(out if out is not None else Path("runs"), "--resume" if args.resume is not None else "--out")
+    check_output_dir(out if out is not None else default_run_dir(algo, pipeline.config.env),
+                     "--resume" if args.resume is not None else "--out")
     try:
         result = pipeline.train(out, resume=args.resume is not None, progress=not args.no_progress)
     except KeyboardInterrupt:
