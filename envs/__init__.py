@@ -13,6 +13,10 @@ import difflib
 import re
 
 import gymnasium
+import numpy as np
+from gymnasium import spaces
+from gymnasium.error import DependencyNotInstalled
+from gymnasium.wrappers import DtypeObservation, FlattenObservation
 from torchrl.data import Categorical, OneHot, TensorSpec
 from torchrl.envs import (
     Compose,
@@ -45,6 +49,20 @@ if MINITAUR_ID not in gymnasium.registry:
 # The tutorials' ids that name something else here.
 _ALIASES = {"MinitaurBulletEnv-v0": MINITAUR_ID}
 
+# gymnasium's env families and the pip extra that installs what each needs (gymnasium's own setup).
+_EXTRAS = {
+    "gymnasium.envs.box2d": "gymnasium[box2d]",
+    "gymnasium.envs.mujoco": "gymnasium[mujoco]",
+    "gymnasium.envs.toy_text": "gymnasium[toy-text]",
+    "gymnasium.envs.classic_control": "gymnasium[classic-control]",
+    "ale_py": "gymnasium[atari]",
+}
+# Namespaces registered only once their package is imported: an id in one is not a typo.
+_NAMESPACE_EXTRAS = {"ALE": "gymnasium[atari]"}
+
+# Observation spaces gymnasium's FlattenObservation turns into one flat vector (one-hot for discrete parts).
+_FLATTENED = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary, spaces.Tuple)
+
 
 class EnvError(ValueError):
     """An env id or env that cannot serve the request; the message says what is expected."""
@@ -55,6 +73,11 @@ def resolve_env_id(env_id: str) -> str:
     env_id = _ALIASES.get(env_id, env_id)
     if env_id in gymnasium.registry:
         return env_id
+    namespace = env_id.split("/", 1)[0] if "/" in env_id else None
+    if namespace in _NAMESPACE_EXTRAS:
+        extra = _NAMESPACE_EXTRAS[namespace]
+        raise EnvError(f"env id {env_id!r} needs the {extra} extra, which is not installed; expected it installed "
+                       f"(pip install \"{extra}\") or another env id")
     known = list(gymnasium.registry) + list(_ALIASES)
     close = difflib.get_close_matches(env_id, known, n=3, cutoff=0.5)
     hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else "; expected a gymnasium id such as 'CartPole-v1'"
@@ -87,14 +110,18 @@ def make_env(
     gym_id = resolve_env_id(env_id)
     if render_mode is not None:
         gym_kwargs["render_mode"] = render_mode
-    if num_envs > 1:
-        vector = gymnasium.vector.SyncVectorEnv(
-            [lambda: gymnasium.make(gym_id, **gym_kwargs)] * num_envs,
-            autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
-        )
-        base = GymWrapper(vector, device=device, categorical_action_encoding=True)
-    else:
-        base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
+    with _extra_named(gym_id):
+        if num_envs > 1:
+            vector = gymnasium.vector.SyncVectorEnv(
+                [lambda: _flat_observations(gymnasium.make(gym_id, **gym_kwargs), gym_id)] * num_envs,
+                autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
+            )
+            base = GymWrapper(vector, device=device, categorical_action_encoding=True)
+        else:
+            base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
+            flat = _flat_observations(base._env, gym_id)
+            if flat is not base._env:
+                base = GymWrapper(flat, device=device, categorical_action_encoding=True)
     env = TransformedEnv(
         base,
         Compose(StepCounter(), RewardSum(), InitTracker(), DoubleToFloat()),
@@ -102,6 +129,56 @@ def make_env(
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+class _extra_named:
+    """gymnasium's "X is not installed" (with its own install advice) as one line naming the pip extra."""
+
+    def __init__(self, gym_id: str):
+        self.gym_id = gym_id
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        if kind is None or not issubclass(kind, (DependencyNotInstalled, ImportError)):
+            return False
+        entry = gymnasium.spec(self.gym_id).entry_point
+        entry = entry if isinstance(entry, str) else getattr(entry, "__module__", "")
+        extra = next((e for prefix, e in _EXTRAS.items() if entry.startswith(prefix)), None)
+        what = f"the {extra} extra" if extra else f"a package that {entry.split(':')[0]} imports"
+        missing = str(exc).split(" is not installed")[0].split(".")[0] if " is not installed" in str(exc) else (
+            getattr(exc, "name", None) or "a dependency")
+        install = f' (pip install "{extra}")' if extra else ""
+        raise EnvError(f"env id {self.gym_id!r} needs {what}, which is not installed ({missing} is missing); "
+                       f"expected it installed{install} or another env id") from exc
+
+
+def _flat_observations(env: gymnasium.Env, gym_id: str) -> gymnasium.Env:
+    """``env`` as the networks read it: a flat float vector of observations, and Box or Discrete actions.
+
+    A flat float Box comes back as it is. Discrete, MultiDiscrete, MultiBinary and Tuple/Dict of
+    them (FrozenLake's Discrete(16), Blackjack's Tuple) and image or integer Boxes become one flat
+    float32 vector through gymnasium's ``FlattenObservation`` (one-hot for the discrete parts). A
+    Dict stays as it is: TorchRL gives each entry a key of its own.
+    """
+    action, obs = env.action_space, env.observation_space
+    if not isinstance(action, (spaces.Box, spaces.Discrete)) or isinstance(action, spaces.Box) and len(action.shape) != 1:
+        raise EnvError(f"env {gym_id!r} has a {action} action space; expected a Discrete one (dqn) or a "
+                       "one-dimensional Box (td3, sac)")
+    if isinstance(obs, spaces.Dict) or isinstance(obs, spaces.Box) and len(obs.shape) == 1 and np.issubdtype(
+            obs.dtype, np.floating):
+        return env  # TorchRL gives a Dict's entries keys of their own: the pipeline reads `observation_key`
+    if not _flattenable(obs):
+        raise EnvError(f"env {gym_id!r} has a {obs} observation space; expected a Box, Dict, or Discrete, "
+                       "MultiDiscrete, MultiBinary or Tuple spaces of them (flattened into one vector)")
+    return DtypeObservation(FlattenObservation(env), np.float32)
+
+
+def _flattenable(space: spaces.Space) -> bool:
+    if isinstance(space, spaces.Tuple):
+        return all(_flattenable(s) for s in space.spaces)
+    return isinstance(space, _FLATTENED)
 
 
 def _action_spec(env_or_spec: EnvBase | TensorSpec) -> TensorSpec:
@@ -117,7 +194,7 @@ def describe_action_space(env_or_spec: EnvBase | TensorSpec) -> str:
     """A short phrase for error messages, e.g. 'continuous Box of shape (1,)'."""
     spec = _action_spec(env_or_spec)
     if is_discrete(spec):
-        return f"discrete with {spec.space.n} actions"
+        return f"discrete action space of {spec.space.n} actions"
     return f"continuous Box of shape {tuple(spec.shape)}"
 
 
@@ -130,6 +207,8 @@ def env_label(env: EnvBase) -> str:
         found = re.search(r"GymEnv\(env=([^,)\s]+)", env.meta_data.env_str)
         return found.group(1) if found else type(env).__name__
     name = getattr(env, "env_name", None) if isinstance(env, GymEnv) else None
+    if name is None and isinstance(env, GymWrapper):  # a gymnasium env wrapped here (flattened observations)
+        name = getattr(getattr(env._env, "spec", None), "id", None)
     return name if isinstance(name, str) else type(env).__name__
 
 

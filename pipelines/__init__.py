@@ -13,7 +13,8 @@ The map of this package:
     evaluation   evaluate(), BackgroundEvaluator (TorchRL's Evaluator in a process)
     runtime      Ctrl-C at safe points, workers deaf to Ctrl-C, GC freeze
     meters       Clock, IntervalStats: speeds, mean losses, training returns
-    config       typed configs, key=value overrides, validation
+    config       typed configs, key=value overrides, validation (this machine's limits included)
+    memory       what a run will allocate, from the env's specs, against the memory available
     rundir, checkpoint, export, files, video, analysis   what a run leaves on disk, and reading it back
     rate_limiter SampleToInsertRatio (Reverb's, for TorchRL collectors)
 

@@ -44,6 +44,7 @@ from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines.config import TrainConfig, config_to_dict, validate
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.loop import Loop, TrainResult
+from rlpipe.pipelines.memory import check_memory
 from rlpipe.pipelines.meters import Clock
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir
 from rlpipe.pipelines.state import RunState
@@ -117,6 +118,8 @@ class OffPolicyPipeline:
                              f"{describe_action_space(self.action_spec)} (use {other})")
         self.observation_key = self._observation_key(observation_key)
         self.observation_dim = int(self.env.observation_spec[self.observation_key].shape[-1])
+        action_dim = int(self.action_spec.space.n) if is_discrete(self.action_spec) else int(self.action_spec.shape[-1])
+        check_memory(cfg, self.env, self.observation_key, action_dim, self.device)  # before a network is built
         self.state = RunState.fresh(cfg)
 
     def _space_phrase(self) -> str:
@@ -215,6 +218,8 @@ class OffPolicyPipeline:
 
     def make_collector(self, total_frames: int, init_random_frames: int):
         c = self.config.collector
+        if self.config.initial_collect_policy == "collect":  # the initial steps come from the exploring policy
+            init_random_frames = 0
         common = dict(frames_per_batch=c.frames_per_batch, total_frames=total_frames,
                       init_random_frames=init_random_frames,
                       # a user's env without the transforms the policy reads (InitTracker) gets them
@@ -279,7 +284,9 @@ class OffPolicyPipeline:
         ``callbacks``: functions called with each metrics row as it is written.
         ``triggers``: more ``Trigger``s, run after the built-in ones (log, eval, export, save).
         Ctrl-C (SIGINT) saves a checkpoint at the next safe point and raises ``KeyboardInterrupt``;
-        ``train(out, resume=True)`` then continues from there.
+        ``train(out, resume=True)`` then continues from there. A loss or parameter that turns NaN or
+        infinite raises ``TrainingDiverged`` at the end of that collected block, saving nothing more:
+        the last checkpoint is the run's last finite state.
         """
         triggers = [*default_triggers(self.config), *triggers]
         names = [t.name for t in triggers]

@@ -14,6 +14,8 @@ import ast
 import dataclasses
 import difflib
 import inspect
+import math
+import os
 import typing
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,6 +29,8 @@ __all__ = [
     "CollectorConfig",
     "TrainConfig",
     "apply_overrides",
+    "available_devices",
+    "check_machine",
     "config_to_dict",
     "config_from_dict",
     "field_docs",
@@ -103,6 +107,8 @@ class TrainConfig:
     """torch threads of the learner; -1: chosen at the start of training (the cores collector processes leave free, then the fastest count there by a short timing of the loss), recorded in config.json; 0: torch's default"""
     device: str = "cpu"
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
+    initial_collect_policy: str = "random"
+    """policy of the `initial_collect_steps`: 'random' (uniform actions, the DQN and actor-learner SAC tutorials) or 'collect' (the exploring policy of the untrained networks, the older SAC tutorial's driver)"""
     collector: CollectorConfig = field(default_factory=CollectorConfig)
 
     @property
@@ -123,6 +129,12 @@ _POSITIVE = {
     "collector.weight_sync_interval", "collector.envs_per_worker",
 }
 _NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval"}
+_CHOICES = {"initial_collect_policy": ("random", "collect")}
+
+MAX_SEED = 2**31 - 1
+"""seeds go to torch, NumPy (below 2**32) and gymnasium, offset per worker and eval env: this keeps them all in range"""
+WORKERS_PER_CPU = 8
+"""collector processes per CPU beyond which a run only thrashes (each is a whole Python process with torch)"""
 
 
 def _get(cfg, dotted: str):
@@ -131,13 +143,20 @@ def _get(cfg, dotted: str):
     return cfg
 
 
-def validate(cfg) -> None:
-    """Raise ``InputError`` naming the first key whose value cannot work, and what it must be."""
+def validate(cfg, *, machine: bool = True) -> None:
+    """Raise ``InputError`` naming the first key whose value cannot work, and what it must be.
+
+    ``machine=True`` also checks what depends on this machine (the device exists, thread and
+    process counts within its CPUs); a saved config (``config_from_dict``) skips those, so a run
+    moved to another machine can be resumed with the keys changed there.
+    """
     for key in flat_keys(type(cfg)):
         value = _get(cfg, key)
         leaf = key.rsplit(".", 1)[-1]
         if value is None:
             continue
+        if isinstance(value, float) and not math.isfinite(value):
+            raise InputError(f"{key}={value}: expected a finite number")
         if (key in _POSITIVE or leaf in _POSITIVE or leaf.endswith("_interval") and leaf not in _NON_NEGATIVE) and value <= 0:
             raise InputError(f"{key}={value}: expected a positive integer")
         if (key in _NON_NEGATIVE or leaf in _NON_NEGATIVE) and value < 0:
@@ -146,20 +165,15 @@ def validate(cfg) -> None:
             raise InputError(f"{key}={value}: expected a positive learning rate")
         if leaf.endswith("layer_params") and (not value or any(v <= 0 for v in value)):
             raise InputError(f"{key}={value}: expected a non-empty list of positive layer sizes, e.g. [256,256]")
-    try:
-        import torch
-
-        device = torch.device(cfg.device)
-    except (RuntimeError, TypeError) as exc:
-        raise InputError(f"device={cfg.device!r}: expected a torch device such as 'cpu' or 'cuda:0'") from exc
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise InputError(f"device={cfg.device!r}: torch sees no CUDA device on this machine; expected device=cpu "
-                         "(or a CUDA build of torch on a machine with a GPU)")
-    if cfg.cudagraph and device.type != "cuda":
-        raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
-                         "cudagraph=false or null on this device")
+        if key in _CHOICES and value not in _CHOICES[key]:
+            raise InputError(f"{key}={value!r}: expected one of {', '.join(repr(c) for c in _CHOICES[key])}")
+    if not 0 <= cfg.seed <= MAX_SEED:
+        raise InputError(f"seed={cfg.seed}: expected an integer from 0 to {MAX_SEED}")
     if cfg.num_threads < -1:
         raise InputError(f"num_threads={cfg.num_threads}: expected -1 (chosen at start), 0 (torch's default) or a positive count")
+    if cfg.cudagraph and str(cfg.device).split(":")[0] != "cuda":
+        raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
+                         "cudagraph=false or null on this device")
     c = cfg.collector
     per_block = c.envs_per_worker * (c.workers if c.sync else 1)
     if c.envs_per_worker > 1 and c.frames_per_batch % per_block:
@@ -180,6 +194,49 @@ def validate(cfg) -> None:
     extra = getattr(cfg, "validate_extra", None)
     if extra is not None:
         extra()
+    if machine:
+        check_machine(cfg)
+
+
+def available_devices() -> list[str]:
+    """The torch devices this machine can train on: 'cpu', then 'cuda:0', ... and 'mps' where present."""
+    import torch
+
+    devices = ["cpu"]
+    if torch.cuda.is_available():
+        devices += [f"cuda:{i}" for i in range(torch.cuda.device_count())]
+    mps = getattr(torch.backends, "mps", None)
+    if mps is not None and mps.is_available():
+        devices.append("mps")
+    return devices
+
+
+def _cpus() -> int:
+    return os.cpu_count() or 1
+
+
+def check_machine(cfg) -> None:
+    """What ``validate`` checks against this machine: the device exists, thread and worker counts fit its CPUs."""
+    import torch
+
+    try:
+        device = torch.device(cfg.device)
+    except (RuntimeError, TypeError) as exc:
+        raise InputError(f"device={cfg.device!r}: expected a torch device such as 'cpu' or 'cuda:0'") from exc
+    devices = available_devices()
+    same_type = [d for d in devices if d.split(":")[0] == device.type]
+    known = same_type if device.index is None or device.type == "cpu" else [f"{device.type}:{device.index}"]
+    if not set(known) & set(same_type):
+        why = "torch sees no CUDA device on this machine" if device.type == "cuda" else "not a device this machine trains on"
+        raise InputError(f"device={cfg.device!r}: {why}; expected one of this machine's devices: {', '.join(devices)}")
+    cpus = _cpus()
+    if cfg.num_threads > cpus:
+        raise InputError(f"num_threads={cfg.num_threads}: more threads than this machine's {cpus} CPUs only slow torch "
+                         f"down; expected -1 (chosen at start), 0 (torch's default) or at most {cpus}")
+    most = WORKERS_PER_CPU * cpus
+    if cfg.collector.workers > most:
+        raise InputError(f"collector.workers={cfg.collector.workers}: each is a process of its own; expected at most "
+                         f"{most} on this machine's {cpus} CPUs")
 
 
 # --- overrides ------------------------------------------------------------------------------------
@@ -249,7 +306,7 @@ def config_from_dict(cls: type, data: dict[str, Any]):
         key = getattr(exc, "full_key", None) or "?"
         raise InputError(f"config does not fit {cls.__name__}: key {key!r}: {str(exc).splitlines()[0]}") from exc
     result = OmegaConf.to_object(conf)
-    validate(result)
+    validate(result, machine=False)  # a saved config may come from another machine: the overrides fix that
     return result
 
 

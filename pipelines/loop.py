@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs.utils import RandomPolicy
@@ -32,6 +33,7 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.errors import InputError, TrainingDiverged
 from rlpipe.pipelines.evaluation import BackgroundEvaluator, evaluate
 from rlpipe.pipelines.export import export_policy
 from rlpipe.pipelines.files import write_json_atomic
@@ -171,7 +173,7 @@ class Loop:
         batch = batch.reshape(-1)[: cfg.total_frames - self.state.frames]
         keys = pipeline.replay_keys
         pipeline.replay_buffer.extend(batch if keys is None else batch.select(*keys))
-        self.interval_stats.add_frames(batch)
+        self.state.episodes += self.interval_stats.add_frames(batch)
         pipeline.on_frames(batch.numel())
         before, now = self.state.insert(batch.numel(), cfg)
         self.state.owed = [t.name for t in self.triggers.values() if t.due(before, now, cfg.num_iterations)]
@@ -183,9 +185,12 @@ class Loop:
         while self.state.limiter.owed:
             self.stop.check()
             losses = self.pipeline.update_step(self.pipeline.replay_buffer.sample(), self.state.updates + 1)
-            self.state.updated()
+            if fault_point("update", self.state.updated()):  # the test hook: a parameter turns NaN here
+                next(self.pipeline.loss_module.parameters()).data.fill_(math.nan)
             made += 1
             self.interval_stats.add_losses(losses)
+        if made:
+            self.check_finite()  # once per block: a few scalars, before the collectors get the weights
         if made and self.collector is not None and self.state.updates % self.config.collector.weight_sync_interval < made:
             self.pipeline.push_weights(self.collector)
 
@@ -322,7 +327,30 @@ class Loop:
                           self.pipeline.export_info(), step=self.state.iteration, keep=self.config.policy_keep)
         self.exported_at = self.state.iteration
 
+    def check_finite(self) -> None:
+        """Stop with ``TrainingDiverged`` if a loss since the last log row or a parameter is NaN or infinite.
+
+        Nothing is saved then: every checkpoint passed this check, so the last one on disk is the
+        run's last finite state, and ``--resume`` (with, say, a lower learning rate) continues from it.
+        """
+        sums = self.interval_stats.loss_sums
+        tensors = [torch.as_tensor(v).reshape(-1) for v in sums.values()]
+        tensors += [p.detach().reshape(-1).isfinite().all().reshape(1) for p in self.pipeline.loss_module.parameters()]
+        if not tensors or bool(torch.cat([t.float() for t in tensors]).isfinite().all()):
+            return
+        bad = [f"loss_{k}={float(v)}" for k, v in sums.items() if not torch.as_tensor(v).isfinite().all()]
+        try:
+            last = f"the checkpoint {ckpt.latest_checkpoint(self.run_dir.checkpoints)}"
+        except InputError:
+            last = "not saved (no checkpoint yet)"
+        raise TrainingDiverged(
+            f"training diverged by iteration {self.state.iteration} ({self.state.updates} updates): "
+            f"{', '.join(bad) or 'a parameter'} is not finite; stopped without saving: the last finite state is "
+            f"{last}; expected finite losses: lower the learning rates, then continue with --resume {self.run_dir.path}"
+        )
+
     def save(self) -> None:
+        self.check_finite()
         with self.clock.paused():
             ckpt.save_checkpoint(self.run_dir.checkpoints, self.state.iteration, self.pipeline.state_dict())
 

@@ -1,4 +1,4 @@
-"""What the loop measures between two log rows: training time, speeds, losses, episode returns."""
+"""What the loop measures between two log rows: training time, speeds, losses, episode returns and lengths."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ class Clock:
 
 
 class IntervalStats:
-    """Means of losses, finished training episodes' returns, and speeds since the last log row."""
+    """Means of losses, finished training episodes' returns and lengths, and speeds since the last log row."""
 
     def __init__(self):
         self._reset(0.0)
@@ -53,16 +53,24 @@ class IntervalStats:
         self.loss_sums: dict[str, torch.Tensor] = {}
         self.loss_counts: dict[str, int] = {}
         self.episode_returns: list[float] = []
+        self.episode_lengths: list[float] = []
         self.frames = 0
         self.updates = 0
         self.t = t
 
-    def add_frames(self, batch: TensorDictBase) -> None:
-        """A collected block, flat; the returns of the episodes it ends (``RewardSum``'s ``episode_reward``)."""
+    def add_frames(self, batch: TensorDictBase) -> int:
+        """A collected block, flat; the returns (``RewardSum``'s ``episode_reward``) and lengths
+        (``StepCounter``'s ``step_count``, where the env has one) of the episodes it ends; returns
+        how many it ends."""
         self.frames += batch.numel()
         done = batch["next", "done"]
-        if done.any():
-            self.episode_returns += batch["next", "episode_reward"][done].tolist()
+        if not done.any():
+            return 0
+        self.episode_returns += batch["next", "episode_reward"][done].tolist()
+        steps = batch.get(("next", "step_count"), None)
+        if steps is not None:
+            self.episode_lengths += steps[done].tolist()
+        return int(done.sum())
 
     def add_losses(self, losses: dict[str, torch.Tensor]) -> None:
         self.updates += 1
@@ -77,6 +85,8 @@ class IntervalStats:
         row: dict[str, Any] = {f"loss_{k}": float(v) / self.loss_counts[k] for k, v in self.loss_sums.items()}
         if self.episode_returns:
             row["train_episode_return"] = sum(self.episode_returns) / len(self.episode_returns)
+        if self.episode_lengths:
+            row["train_episode_length"] = sum(self.episode_lengths) / len(self.episode_lengths)
         row["steps_per_s"] = self.frames / dt
         row["updates_per_s"] = self.updates / dt
         row["wall_time"] = clock.wall()

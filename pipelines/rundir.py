@@ -23,7 +23,7 @@ from rlpipe.pipelines.files import atomic_path, write_json_atomic
 __all__ = ["RunDir", "default_run_dir"]
 
 BASE_COLUMNS = ["step", "frames", "updates", "average_return", "average_episode_length"]
-SPEED_COLUMNS = ["train_episode_return", "steps_per_s", "updates_per_s", "wall_time"]
+SPEED_COLUMNS = ["train_episode_return", "train_episode_length", "episodes", "steps_per_s", "updates_per_s", "wall_time"]
 
 
 def default_run_dir(algo: str, env_id: str) -> Path:

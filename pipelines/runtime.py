@@ -138,18 +138,22 @@ def sigint_blocked():
 
 # RLPIPE_FAULT="NAME@STEP" (or "NAME@STEP:SIGTERM"): a process reaching point NAME at iteration STEP
 # sends the signal (default SIGINT) to its whole process group, as a terminal's Ctrl-C does.
+# "NAME@STEP:NAN" sends nothing: fault_point returns True and the caller poisons its state (the loop:
+# a parameter becomes NaN after update STEP).
 # RLPIPE_FAULT_ONCE=PATH: only the first process to get there (it creates PATH and writes its command
 # line into it), so a study's other runs reaching the same point later do not press again.
 _FAULT = os.environ.get("RLPIPE_FAULT", "")
 
 
-def fault_point(name: str, step: int) -> None:
-    """Where tests inject a fault (see ``RLPIPE_FAULT`` above); does nothing in normal runs."""
+def fault_point(name: str, step: int) -> bool:
+    """Where tests inject a fault (see ``RLPIPE_FAULT`` above); does nothing in normal runs.
+
+    Returns True when the fault is one the caller carries out itself (``:NAN``)."""
     if not _FAULT:
-        return
+        return False
     point, _, signame = _FAULT.partition(":")
     if point != f"{name}@{step}":
-        return
+        return False
     marker = os.environ.get("RLPIPE_FAULT_ONCE")
     if marker:
         try:
@@ -158,4 +162,7 @@ def fault_point(name: str, step: int) -> None:
             return
         with os.fdopen(fd, "w") as fh:
             fh.write(" ".join(sys.argv) + "\n")
+    if signame == "NAN":
+        return True
     os.killpg(os.getpgrp(), getattr(signal, signame or "SIGINT"))
+    return False

@@ -21,7 +21,7 @@ from torch import nn
 from torchrl.objectives import SACLoss
 
 from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
-from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.modules.critics import INITIALIZERS, make_qvalue_critic
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.sac_loss import LeanSACLoss
@@ -69,6 +69,10 @@ class SACConfig(TrainConfig):
     """initial entropy temperature (SacAgent's initial_log_alpha=0)"""
     target_entropy: float | None = None
     """entropy target of the temperature (null: -|A|/2, SacAgent's default)"""
+    gradient_clipping: float | None = None
+    """clip each gradient tensor's norm to this value before the optimisers step, as SacAgent's gradient_clipping does (TF-Agents' clip_gradient_norms); null: no clipping"""
+    critic_kernel_initializer: str = "torch"
+    """critic weights: 'torch' (nn.Linear's default) or 'glorot_uniform' with zero biases (the actor-learner tutorial's CriticNetwork)"""
     eval_interval: int = 10_000
     """iterations between evaluations of the deterministic policy"""
     num_eval_episodes: int = 20
@@ -85,6 +89,11 @@ class SACConfig(TrainConfig):
             raise InputError(f"initial_alpha={self.initial_alpha}: expected a positive temperature")
         if self.reward_scale_factor == 0:
             raise InputError("reward_scale_factor=0: expected a non-zero scale")
+        if self.gradient_clipping is not None and self.gradient_clipping <= 0:
+            raise InputError(f"gradient_clipping={self.gradient_clipping}: expected a positive norm, or null for none")
+        if self.critic_kernel_initializer not in INITIALIZERS:
+            raise InputError(f"critic_kernel_initializer={self.critic_kernel_initializer!r}: expected one of "
+                             f"{', '.join(repr(i) for i in INITIALIZERS)}")
 
 
 def _minitaur() -> SACConfig:
@@ -113,7 +122,20 @@ def _hopper() -> SACConfig:
     )
 
 
-PRESETS = {"sac": _minitaur, "sac-halfcheetah": _halfcheetah, "sac-hopper": _hopper}
+def _minitaur_002() -> SACConfig:
+    # The older SAC-on-Minitaur tutorial (drivers, TFUniformReplayBuffer), whose printed log the
+    # live log can be compared with: the same agent as the actor-learner one, but the initial 10k
+    # steps come from the collect policy (a DynamicStepDriver with tf_agent.collect_policy), a
+    # 1M-transition replay, a loss line every 5,000 steps, 30 evaluation episodes every 10,000,
+    # gradient_clipping=None; its CriticNetwork keeps TF-Agents' default initialisers (not Glorot).
+    # Collection in the learner's process, as its single driver did.
+    return SACConfig(
+        initial_collect_policy="collect", replay_buffer_capacity=1_000_000, log_interval=5000,
+        num_eval_episodes=30, eval_interval=10_000, gradient_clipping=None,
+    )
+
+
+PRESETS = {"sac": _minitaur, "sac-002": _minitaur_002, "sac-halfcheetah": _halfcheetah, "sac-hopper": _hopper}
 
 
 class SAC(OffPolicyPipeline):
@@ -158,7 +180,7 @@ class SAC(OffPolicyPipeline):
             self._export_network_only = True  # its deterministic action is TanhNormalMode of its MLP
         if qvalue is None:
             qvalue = make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_joint_fc_layer_params,
-                                        observation_key=key)
+                                        observation_key=key, init=cfg.critic_kernel_initializer)
         target_entropy = cfg.target_entropy if cfg.target_entropy is not None else -action_dim / 2
         loss_module = LeanSACLoss(actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2, loss_function="l2",
                               alpha_init=cfg.initial_alpha, target_entropy=target_entropy, delay_qvalue=True)
@@ -191,6 +213,11 @@ class SAC(OffPolicyPipeline):
             out = loss_module(batch)
         loss = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
         loss.backward()
+        if self.config.gradient_clipping is not None:
+            for name, opt in self.optimizers.items():
+                params = [p for group in opt.param_groups for p in group["params"]]
+                # the twin critics' parameters are stacked [2, ...]: each critic's tensor on its own
+                clip_gradient_norms(params, self.config.gradient_clipping, stacked=name == "qvalue")
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -206,6 +233,22 @@ class SAC(OffPolicyPipeline):
         if self._export_network_only:
             return TanhNormalMode.from_actor(self.policy, self.action_spec)
         return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
+
+
+def clip_gradient_norms(params, max_norm: float, stacked: bool = False) -> None:
+    """Scale each parameter's gradient to a norm of at most ``max_norm``, one tensor at a time
+    (``stacked``: each slice along the first dim, one per stacked network).
+
+    TF-Agents' ``eager_utils.clip_gradient_norms`` (``tf.clip_by_norm`` per variable), which
+    SacAgent's ``gradient_clipping`` applies; torch's ``clip_grad_norm_`` clips the norm of all
+    gradients together instead, a different rule.
+    """
+    grads = [p.grad for p in params if p.grad is not None]
+    if stacked:
+        grads = [g for grad in grads for g in grad.unbind(0)]
+    if grads:
+        norms = torch._foreach_norm(grads)
+        torch._foreach_mul_(grads, [torch.clamp(max_norm / (n + 1e-6), max=1.0) for n in norms])
 
 
 preset = SAC.preset

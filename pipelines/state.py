@@ -28,6 +28,8 @@ class RunState:
     frames: int = 0
     updates: int = 0
     iteration: int = 0
+    episodes: int = 0
+    """training episodes finished (TF-Agents' NumberOfEpisodes)"""
     owed: list[str] = field(default_factory=list)
     """names of the triggers still to run at ``iteration``, in order"""
     pending_evals: deque[tuple[dict, TensorDictBase]] = field(default_factory=deque)
@@ -70,7 +72,7 @@ class RunState:
     def state_dict(self) -> dict[str, Any]:
         return {
             "counters": {"frames": self.frames, "updates": self.updates, "iteration": self.iteration,
-                         "triggers": list(self.owed)},
+                         "episodes": self.episodes, "triggers": list(self.owed)},
             "limiter": self.limiter.state_dict(),
             "background_evals": [{"at": dict(at), "weights": dict(w.flatten_keys("/").items())}
                                  for at, w in self.pending_evals],
@@ -79,6 +81,7 @@ class RunState:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         counters = state["counters"]
         self.frames, self.updates, self.iteration = (int(counters[k]) for k in ("frames", "updates", "iteration"))
+        self.episodes = int(counters.get("episodes", 0))  # a checkpoint from before it was counted: 0
         self.owed = list(counters.get("triggers", []))
         self.limiter.load_state_dict(state["limiter"])
         self.pending_evals = deque((dict(e["at"]), TensorDict(e["weights"]).unflatten_keys("/"))

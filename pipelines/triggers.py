@@ -75,12 +75,14 @@ class IntervalTrigger(Trigger):
 
 
 class LogTrigger(Trigger):
-    """A metrics row of losses, speeds and training returns (TF-Agents' StepPerSecondLogTrigger)."""
+    """A metrics row of losses, speeds, training episodes' mean return and length, and the episodes
+    finished so far (TF-Agents' StepPerSecondLogTrigger and train metrics: NumberOfEpisodes,
+    AverageReturnMetric, AverageEpisodeLengthMetric)."""
 
     name = "log"
 
     def __call__(self, loop: Loop) -> None:
-        row = loop.interval_stats.flush(loop.clock)
+        row = {**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes}
         loop.log(row)
         if any(k.startswith("loss_") for k in row):  # nothing to say before the first update
             loop.echo(log_line(loop.state.iteration, row))

@@ -68,13 +68,17 @@ def _preset_for(env: str) -> str:
 def plan(args) -> list[Job]:
     from rlpipe.envs import resolve_env_id
     from rlpipe.pipelines import resolve_preset
-    from rlpipe.pipelines.config import apply_overrides
+    from rlpipe.pipelines.config import WORKERS_PER_CPU, apply_overrides
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.td3 import INGREDIENTS
 
     for name in ("seeds", "steps", "evals", "eval_episodes", "workers"):
         if getattr(args, name) <= 0:
             raise InputError(f"--{name.replace('_', '-')}={getattr(args, name)}: expected a positive integer")
+    most = WORKERS_PER_CPU * (os.cpu_count() or 1)
+    if args.workers > most:
+        raise InputError(f"--workers={args.workers}: each run is a process of its own; expected at most {most} on this "
+                         f"machine's {os.cpu_count() or 1} CPUs")
     all_variants = ("full", *(f"no_{i}" for i in INGREDIENTS))
     variants = all_variants if not args.variants else tuple(v.strip() for v in args.variants.split(","))
     for v in variants:
@@ -85,7 +89,7 @@ def plan(args) -> list[Job]:
         raise InputError("--envs is empty; expected comma-separated env ids such as Pendulum-v1,HalfCheetah-v5")
     jobs = []
     for env in envs:
-        resolve_env_id(env)
+        resolve_env_id(env)  # an unknown id first, with the closest known ones
         preset = _preset_for(env)
         _, base = resolve_preset(preset)
         # Budgets in whole collector blocks, so evaluations land on the iterations they name.
@@ -110,6 +114,7 @@ def plan(args) -> list[Job]:
             # busy with --workers runs side by side (user overrides, after these, still win).
             "collector.sync=true",
         ]
+        _check_env(base, [*budget, *args.overrides])
         for variant in variants:
             switch = [] if variant == "full" else [f"{variant.removeprefix('no_')}=false"]
             for seed in range(args.seeds):
@@ -120,14 +125,27 @@ def plan(args) -> list[Job]:
     return jobs
 
 
+def _check_env(base, overrides: list[str]) -> None:
+    """The env as every run of the study will make it (its action space, the extra it needs, the
+    memory the run takes): an env that cannot work stops the study before any run starts."""
+    from rlpipe.pipelines.config import apply_overrides
+    from rlpipe.pipelines.td3 import TD3
+
+    pipeline = TD3(apply_overrides(base, overrides))
+    pipeline.env.close()
+    pipeline.eval_env.close()
+
+
 def run(args) -> int:
     from tqdm.auto import tqdm
 
     from rlpipe.pipelines.analysis import collect_runs, write_ablation_report
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.files import write_json_atomic
+    from rlpipe.scripts.cli import check_output_dir
 
     jobs = plan(args)
+    check_output_dir(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
     study_file = args.out / "study.json"
     study = {"algo": args.algo, "envs": args.envs, "seeds": args.seeds, "steps": args.steps, "overrides": args.overrides,

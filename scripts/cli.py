@@ -11,6 +11,8 @@
     rlpipe bench {dqn,td3,sac,minitaur} [...]
 
 Bad input ends with one line on stderr naming what is wrong and what is expected, and exit status 2.
+Any other failure ends with one line naming the error and the file holding its full traceback
+(``RUN/error.log`` when a run directory exists, else a temporary file), and exit status 1.
 """
 
 from __future__ import annotations
@@ -19,6 +21,9 @@ import argparse
 import json
 import os
 import sys
+import tempfile
+import time
+import traceback
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -90,6 +95,53 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _nearest_existing(path: Path) -> Path:
+    ancestor = path
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    return ancestor
+
+
+def _check_writable(flag: str, path: Path, folder: Path) -> None:
+    """``folder`` (an existing directory) takes new entries; nothing is left behind by the test."""
+    try:  # os.access says yes to root on read-only mounts: only trying tells
+        os.rmdir(tempfile.mkdtemp(prefix=".rlpipe-probe-", dir=folder))
+    except OSError as exc:
+        raise _input_error(f"{flag} {path}: cannot write in {folder} ({exc.strerror}); expected a writable place") from exc
+
+
+def _input_error(message: str):
+    from rlpipe.pipelines.errors import InputError
+
+    return InputError(message)
+
+
+def check_output_dir(path: Path, flag: str = "--out") -> None:
+    """Raise ``InputError`` if a run directory cannot be made at ``path`` (under a file, or in a
+    read-only place); creates nothing."""
+    path = Path(path)
+    ancestor = _nearest_existing(path)
+    if not ancestor.is_dir():
+        if ancestor == path:
+            raise _input_error(f"{flag} {path}: exists and is not a directory; expected a new or empty directory")
+        raise _input_error(f"{flag} {path}: {ancestor} is a file, not a directory; expected a path under a directory")
+    if ancestor == path and any(path.iterdir()):
+        return  # a run directory to continue, or a folder RunDir refuses as not empty: no test write in it
+    _check_writable(flag, path, ancestor)
+
+
+def check_output_file(path: Path, flag: str = "--out") -> None:
+    """Raise ``InputError`` if a file cannot be written at ``path`` (a directory there, a file
+    among its parents, or a read-only place); creates nothing. E.g. ``rlpipe video --out``."""
+    path = Path(path)
+    if path.is_dir():
+        raise _input_error(f"{flag} {path}: is a directory; expected a file path such as {path / 'video.mp4'}")
+    ancestor = _nearest_existing(path.parent)
+    if not ancestor.is_dir():
+        raise _input_error(f"{flag} {path}: {ancestor} is a file, not a directory; expected a path under a directory")
+    _check_writable(flag, path, ancestor)
+
+
 def _positive(name: str, value: int) -> None:
     from rlpipe.pipelines.errors import InputError
 
@@ -101,7 +153,7 @@ def cmd_train(args) -> int:
     from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.pipelines.rundir import RunDir
+    from rlpipe.pipelines.rundir import RunDir, default_run_dir
 
     algo, cfg = resolve_preset(args.preset)
     Pipeline = pipeline_class(algo)
@@ -123,7 +175,10 @@ def cmd_train(args) -> int:
             print(f"{key}={json.dumps(value)}\n    {docs.get(key, '')}")
         return 0
     pipeline = Pipeline(cfg)
+    args.pipeline = pipeline  # where main() writes a traceback, once the run directory exists
     out = args.resume if args.resume is not None else args.out
+    check_output_dir(out if out is not None else default_run_dir(algo, pipeline.config.env),
+                     "--resume" if args.resume is not None else "--out")
     _show_live_log()
     try:
         result = pipeline.train(out, resume=args.resume is not None, progress=not args.no_progress)
@@ -284,9 +339,31 @@ def cmd_presets(args) -> int:
     return 0
 
 
+def _error_log(args, argv: list[str], exc: BaseException) -> Path:
+    """Write ``exc``'s traceback to RUN/error.log (the run's, where one exists) or a temporary file."""
+    text = f"{time.strftime('%Y-%m-%d %H:%M:%S')} rlpipe {' '.join(map(str, argv))}\n" + "".join(
+        traceback.format_exception(exc))
+    run = getattr(getattr(args, "pipeline", None), "run_dir", None)
+    run_path = getattr(run, "path", None)
+    resume = getattr(args, "resume", None)
+    if run_path is None and resume is not None and (Path(resume) / "config.json").exists():
+        run_path = Path(resume)
+    if run_path is not None:
+        try:
+            with open(Path(run_path) / "error.log", "a") as fh:
+                fh.write(text + "\n")
+            return Path(run_path) / "error.log"
+        except OSError:
+            pass
+    fd, name = tempfile.mkstemp(prefix="rlpipe-error-", suffix=".log")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    return Path(name)
+
+
 def main(argv: list[str] | None = None) -> int:
     from rlpipe.envs import EnvError
-    from rlpipe.pipelines.errors import InputError
+    from rlpipe.pipelines.errors import InputError, TrainingDiverged
 
     parser = _parser()
     args, extra = parser.parse_known_args(argv)
@@ -304,6 +381,18 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, EnvError) as exc:
         print(f"rlpipe: error: {exc}", file=sys.stderr)
         return 2
+    except TrainingDiverged as exc:
+        print(f"rlpipe: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:  # before or after a run (a run's own Ctrl-C is answered in cmd_train)
+        print("rlpipe: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        log = _error_log(args, sys.argv[1:] if argv is None else argv, exc)
+        first = (str(exc).strip().splitlines() or [""])[0][:300]
+        print(f"rlpipe: error: {type(exc).__name__}{': ' + first if first else ''} (full traceback in {log})",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

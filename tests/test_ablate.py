@@ -200,12 +200,21 @@ BAD = {
     "unknown variant": (["--variants", "full,no_target_nets"], "no_target_nets"),
     "unknown env": (["--envs", "Pendulum-v9"], "Pendulum-v9"),
     "key typo": (["lerning_rate=1e-3"], "lerning_rate"),
+    # every env is checked before any run starts (the discrete one is the second)
+    "discrete env": (["--envs", "Pendulum-v1,CartPole-v1"], "CartPole-v1"),
+    "extra not installed": (["--envs", "Pendulum-v1,ALE/Pong-v5"], "gymnasium[atari]"),
+    "memory": (["replay_buffer_capacity=1000000000000"], "replay_buffer_capacity"),
+    "absurd workers": (["--workers", "100000"], "--workers=100000"),
+    "out under a file": (["--out", "FILE/study"], "is a file"),
 }
 
 
 def _args(out: Path, change: list[str]) -> list[str]:
     args = [*STUDY, "--out", str(out)]
-    if change[0].startswith("--"):
+    if change[0] == "--out":
+        (out.parent / "FILE").write_text("a file")
+        args[-1] = str(out.parent / change[1])
+    elif change[0].startswith("--"):
         i = args.index(change[0])
         args[i + 1] = change[1]
     else:
@@ -232,3 +241,13 @@ def test_bad_input_in_a_real_process(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("rlpipe: error:") and "lerning_rate" in lines[0], proc.stderr
     assert "learning_rate" in lines[0]  # the closest valid key is suggested
     assert not out.exists()
+
+
+def test_every_env_is_checked_before_a_run_starts_and_box2d_envs_pass(tmp_path):
+    from rlpipe.scripts.ablate import plan
+    from rlpipe.scripts.cli import _parser
+
+    args = _parser().parse_args([*_args(tmp_path / "study", ["--envs", "LunarLanderContinuous-v3,BipedalWalker-v3"])])
+    jobs = plan(args)
+    assert {j.env for j in jobs} == {"LunarLanderContinuous-v3", "BipedalWalker-v3"} and len(jobs) == 8
+    assert not (tmp_path / "study").exists()

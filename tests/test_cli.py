@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -224,8 +226,66 @@ BAD_INPUTS = {
     "bad-device": (["train", "dqn", "device=foo", "--out", "new"], ["device"], None),
     "override-after-options": (["train", "dqn", "--out", "new", "batch_size=0"], ["batch_size"], None),
     "argparse-error": (["eval", "RUN", "--episodes", "abc"], ["--episodes"], None),
+    # issue 11: seeds, sizes that cannot be allocated, machine limits, devices, envs, places to write
+    "negative-seed": (["train", "dqn", "seed=-1", "--out", "new"], ["seed=-1", "from 0 to"], None),
+    "huge-seed": (["train", "dqn", "seed=123456789012345678901234567890", "--out", "new"], ["seed=", "from 0 to"], None),
+    "seed-over-2**31": (["train", "dqn", "seed=4294967296", "--out", "new"], ["seed=", "from 0 to"], None),
+    "nan-learning-rate": (["train", "dqn", "learning_rate=nan", "--out", "new"], ["learning_rate=nan", "finite"], None),
+    "inf-learning-rate": (["train", "dqn", "learning_rate=inf", "--out", "new"], ["learning_rate=inf", "finite"], None),
+    "nan-epsilon": (["train", "dqn", "epsilon_greedy=nan", "--out", "new"], ["epsilon_greedy=nan", "finite"], None),
+    "nan-policy-noise": (["train", "td3", "policy_noise=nan", "--out", "new"], ["policy_noise=nan", "finite"], None),
+    "inf-tau": (["train", "td3", "target_update_tau=-inf", "--out", "new"], ["target_update_tau", "finite"], None),
+    "nan-initial-alpha": (["train", "sac", "env=Pendulum-v1", "initial_alpha=nan", "--out", "new"],
+                          ["initial_alpha=nan", "finite"], None),
+    "inf-reward-scale": (["train", "sac", "env=Pendulum-v1", "reward_scale_factor=inf", "--out", "new"],
+                         ["reward_scale_factor=inf", "finite"], None),
+    "huge-replay": (["train", "dqn", "replay_buffer_capacity=1000000000000", "--out", "new"],
+                    ["replay_buffer_capacity=1000000000000", "available", "at most"], None),
+    "huge-replay-sac": (["train", "sac", "env=Pendulum-v1", "replay_buffer_capacity=100000000000", "--out", "new"],
+                        ["replay_buffer_capacity", "available"], None),
+    "huge-layers": (["train", "dqn", "fc_layer_params=[1000000,1000000]", "--out", "new"],
+                    ["fc_layer_params", "available"], None),
+    "huge-block": (["train", "dqn", "collector.frames_per_batch=10000000000", "--out", "new"],
+                   ["collector.frames_per_batch", "available"], None),
+    "absurd-threads": (["train", "dqn", "num_threads=100000", "--out", "new"], ["num_threads=100000", "CPUs"], None),
+    "absurd-workers": (["train", "dqn", "collector.workers=100000", "--out", "new"],
+                       ["collector.workers=100000", "at most"], None),
+    "cuda-index-absent": (["train", "dqn", "device=cuda:99", "--out", "new"], ["device='cuda:99'", "cpu"], None),
+    "meta-device": (["train", "dqn", "device=meta", "--out", "new"], ["device='meta'", "cpu"], None),
+    "bad-choice": (["train", "dqn", "initial_collect_policy=greedy", "--out", "new"], ["initial_collect_policy"], None),
+    "atari-extra": (["train", "dqn", "env=ALE/Pong-v5", "--out", "new"], ["ALE/Pong-v5", "gymnasium[atari]"], None),
+    "multidiscrete-actions": (["train", "dqn", "env=rlpipe-test/MultiDiscreteActions-v0", "--out", "new"],
+                              ["MultiDiscrete", "Discrete"], None),
+    "text-observations": (["train", "dqn", "env=rlpipe-test/TextObservations-v0", "--out", "new"],
+                          ["Text", "Box"], None),
+    "frozenlake-to-sac": (["train", "sac", "env=FrozenLake-v1", "--out", "new"], ["FrozenLake-v1", "continuous"], None),
+    "out-under-a-file": (["train", "dqn", "--out", "RUN/config.json/new"], ["config.json", "is a file"], None),
+    "out-in-sys": (["train", "dqn", "--out", "/sys/rlpipe-test/run"], ["/sys", "cannot write"], None),
+    "out-in-proc": (["train", "dqn", "--out", "/proc/rlpipe-test"], ["/proc", "cannot write"], None),
 }
-SUBPROCESS_CASES = ["unknown-key", "continuous-env", "out-holds-a-run", "eval-corrupt-policy", "video-not-a-run"]
+SUBPROCESS_CASES = ["unknown-key", "continuous-env", "out-holds-a-run", "eval-corrupt-policy", "video-not-a-run",
+                    "huge-seed", "huge-replay", "meta-device", "atari-extra", "out-under-a-file", "out-in-sys",
+                    "nan-initial-alpha"]
+
+
+class _MultiDiscreteActions(gymnasium.Env):
+    """Envs whose spaces rlpipe cannot serve (registered for the in-process cases only)."""
+
+    observation_space = gymnasium.spaces.Box(-1, 1, (2,))
+    action_space = gymnasium.spaces.MultiDiscrete([2, 3])
+
+    def __init__(self, **_):
+        pass
+
+
+class _TextObservations(_MultiDiscreteActions):
+    observation_space = gymnasium.spaces.Text(8)
+    action_space = gymnasium.spaces.Discrete(2)
+
+
+for _name, _cls in (("MultiDiscreteActions", _MultiDiscreteActions), ("TextObservations", _TextObservations)):
+    if f"rlpipe-test/{_name}-v0" not in gymnasium.registry:
+        gymnasium.register(f"rlpipe-test/{_name}-v0", entry_point=_cls)
 
 
 GUARD = ["num_iterations=50", "initial_collect_steps=0", "eval_interval=0", "num_eval_episodes=1"]
@@ -283,3 +343,155 @@ def test_bad_input_in_a_real_process(bad_processes, name):
     assert_one_line_error(proc.returncode, proc.stderr, *BAD_INPUTS[name][1])
     assert proc.stdout.strip() == ""
     assert after == before, "a bad input wrote or changed files"
+
+
+def test_an_extra_that_is_not_installed_is_named(tmp_path):
+    """Box2D hidden from a real process (a module of that name that fails to import, as a missing one does)."""
+    hide = tmp_path / "without-box2d"
+    hide.mkdir()
+    (hide / "Box2D.py").write_text('raise ImportError("No module named \'Box2D\'", name="Box2D")\n')
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    proc = subprocess.run([ENTRY_POINT, "train", "td3", *GUARD, "env=LunarLanderContinuous-v3", "--out", "new"], cwd=cwd,
+                          capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(hide)})
+    assert_one_line_error(proc.returncode, proc.stderr, "LunarLanderContinuous-v3", 'pip install "gymnasium[box2d]"')
+    assert list(cwd.iterdir()) == []
+
+
+# --- output paths a command will write (`rlpipe video --out` calls check_output_file) ----------------
+
+
+def test_check_output_file_refuses_a_directory_a_file_parent_and_a_read_only_place(tmp_path):
+    from rlpipe.pipelines.errors import InputError
+    from rlpipe.scripts.cli import check_output_file
+
+    (tmp_path / "a-file").write_text("x")
+    before = snapshot(tmp_path)
+    cases = {tmp_path: "is a directory", tmp_path / "a-file" / "video.mp4": "is a file",
+             tmp_path / "a-file" / "deeper" / "video.mp4": "is a file", Path("/sys/rlpipe-test/video.mp4"): "cannot write"}
+    for path, words in cases.items():
+        with pytest.raises(InputError) as info:
+            check_output_file(path)
+        assert str(info.value).startswith(f"--out {path}: ") and words in str(info.value) and "expected" in str(info.value)
+    if os.geteuid() != 0:  # root writes into a read-only folder (the /sys case above covers root)
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o555)
+        with pytest.raises(InputError, match="cannot write"):
+            check_output_file(locked / "video.mp4")
+        locked.rmdir()
+    check_output_file(tmp_path / "new" / "video.mp4")  # a new folder is fine
+    check_output_file(tmp_path / "a-file")  # replacing a file is fine
+    assert snapshot(tmp_path) == before
+
+
+# --- every other failure: one line, and the traceback in a file --------------------------------------
+
+
+class _Crashing(gymnasium.Env):
+    """An env whose simulator fails: at its 30th step, or (``on_make``) as it is made."""
+
+    observation_space = gymnasium.spaces.Box(-1, 1, (2,))
+    action_space = gymnasium.spaces.Discrete(2)
+
+    def __init__(self, on_make: bool = False, **_):
+        if on_make:
+            raise RuntimeError("the simulator could not start")
+        self.steps = 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        self.steps += 1
+        if self.steps == 30:
+            raise RuntimeError("the simulator crashed")
+        return np.zeros(2, np.float32), 1.0, False, False, {}
+
+
+if "rlpipe-test/Crashing-v0" not in gymnasium.registry:
+    gymnasium.register("rlpipe-test/Crashing-v0", entry_point=_Crashing)
+    gymnasium.register("rlpipe-test/CrashingOnMake-v0", entry_point=_Crashing, kwargs={"on_make": True})
+
+
+def test_a_crash_in_a_run_is_one_line_and_its_traceback_lands_in_the_run_directory(tmp_path, monkeypatch, capfd):
+    from rlpipe.scripts.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    capfd.readouterr()
+    code = main(["train", "dqn", *GUARD, "env=rlpipe-test/Crashing-v0", "--out", "run", "--no-progress"])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and err[0].startswith("rlpipe: error: RuntimeError: the simulator crashed"), err
+    assert err[0].endswith("(full traceback in run/error.log)"), err
+    log = (tmp_path / "run" / "error.log").read_text()
+    assert "Traceback (most recent call last)" in log and "the simulator crashed" in log and "rlpipe train dqn" in log
+
+
+def test_a_crash_before_the_run_directory_exists_leaves_its_traceback_in_a_temporary_file(tmp_path, monkeypatch, capfd):
+    from rlpipe.scripts.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    capfd.readouterr()
+    code = main(["train", "dqn", *GUARD, "env=rlpipe-test/CrashingOnMake-v0", "--out", "run"])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and err[0].startswith("rlpipe: error: "), err
+    assert "the simulator could not start" in err[0]
+    log = Path(err[0].rsplit("(full traceback in ", 1)[1].rstrip(")"))
+    try:
+        assert log.parent == Path(tempfile.gettempdir()) and "Traceback" in log.read_text()
+    finally:
+        log.unlink()
+    assert list(tmp_path.iterdir()) == []
+
+
+# --- a run whose losses turn NaN --------------------------------------------------------------------
+
+
+def test_a_run_whose_parameters_turn_nan_stops_with_its_last_finite_checkpoint_and_resumes(tmp_path):
+    """A parameter poisoned after update 130 (rlpipe's fault hook): the run stops at that block's end
+    with one line, saves nothing more, and --resume continues from iteration 100's checkpoint."""
+    steps = ["num_iterations=300", "initial_collect_steps=100", "eval_interval=100", "num_eval_episodes=1",
+             "log_interval=50", "checkpoint_interval=100", "policy_save_interval=100", "--no-progress"]
+    proc = subprocess.run([ENTRY_POINT, "train", "dqn", *steps, "--out", "run"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=300, env={**os.environ, "RLPIPE_FAULT": "update@130:NAN"})
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1, proc.stderr
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith("rlpipe: error: training diverged by iteration 150") and "loss_loss=nan" in lines[0]
+    assert "run/checkpoints/step_0000000100" in lines[0] and "--resume run" in lines[0]
+    run = tmp_path / "run"
+    assert (run / "checkpoints" / "latest").read_text().strip() == "step_0000000100"
+    state = torch.load(run / "checkpoints" / "step_0000000100" / "state.pt", weights_only=True)
+    assert all(torch.isfinite(t).all() for t in state["loss"].values() if t.is_floating_point())
+    assert not (run / "summary.json").exists()
+    resumed = run_cli(["train", "dqn", *steps, "--resume", "run"], cwd=tmp_path, entry_point=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert json.loads((run / "summary.json").read_text())["iterations"] == 300
+
+
+def test_a_learning_rate_that_diverges_stops_the_run(tmp_path, monkeypatch, capfd):
+    from rlpipe.scripts.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    capfd.readouterr()
+    code = main(["train", "dqn", "learning_rate=1e30", *TINY, "collector.frames_per_batch=10", "--out", "run",
+                 "--no-progress"])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and "training diverged by iteration" in err[0], err
+    assert (tmp_path / "run" / "checkpoints" / "latest").read_text().strip() == "step_0000000000"
+
+
+def test_metrics_hold_training_episode_length_and_count(cli_run):
+    """CartPole pays 1 a step: a training episode's mean length is its mean return; the count only grows."""
+    import csv
+
+    with (cli_run[1] / "metrics.csv").open(newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["steps_per_s"]]
+    assert rows and all(r["train_episode_length"] and r["episodes"] for r in rows)
+    for r in rows:
+        assert float(r["train_episode_length"]) == pytest.approx(float(r["train_episode_return"]), rel=1e-4)
+    counts = [int(r["episodes"]) for r in rows]
+    assert counts == sorted(counts) and counts[0] > 0
+    # 400 env steps of CartPole episodes: about 400 / mean length of them
+    assert counts[-1] >= 400 // max(float(r["train_episode_length"]) for r in rows) - 1

@@ -285,3 +285,183 @@ def test_cuda_without_a_gpu_is_one_clear_line():
     with pytest.raises(InputError) as info:
         apply_overrides(preset("dqn"), ["device=cuda"])
     assert str(info.value).startswith("device='cuda': torch sees no CUDA device") and "\n" not in str(info.value)
+
+
+# --- issue 11: NaN and inf, seeds, this machine's limits ---------------------------------------------
+
+
+def _float_keys(cls: type) -> list[str]:
+    cfg = cls()
+    keys = []
+    for key in flat_keys(cls):
+        owner, *rest = key.split(".")
+        value = getattr(getattr(cfg, owner), rest[0]) if rest else getattr(cfg, owner)
+        hint = str(typing.get_type_hints(type(cfg) if not rest else type(getattr(cfg, owner)))[rest[0] if rest else owner])
+        if isinstance(value, float) or "float" in hint:
+            keys.append(key)
+    return keys
+
+
+def _all_configs():
+    from rlpipe.pipelines.sac import SACConfig
+    from rlpipe.pipelines.td3 import TD3Config
+
+    return [DQNConfig, TD3Config, SACConfig]
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("cls", _all_configs(), ids=lambda c: c.__name__)
+def test_nan_and_inf_are_refused_for_every_float_key(cls):
+    keys = _float_keys(cls)
+    assert "learning_rate" in keys or "actor_learning_rate" in keys
+    for key in keys:
+        for bad in ("nan", "inf", "-inf"):
+            with pytest.raises(InputError) as info:
+                apply_overrides(cls(), [f"{key}={bad}"])
+            message = str(info.value)
+            assert message.startswith(f"{key}=") and "expected a finite number" in message, (key, bad, message)
+            assert "\n" not in message
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("seed, ok", [(0, True), (2**31 - 1, True), (-1, False), (2**31, False), (10**30, False)])
+def test_seeds_torch_numpy_and_gymnasium_all_take(seed, ok):
+    if ok:
+        assert apply_overrides(preset("dqn"), [f"seed={seed}"]).seed == seed
+    else:
+        with pytest.raises(InputError, match=r"^seed=.*expected an integer from 0 to 2147483647"):
+            apply_overrides(preset("dqn"), [f"seed={seed}"])
+
+
+@pytest.mark.unit
+def test_devices_this_machine_lacks_are_refused_naming_those_it_has():
+    from rlpipe.pipelines.config import available_devices
+
+    devices = available_devices()
+    assert devices[0] == "cpu"
+    for device in ("meta", "cuda:99", "mps" if "mps" not in devices else "xpu"):
+        with pytest.raises(InputError) as info:
+            apply_overrides(preset("dqn"), [f"device={device}"])
+        assert str(info.value).startswith(f"device='{device}': ") and f"devices: {', '.join(devices)}" in str(info.value)
+    apply_overrides(preset("dqn"), ["device=cpu:0"])
+
+
+@pytest.mark.unit
+def test_thread_and_worker_counts_beyond_this_machine_are_refused(monkeypatch):
+    import os
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    apply_overrides(preset("dqn"), ["num_threads=4", "collector.workers=32"])
+    with pytest.raises(InputError, match=r"^num_threads=5: .*at most 4"):
+        apply_overrides(preset("dqn"), ["num_threads=5"])
+    with pytest.raises(InputError, match=r"^collector.workers=33: .*at most 32"):
+        apply_overrides(preset("dqn"), ["collector.workers=33"])
+
+
+@pytest.mark.unit
+def test_a_saved_config_from_a_bigger_machine_loads_and_the_overrides_fix_it():
+    data = config_to_dict(preset("dqn"))
+    data["num_threads"] = 10_000
+    cfg = config_from_dict(DQNConfig, data)  # a run saved elsewhere can be resumed here ...
+    with pytest.raises(InputError, match="num_threads"):
+        apply_overrides(cfg, [])
+    assert apply_overrides(cfg, ["num_threads=-1"]).num_threads == -1  # ... with the key changed
+
+
+@pytest.mark.unit
+def test_initial_collect_policy_is_random_or_collect():
+    assert preset("dqn").initial_collect_policy == "random"
+    assert apply_overrides(preset("dqn"), ["initial_collect_policy=collect"]).initial_collect_policy == "collect"
+    with pytest.raises(InputError, match=r"^initial_collect_policy='greedy': expected one of 'random', 'collect'"):
+        apply_overrides(preset("dqn"), ["initial_collect_policy=greedy"])
+
+
+# --- issue 12: the tutorials' remaining pieces -------------------------------------------------------
+
+
+def test_sac_002_preset_is_the_older_tutorial():
+    from rlpipe.pipelines.sac import SACConfig
+
+    algo, cfg = resolve_preset("sac-002")
+    assert algo == "sac" and isinstance(cfg, SACConfig)
+    assert cfg.env == "MinitaurBulletEnv-v0"
+    assert (cfg.num_iterations, cfg.initial_collect_steps, cfg.collect_steps_per_iteration) == (100_000, 10_000, 1)
+    assert cfg.initial_collect_policy == "collect"  # its DynamicStepDriver runs tf_agent.collect_policy
+    assert cfg.replay_buffer_capacity == 1_000_000 and cfg.batch_size == 256
+    assert (cfg.num_eval_episodes, cfg.eval_interval, cfg.log_interval) == (30, 10_000, 5000)
+    assert cfg.gradient_clipping is None and "gradient_clipping" in flat_keys(SACConfig)
+    assert (cfg.actor_learning_rate, cfg.critic_learning_rate, cfg.alpha_learning_rate) == (3e-4, 3e-4, 3e-4)
+    assert (cfg.target_update_tau, cfg.target_update_period, cfg.gamma, cfg.reward_scale_factor) == (0.005, 1, 0.99, 1.0)
+    assert cfg.actor_fc_layer_params == [256, 256] and cfg.critic_joint_fc_layer_params == [256, 256]
+    validate(cfg)
+    assert resolve_preset("sac")[1].initial_collect_policy == "random"
+
+
+@pytest.mark.parametrize("override, key", [("gradient_clipping=0", "gradient_clipping"),
+                                           ("critic_kernel_initializer=he", "critic_kernel_initializer")])
+def test_sac_clipping_and_initialiser_keys_are_checked(override, key):
+    with pytest.raises(InputError, match=rf"^{key}="):
+        apply_overrides(resolve_preset("sac")[1], [override])
+
+
+def test_glorot_uniform_critics_as_tf_agents_initialises_them():
+    import math
+
+    import torch
+
+    from rlpipe.modules.critics import make_qvalue_critic
+    from rlpipe.pipelines.sac import SAC
+
+    torch.manual_seed(0)
+    critic = make_qvalue_critic(28, 8, [256, 256], init="glorot_uniform")
+    linears = [m for m in critic.modules() if isinstance(m, torch.nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(36, 256), (256, 256), (256, 1)]
+    for m in linears:
+        bound = math.sqrt(6 / (m.in_features + m.out_features))
+        assert m.weight.abs().max() <= bound and m.weight.abs().max() > 0.9 * bound
+        assert m.weight.std().item() == pytest.approx(bound / math.sqrt(3), rel=0.1 if m.out_features > 1 else 0.5)
+        assert torch.count_nonzero(m.bias) == 0
+    torch_default = make_qvalue_critic(28, 8, [256, 256])
+    assert next(torch_default.parameters()).abs().max() <= 1 / math.sqrt(36)  # nn.Linear's default bound
+    # in the pipeline: both twin critics of the loss (redrawn by TorchRL within the first one's range)
+    cfg = apply_overrides(resolve_preset("sac")[1], ["env=Pendulum-v1", "critic_kernel_initializer=glorot_uniform"])
+    pipeline = SAC(cfg)
+    first = pipeline.loss_module.qvalue_network_params.flatten_keys().values()
+    weights = [p for p in first if p.dim() == 3]  # [twin, out, in]
+    out_, in_ = weights[1].shape[1:]
+    bound = math.sqrt(6 / (in_ + out_))
+    for twin in weights[1]:
+        assert twin.abs().max() <= bound * 1.001 and twin.std() > 0.8 * bound / math.sqrt(3)
+    assert not torch.equal(weights[1][0], weights[1][1])
+
+
+def test_gradient_clipping_clips_each_tensor_as_tf_agents_does():
+    import torch
+
+    from rlpipe.pipelines.sac import clip_gradient_norms
+
+    a, b = torch.nn.Parameter(torch.zeros(2, 3)), torch.nn.Parameter(torch.zeros(4))
+    a.grad, b.grad = torch.tensor([[3.0, 4.0, 0.0], [0.0, 0.0, 0.1]]), torch.full((4,), 10.0)
+    clip_gradient_norms([a], 1.0, stacked=True)  # each stacked network's tensor on its own
+    clip_gradient_norms([b], 1.0)
+    torch.testing.assert_close(a.grad, torch.tensor([[0.6, 0.8, 0.0], [0.0, 0.0, 0.1]]))
+    torch.testing.assert_close(b.grad, torch.full((4,), 0.5))
+
+
+def test_sac_trains_with_clipping_glorot_critics_and_the_collect_policy_first(tmp_path):
+    from rlpipe.pipelines.sac import SAC
+
+    cfg = apply_overrides(resolve_preset("sac-002")[1], [
+        "env=Pendulum-v1", "num_iterations=60", "initial_collect_steps=50", "replay_buffer_capacity=1000",
+        "batch_size=16", "eval_interval=0", "num_eval_episodes=1", "log_interval=30", "actor_fc_layer_params=[16]",
+        "critic_joint_fc_layer_params=[16]", "gradient_clipping=0.5", "critic_kernel_initializer=glorot_uniform",
+        "num_threads=1", "collector.frames_per_batch=10"])
+    pipeline = SAC(cfg)
+    collector = pipeline.make_collector(100, 50)
+    assert collector.init_random_frames == 0, "sac-002's initial steps come from the collect policy"
+    collector.shutdown()
+    random_first = SAC(apply_overrides(cfg, ["initial_collect_policy=random"])).make_collector(100, 50)
+    assert random_first.init_random_frames == 50
+    random_first.shutdown()
+    result = pipeline.train(tmp_path / "run", progress=False)
+    assert result.summary["updates"] == 60 and result.summary["final_average_return"] is not None

@@ -119,3 +119,87 @@ def test_vector_env_steps_copies_as_one_batch_and_resets_each_on_its_own():
     collector = Collector(env, None, frames_per_batch=40, total_frames=80)
     assert [b.numel() for b in collector] == [40, 40]
     collector.shutdown()
+
+
+# --- spaces beyond a flat Box: flattened where that means something, refused where not ----------------
+
+
+@pytest.mark.parametrize("env_id, size", [("FrozenLake-v1", 16), ("Blackjack-v1", 32 + 11 + 2), ("Taxi-v4", 500)])
+def test_discrete_and_tuple_observations_become_one_hot_float_vectors(env_id, size):
+    env = make_env(env_id, seed=0)
+    spec = env.observation_spec["observation"]
+    assert spec.shape == (size,) and spec.dtype == torch.float32
+    rollout = env.rollout(5)
+    obs = rollout["observation"]
+    assert obs.dtype == torch.float32 and set(obs.unique().tolist()) <= {0.0, 1.0}
+    assert is_discrete(env)
+    from rlpipe.envs import env_label
+
+    assert env_label(env) == env_id
+    env.close()
+
+
+def test_dqn_trains_on_frozenlake_and_blackjack(tmp_path):
+    from rlpipe.pipelines import dqn
+
+    for env_id in ("FrozenLake-v1", "Blackjack-v1"):
+        cfg = dqn.DQNConfig(env=env_id, num_iterations=100, initial_collect_steps=50, batch_size=16, eval_interval=0,
+                            num_eval_episodes=2, log_interval=50, num_threads=1)
+        result = dqn.DQN(cfg).train(tmp_path / env_id, progress=False)
+        assert result.summary["updates"] == 100 and result.summary["env"] == env_id
+        assert result.summary["final_average_return"] is not None
+
+
+@pytest.mark.parametrize("env_id, obs, act", [("LunarLanderContinuous-v3", 8, 2), ("BipedalWalker-v3", 24, 4)])
+def test_box2d_envs_of_the_td3_tutorial_work(env_id, obs, act):
+    env = make_env(env_id, seed=0)
+    assert env.observation_spec["observation"].shape == (obs,) and env.action_spec.shape[-1] == act
+    assert not is_discrete(env)
+    assert env.rollout(20)["next", "observation"].shape == (20, obs)
+    env.close()
+
+
+def test_td3_trains_on_lunar_lander_continuous(tmp_path):
+    from rlpipe.pipelines import td3
+
+    cfg = td3.TD3Config(env="LunarLanderContinuous-v3", num_iterations=100, initial_collect_steps=50, learning_starts=50,
+                        batch_size=16, eval_interval=0, num_eval_episodes=1, log_interval=50, num_threads=1,
+                        actor_fc_layer_params=[32], critic_fc_layer_params=[32])
+    assert td3.TD3(cfg).train(tmp_path / "run", progress=False).summary["updates"] == 100
+
+
+def test_atari_ids_name_the_extra_they_need():
+    with pytest.raises(EnvError) as info:
+        make_env("ALE/Breakout-v5")
+    assert 'pip install "gymnasium[atari]"' in str(info.value) and "ALE/Breakout-v5" in str(info.value)
+
+
+# --- what a run takes, from the env's specs ------------------------------------------------------------
+
+
+def test_transition_bytes_come_from_the_specs():
+    from rlpipe.pipelines.memory import transition_bytes
+
+    env = make_env("Pendulum-v1")
+    stored = ["observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
+              ("next", "terminated")]
+    # two 3-float observations, one float action, one float reward, two bools
+    assert transition_bytes(env, stored) == 2 * 3 * 4 + 4 + 4 + 2
+    assert transition_bytes(env) > transition_bytes(env, stored)
+    assert transition_bytes(make_env("Pendulum-v1", num_envs=4), stored) == transition_bytes(env, stored)
+
+
+def test_a_replay_that_does_not_fit_is_refused_before_anything_is_built(tmp_path):
+    from rlpipe.pipelines import InputError, td3
+    from rlpipe.pipelines.memory import available_bytes
+
+    available = available_bytes("cpu")
+    assert available is not None and available > 0
+    capacity = available // 10  # > available at ~40 bytes a transition
+    with pytest.raises(InputError) as info:
+        td3.TD3(td3.TD3Config(replay_buffer_capacity=capacity))
+    message = str(info.value)
+    assert message.startswith(f"replay_buffer_capacity={capacity}: the replay buffer") and "available" in message
+    fits = int(message.rsplit("at most about ", 1)[1])
+    assert 0 < fits < capacity
+    td3.TD3(td3.TD3Config(replay_buffer_capacity=min(fits // 2, 1_000_000)))  # what the line says fits, fits
