@@ -128,7 +128,7 @@ _POSITIVE = {
     "checkpoint_interval", "collector.workers", "collector.frames_per_batch",
     "collector.weight_sync_interval", "collector.envs_per_worker",
 }
-_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval"}
+_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval", "policy_keep", "checkpoint_keep"}
 _CHOICES = {"initial_collect_policy": ("random", "collect")}
 
 MAX_SEED = 2**31 - 1

@@ -288,6 +288,8 @@ def cmd_video(args) -> int:
 
     _positive("--episodes", args.episodes)
     _check_random_without_step(args)
+    if args.out is not None:
+        check_output_file(args.out)
     run, cfg = _run_config(args.run_dir)
     policy = None if args.random else load_policy(run.policy_dir, step=args.step, trust=args.trust)[0]
     name = "random-agent.mp4" if args.random else "trained-agent.mp4" if args.step is None else f"trained-agent-step_{args.step}.mp4"
@@ -304,6 +306,7 @@ def cmd_plot(args) -> int:
 
     for run_dir in args.run_dirs:
         RunDir.open(run_dir)
+    check_output_file(args.out)
     print(f"plot: {plot_return_curves(list(args.run_dirs), args.out)}")
     return 0
 
