@@ -91,6 +91,8 @@ class TrainConfig:
     """iterations between exports of the deterministic policy (the tutorials' saved policy)"""
     checkpoint_interval: int = 5000
     """iterations between checkpoints that `--resume` continues from"""
+    checkpoint_keep: int = 2
+    """checkpoints kept, newest first (the oldest goes once a new one is whole; `--resume` falls back on an older one if the newest is damaged); 0 keeps every one"""
     compile: bool = False
     """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU)"""
     num_threads: int = -1
