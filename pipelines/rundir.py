@@ -153,7 +153,11 @@ class RunDir:
         # folder as it was), a second open of it conflicts even within one process, and the system
         # drops it when the process dies. (The `filelock` package locks a file it creates and
         # truncates at every try, which could not say who holds it.)
-        fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError as exc:
+            raise InputError(f"{self.path}: cannot open the run directory ({exc.strerror or exc}); "
+                             "expected a folder this user may read and write") from exc
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -758,14 +758,14 @@ def test_a_torn_last_metrics_row_is_dropped_on_resume(saved_run, tmp_path, monke
 
 
 def test_summary_json_is_strict_json_when_the_return_is_nan(tmp_path):
-    from torchrl.envs import RewardScaling, TransformedEnv
+    from torchrl.envs import RewardScaling
 
     from rlpipe.envs import make_env
 
     cfg = apply_overrides(preset("dqn"), ["initial_collect_steps=20", "num_iterations=10", "eval_interval=0",
                                           "num_eval_episodes=1"])
-    result = DQN(cfg, env=lambda: TransformedEnv(make_env("CartPole-v0"), RewardScaling(0.0, float("nan")))).train(
-        tmp_path / "run", progress=False)
+    nan_rewards = lambda: make_env("CartPole-v0").append_transform(RewardScaling(0.0, float("nan")))  # noqa: E731
+    result = DQN(cfg, env=nan_rewards).train(tmp_path / "run", progress=False)
     assert result.summary["final_average_return"] != result.summary["final_average_return"]  # NaN in Python
 
     def refuse(constant):
