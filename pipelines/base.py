@@ -43,10 +43,11 @@ from rlpipe.envs import EnvError, describe_action_space, env_label, is_discrete,
 from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines.config import TrainConfig, config_to_dict, validate
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.files import STORAGE_ERRNOS, FileWriteError
 from rlpipe.pipelines.loop import Loop, TrainResult
 from rlpipe.pipelines.memory import check_memory
 from rlpipe.pipelines.meters import Clock
-from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir
+from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir, notice
 from rlpipe.pipelines.state import RunState
 from rlpipe.pipelines.triggers import Trigger, default_triggers
 from rlpipe.pipelines.update_graph import GraphedUpdate
@@ -292,15 +293,47 @@ class OffPolicyPipeline:
         names = [t.name for t in triggers]
         if len(set(names)) != len(names):
             raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
+        if self.config.checkpoint_keep < 0:
+            raise InputError(f"checkpoint_keep={self.config.checkpoint_keep}: expected zero (keep every checkpoint) "
+                             "or a positive count")
         if self.config.num_threads == -1:  # chosen once, before the run directory records the config
             self.config = dataclasses.replace(self.config, num_threads=self.choose_threads())
-        run, metrics, evaluations = self._resume(out) if resume else self._start(out)
-        self.run_dir = run
-        loop = Loop(self, run, metrics, fresh=not resume, evaluations=evaluations, triggers=triggers,
-                    logger=logger or TensorboardLogger(exp_name="tb", log_dir=str(run.path)),
-                    callbacks=callbacks, progress=progress)
-        with _torch_threads(self.config.num_threads):
-            return loop.run()
+        run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
+        self.run_dir, loop = run, None
+        try:
+            with FileWriteError.on_failure(run.path / "tb"):
+                logger = logger or TensorboardLogger(exp_name="tb", log_dir=str(run.path))
+            loop = Loop(self, run, metrics, fresh=fresh, evaluations=evaluations, triggers=triggers,
+                        logger=logger, callbacks=callbacks, progress=progress)
+            with _torch_threads(self.config.num_threads):
+                return loop.run()
+        except OSError as exc:  # a write the storage refused, outside rlpipe's own (TensorBoard's writer)
+            if exc.errno not in STORAGE_ERRNOS:
+                raise
+            raise self._stopped_writing(FileWriteError(exc.filename or run.path, exc), loop) from exc
+        except FileWriteError as exc:
+            raise self._stopped_writing(exc, loop) from exc
+        finally:
+            run.close()
+
+    def _stopped_writing(self, exc: FileWriteError, loop: Loop | None) -> InputError:
+        """The one line for a run stopped by a refused write (disk full, permissions), after saving
+        what can be saved: a checkpoint of where the run is, unless the checkpoint was what failed."""
+        run = self.run_dir
+        saved = None
+        if loop is not None and run.checkpoints not in (exc.path, *exc.path.parents):
+            try:
+                loop.save()
+                saved = f"saved a checkpoint at iteration {self.state.iteration}"
+            except (FileWriteError, OSError):
+                pass
+        if saved is None:
+            try:
+                path = ckpt.newest_whole(run.checkpoints)[0]
+            except InputError:
+                path = None
+            saved = f"its last checkpoint, {path.name}, is intact" if path else "no checkpoint was saved"
+        return InputError(f"{exc}; {saved}: make room or allow writing there, then continue with --resume {run.path}")
 
     def choose_threads(self) -> int:
         """The learner's torch threads for this machine and collector layout (``num_threads=-1``).
@@ -339,30 +372,56 @@ class OffPolicyPipeline:
                 chosen = n
         return chosen
 
-    def _start(self, out) -> tuple[RunDir, MetricsCSV, list[dict]]:
-        cfg = self.config
-        run = RunDir.create(out or default_run_dir(self.algo, cfg.env), self.algo, config_to_dict(cfg))
-        seed_everything(cfg.seed)  # replay sampling, exploration: the same seed gives the same run
-        self.state.owed = ["eval"]  # the tutorials evaluate once before training
-        return run, MetricsCSV(run.metrics_path, list(self.loss_names)), []
+    def _start(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:
+        run = RunDir.create(out or default_run_dir(self.algo, self.config.env), self.algo, config_to_dict(self.config))
+        try:
+            return run, *self._begin(run)
+        except BaseException:
+            run.close()
+            raise
 
-    def _resume(self, out) -> tuple[RunDir, MetricsCSV, list[dict]]:
+    def _begin(self, run: RunDir) -> tuple[MetricsCSV, list[dict], bool]:
+        """A run from its first iteration: (its empty metrics table, no evaluations, fresh)."""
+        seed_everything(self.config.seed)  # replay sampling, exploration: the same seed gives the same run
+        self.state.owed = ["eval"]  # the tutorials evaluate once before training
+        return MetricsCSV(run.metrics_path, list(self.loss_names)), [], True
+
+    def _resume(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:
         if out is None:
             raise InputError("resume needs the run directory to continue")
-        run = RunDir.open(out)
-        path = ckpt.latest_checkpoint(run.checkpoints)
+        run = RunDir.resume(out)
+        try:
+            return run, *self._continue(run)
+        except BaseException:
+            run.close()
+            raise
+
+    def _continue(self, run: RunDir) -> tuple[MetricsCSV, list[dict], bool]:
+        """Load the newest whole checkpoint of ``run``; (metrics table, evaluations so far, fresh)."""
+        path, skipped = ckpt.newest_whole(run.checkpoints)
+        if path is None:
+            if skipped:
+                raise InputError(f"{run.checkpoints}: no whole checkpoint to resume from ({'; '.join(skipped)})")
+            if run.has_progress():
+                raise InputError(f"{run.checkpoints}: no checkpoint to resume from; expected a run that saved one")
+            # killed while starting, before its first checkpoint: there is nothing to lose
+            notice(f"{run.path} stopped before its first checkpoint; starting it from the beginning")
+            run.write_config(self.algo, config_to_dict(self.config))
+            return self._begin(run)
         try:
             self.load_state_dict(ckpt.load_checkpoint(path, self.algo, self.config.env))
         except InputError as exc:
             changed = _changed_keys(run.read_config()[1], config_to_dict(self.config))
             hint = f" (keys changed since it was saved: {', '.join(changed)})" if changed else ""
             raise InputError(f"{path / 'state.pt'}: {exc}{hint}") from exc
+        if skipped:
+            notice(f"{run.checkpoints}: {'; '.join(skipped)}; resuming from {path.name}")
         metrics = MetricsCSV(run.metrics_path, list(self.loss_names), resume_after_step=self.state.iteration)
         run.write_config(self.algo, config_to_dict(self.config))  # keys changed on resume are recorded
         rows = metrics.rows()
         self.state.forget_done(rows)
         evaluations = [_evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
-        return run, metrics, evaluations
+        return metrics, evaluations, False
 
     def summary(self, state: RunState, evaluations: list[dict], clock: Clock) -> dict[str, Any]:
         last = evaluations[-1] if evaluations else {}

@@ -99,6 +99,8 @@ class TrainConfig:
     """iterations between checkpoints that `--resume` continues from"""
     video: bool = False
     """at the end of training, film the trained policy to RUN/trained-agent.mp4 (as `rlpipe video RUN`) and show it on RUN/report.html"""
+    checkpoint_keep: int = 2
+    """checkpoints kept, newest first (the oldest goes once a new one is whole; `--resume` falls back on an older one if the newest is damaged); 0 keeps every one"""
     compile: bool = False
     """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU); on device=cuda also replays it as CUDA graphs (see `cudagraph`)"""
     cudagraph: bool | None = None

@@ -352,7 +352,9 @@ class Loop:
     def save(self) -> None:
         self.check_finite()
         with self.clock.paused():
-            ckpt.save_checkpoint(self.run_dir.checkpoints, self.state.iteration, self.pipeline.state_dict())
+            self.metrics.sync()  # the rows this checkpoint counts reach the disk before it does
+            ckpt.save_checkpoint(self.run_dir.checkpoints, self.state.iteration, self.pipeline.state_dict(),
+                                 keep=self.config.checkpoint_keep)
 
     @contextlib.contextmanager
     def _workers(self):

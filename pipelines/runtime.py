@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import gc
 import os
 import signal
@@ -137,9 +138,11 @@ def sigint_blocked():
 # --- the test hook: a signal at an exact point of a run ------------------------------------------------
 
 # RLPIPE_FAULT="NAME@STEP" (or "NAME@STEP:SIGTERM"): a process reaching point NAME at iteration STEP
-# sends the signal (default SIGINT) to its whole process group, as a terminal's Ctrl-C does.
-# "NAME@STEP:NAN" sends nothing: fault_point returns True and the caller poisons its state (the loop:
-# a parameter becomes NaN after update STEP).
+# sends the signal (default SIGINT) to its whole process group, as a terminal's Ctrl-C does
+# (SIGSTOP holds the run there until the group gets SIGCONT). "NAME@STEP:ENOSPC" (any errno name)
+# raises that OSError there instead, as a full disk (or a refused write) would. "NAME@STEP:NAN"
+# sends nothing: fault_point returns True and the caller poisons its state (the loop: a parameter
+# becomes NaN after update STEP).
 # RLPIPE_FAULT_ONCE=PATH: only the first process to get there (it creates PATH and writes its command
 # line into it), so a study's other runs reaching the same point later do not press again.
 _FAULT = os.environ.get("RLPIPE_FAULT", "")
@@ -164,5 +167,8 @@ def fault_point(name: str, step: int) -> bool:
             fh.write(" ".join(sys.argv) + "\n")
     if signame == "NAN":
         return True
+    if signame.startswith("E"):
+        code = getattr(errno, signame)
+        raise OSError(code, os.strerror(code))
     os.killpg(os.getpgrp(), getattr(signal, signame or "SIGINT"))
     return False

@@ -321,13 +321,18 @@ def _state_of(run: Path) -> Path:
     return ckpt.latest_checkpoint(run / "checkpoints") / "state.pt"
 
 
+def _every_state(run: Path) -> list[Path]:
+    return [path / "state.pt" for path in ckpt.checkpoint_steps(run / "checkpoints").values()]
+
+
 def _garbage(run: Path, marker: Path):
-    _state_of(run).write_bytes(random.Random(0).randbytes(4096))
+    for path in _every_state(run):  # one damaged checkpoint is skipped for the one before
+        path.write_bytes(random.Random(0).randbytes(4096))
 
 
 def _truncated(run: Path, marker: Path):
-    path = _state_of(run)
-    path.write_bytes(path.read_bytes()[:1000])
+    for path in _every_state(run):
+        path.write_bytes(path.read_bytes()[:1000])
 
 
 def _foreign_dict(run: Path, marker: Path):
@@ -352,16 +357,23 @@ def _other_env(run: Path, marker: Path):
     torch.save(state, path)
 
 
-def _no_latest(run: Path, marker: Path):
-    (run / "checkpoints" / "latest").unlink()
-
-
 def _no_checkpoints(run: Path, marker: Path):
     shutil.rmtree(run / "checkpoints")
 
 
-def _latest_points_nowhere(run: Path, marker: Path):
-    shutil.rmtree(ckpt.latest_checkpoint(run / "checkpoints"))
+def _latest_names_a_parent(run: Path, marker: Path):
+    (run / "checkpoints" / "latest").write_text("../../..\n")
+
+
+def _latest_names_an_absolute_path(run: Path, marker: Path):
+    (run / "checkpoints" / "latest").write_text(f"{run.parent}\n")
+
+
+def _latest_is_a_link_outside(run: Path, marker: Path):
+    outside = run.parent / "elsewhere"
+    outside.write_text("step_0000000200\n")
+    (run / "checkpoints" / "latest").unlink()
+    (run / "checkpoints" / "latest").symlink_to(outside)
 
 
 def _format_marker_only(run: Path, marker: Path):
@@ -374,16 +386,17 @@ def _no_change(run: Path, marker: Path):
 
 BAD_RESUMES = {
     # name: (damage, extra overrides, words the one-line error names)
-    "garbage-bytes": (_garbage, [], ["state.pt"]),
-    "truncated-file": (_truncated, [], ["state.pt"]),
+    "garbage-bytes": (_garbage, [], ["no whole checkpoint", "step_0000000100", "step_0000000200"]),
+    "truncated-file": (_truncated, [], ["no whole checkpoint", "state.pt"]),
     "foreign-dict": (_foreign_dict, [], ["not an rlpipe checkpoint"]),
     "pickled-class": (_pickled_class, [], ["state.pt"]),
     "other-algo": (_other_algo, [], ["sac", "dqn"]),
     "other-env": (_other_env, [], ["Acrobot-v1", "CartPole-v0"]),
     "env-override": (_no_change, ["env=CartPole-v1"], ["CartPole-v0", "CartPole-v1"]),
-    "no-latest": (_no_latest, [], ["checkpoint"]),
-    "no-checkpoints": (_no_checkpoints, [], ["checkpoint"]),
-    "latest-points-nowhere": (_latest_points_nowhere, [], ["state.pt"]),
+    "no-checkpoints": (_no_checkpoints, [], ["no checkpoint"]),
+    "latest-names-a-parent": (_latest_names_a_parent, [], ["latest", "'../../..'", "step_NNNNNNNNNN"]),
+    "latest-names-an-absolute-path": (_latest_names_an_absolute_path, [], ["latest", "step_NNNNNNNNNN"]),
+    "latest-is-a-link-outside": (_latest_is_a_link_outside, [], ["latest", "symbolic link"]),
     "network-override": (_no_change, ["fc_layer_params=[50]"], ["fc_layer_params"]),
     "marker-only": (_format_marker_only, [], ["state.pt"]),
 }
@@ -563,3 +576,200 @@ def test_a_run_started_immune_to_ctrl_c_stays_so(tmp_path):
         out, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err[-3000:]
     assert json.loads((run / "summary.json").read_text())["iterations"] == 1500
+
+
+# --- crash-safe saves ----------------------------------------------------------------------------------
+
+
+def _small_state(x: float) -> dict:
+    return {"algo": "dqn", "env": "CartPole-v0", "x": torch.full((3,), x)}
+
+
+def _x_of(path: Path) -> float:
+    return float(ckpt.load_checkpoint(path, "dqn", "CartPole-v0")["x"][0])
+
+
+@pytest.mark.unit
+def test_every_instant_of_an_overwrite_leaves_latest_naming_a_whole_checkpoint(tmp_path, monkeypatch):
+    """A checkpoint saved again at the same step (a Ctrl-C after the periodic save, a finished run
+    resumed) replaces the old one: at each point inside the save where a kill could land, the
+    checkpoint a resume would take is whole, the old one or the new one."""
+    folder = tmp_path / "checkpoints"
+    ckpt.save_checkpoint(folder, 5, _small_state(1.0))
+    seen = {}
+
+    def at(name, step):
+        path = ckpt.latest_checkpoint(folder)
+        seen[name] = (path.name, _x_of(path))
+
+    monkeypatch.setattr(ckpt, "fault_point", at)
+    ckpt.save_checkpoint(folder, 5, _small_state(2.0))
+    assert set(seen) >= {"checkpoint.write", "checkpoint.written", "checkpoint.exchanged", "checkpoint.latest"}
+    assert seen["checkpoint.written"] == ("step_0000000005", 1.0)  # the new one is whole, not in yet
+    assert seen["checkpoint.exchanged"] == ("step_0000000005", 2.0)  # in; the old one not yet removed
+    assert _x_of(ckpt.latest_checkpoint(folder)) == 2.0
+    assert sorted(p.name for p in folder.iterdir()) == ["latest", "step_0000000005"]
+
+
+@pytest.mark.unit
+def test_without_an_atomic_exchange_a_checkpoint_set_aside_comes_back(tmp_path, monkeypatch):
+    """Where the system has no atomic exchange, the old checkpoint steps aside for the new one; killed
+    in between, the next start puts it back."""
+    folder = tmp_path / "checkpoints"
+    ckpt.save_checkpoint(folder, 5, _small_state(1.0))
+    monkeypatch.setattr(ckpt, "_exchange", lambda a, b: False)  # as on a system without renameat2
+
+    class Killed(BaseException):
+        pass
+
+    def kill_at(name, step):
+        if name == "checkpoint.aside":
+            raise Killed
+
+    monkeypatch.setattr(ckpt, "fault_point", kill_at)
+    with pytest.raises(Killed):
+        ckpt.save_checkpoint(folder, 5, _small_state(2.0))
+    assert not (folder / "step_0000000005").exists()
+    ckpt.remove_leftovers(folder)
+    assert _x_of(ckpt.latest_checkpoint(folder)) == 1.0
+    assert sorted(p.name for p in folder.iterdir()) == ["latest", "step_0000000005"]
+    monkeypatch.setattr(ckpt, "fault_point", lambda name, step: None)
+    ckpt.save_checkpoint(folder, 5, _small_state(2.0))
+    assert _x_of(ckpt.latest_checkpoint(folder)) == 2.0
+
+
+@pytest.mark.unit
+def test_a_full_disk_inside_a_save_is_one_error_and_keeps_the_previous(tmp_path, monkeypatch):
+    from rlpipe.pipelines import runtime
+    from rlpipe.pipelines.files import FileWriteError
+
+    folder = tmp_path / "checkpoints"
+    ckpt.save_checkpoint(folder, 5, _small_state(1.0))
+    monkeypatch.setattr(runtime, "_FAULT", "checkpoint.write@6:ENOSPC")
+    with pytest.raises(FileWriteError, match="No space left on device") as raised:
+        ckpt.save_checkpoint(folder, 6, _small_state(2.0))
+    assert isinstance(raised.value, InputError) and len(str(raised.value).splitlines()) == 1
+    assert ckpt.latest_checkpoint(folder).name == "step_0000000005"
+    assert sorted(p.name for p in folder.iterdir()) == ["latest", "step_0000000005"]
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("umask", [0o022, 0o027])
+def test_checkpoint_folders_get_the_permissions_of_the_run_directory(tmp_path, umask):
+    before = os.umask(umask)
+    try:
+        run = tmp_path / "run"
+        run.mkdir()
+        path = ckpt.save_checkpoint(run / "checkpoints", 1, _small_state(1.0))
+    finally:
+        os.umask(before)
+    mode = run.stat().st_mode & 0o777
+    assert mode == 0o777 & ~umask
+    assert (run / "checkpoints").stat().st_mode & 0o777 == mode
+    assert path.stat().st_mode & 0o777 == mode  # was 0700 (mkdtemp's)
+    assert (path / "state.pt").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+@pytest.mark.unit
+def test_checkpoint_keep_prunes_the_oldest_once_a_new_one_is_whole(tmp_path):
+    folder = tmp_path / "checkpoints"
+    for keep, expected in ((2, [3, 4]), (1, [4]), (3, [2, 3, 4]), (0, [0, 1, 2, 3, 4])):
+        shutil.rmtree(folder, ignore_errors=True)
+        for step in range(5):
+            ckpt.save_checkpoint(folder, step, _small_state(step), keep=keep)
+        assert list(ckpt.checkpoint_steps(folder)) == expected, keep
+    # a run resumed from an older checkpoint (the newer one damaged) drops the newer ones it abandons
+    ckpt.save_checkpoint(folder, 2, _small_state(9.0), keep=2)
+    assert list(ckpt.checkpoint_steps(folder)) == [1, 2]
+
+
+def test_checkpoint_keep_in_a_run(tmp_path):
+    cfg = apply_overrides(preset("dqn"), ["initial_collect_steps=100", "num_iterations=200", "eval_interval=0",
+                                          "num_eval_episodes=1", "checkpoint_interval=50", "checkpoint_keep=0"])
+    DQN(cfg).train(tmp_path / "all", progress=False)
+    assert list(ckpt.checkpoint_steps(tmp_path / "all" / "checkpoints")) == [0, 50, 100, 150, 200]
+    with pytest.raises(InputError, match="checkpoint_keep=-1"):
+        DQN(apply_overrides(cfg, ["checkpoint_keep=-1"])).train(tmp_path / "bad", progress=False)
+    assert not (tmp_path / "bad").exists()
+
+
+# --- resuming what a crash or a damaged disk left ------------------------------------------------------------
+
+
+def _resume_in_process(run: Path, monkeypatch, capsys, *overrides: str) -> tuple[int, str]:
+    from rlpipe.scripts.cli import main
+
+    monkeypatch.chdir(run.parent)
+    capsys.readouterr()
+    code = main(["train", "dqn", *overrides, "--resume", str(run), "--no-progress"])
+    return code, capsys.readouterr().err
+
+
+def _flip_a_byte(path: Path) -> None:
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # torch.load would read this without a word; the zip's CRC does not match
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("damage", ["flipped-byte", "garbage", "folder-missing"])
+def test_resume_falls_back_on_the_newest_whole_checkpoint(saved_run, tmp_path, monkeypatch, capsys, damage):
+    run = copy_run(saved_run, tmp_path / "run")
+    newest = run / "checkpoints" / f"step_{N:010d}"
+    if damage == "flipped-byte":
+        _flip_a_byte(newest / "state.pt")
+    elif damage == "garbage":
+        (newest / "state.pt").write_bytes(b"\0" * 100)
+    else:
+        shutil.rmtree(newest)
+    code, err = _resume_in_process(run, monkeypatch, capsys, f"num_iterations={2 * N}")
+    assert code == 0, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and f"step_{N:010d}" in lines[0] and "resuming from step_0000000100" in lines[0], err
+    rows = metric_rows(run)
+    assert_no_duplicated_steps(rows)
+    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 100, 200, 300, 400]
+    assert list(ckpt.checkpoint_steps(run / "checkpoints")) == [300, 400]
+
+
+def test_resume_without_latest_takes_the_newest_whole_checkpoint(saved_run, tmp_path, monkeypatch, capsys):
+    """A kill between a first checkpoint moving in and `latest` being written leaves no `latest`."""
+    run = copy_run(saved_run, tmp_path / "run")
+    (run / "checkpoints" / "latest").unlink()
+    code, err = _resume_in_process(run, monkeypatch, capsys, f"num_iterations={N + 100}")
+    assert code == 0, err
+    assert json.loads((run / "summary.json").read_text())["updates"] == N + 100
+
+
+@pytest.mark.parametrize("tail", [b"25", b"\0" * 200], ids=["torn-row", "zeroed-tail"])
+def test_a_torn_last_metrics_row_is_dropped_on_resume(saved_run, tmp_path, monkeypatch, capsys, tail):
+    """A crash (or a full disk) mid-row leaves the start of a row (here of step 250's: '25'); a power
+    cut can leave zeroes. Neither is read as a row, nor stops the resume."""
+    run = copy_run(saved_run, tmp_path / "run")
+    whole = metric_rows(run)
+    with (run / "metrics.csv").open("ab") as fh:
+        fh.write(tail)
+    code, err = _resume_in_process(run, monkeypatch, capsys, f"num_iterations={2 * N}")
+    assert code == 0, err
+    rows = metric_rows(run)
+    assert rows[: len(whole)] == whole
+    assert all(None not in r and None not in r.values() for r in rows), "a junk row was kept"
+    assert_no_duplicated_steps(rows)
+    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 100, 200, 300, 400]
+
+
+def test_summary_json_is_strict_json_when_the_return_is_nan(tmp_path):
+    from torchrl.envs import RewardScaling
+
+    from rlpipe.envs import make_env
+
+    cfg = apply_overrides(preset("dqn"), ["initial_collect_steps=20", "num_iterations=10", "eval_interval=0",
+                                          "num_eval_episodes=1"])
+    nan_rewards = lambda: make_env("CartPole-v0").append_transform(RewardScaling(0.0, float("nan")))  # noqa: E731
+    result = DQN(cfg, env=nan_rewards).train(tmp_path / "run", progress=False)
+    assert result.summary["final_average_return"] != result.summary["final_average_return"]  # NaN in Python
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text(), parse_constant=refuse)
+    assert summary["final_average_return"] is None

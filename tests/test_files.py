@@ -8,7 +8,9 @@ import stat
 import pytest
 
 from rlpipe.pipelines.files import (
+    FileWriteError,
     atomic_path,
+    remove_temporaries,
     write_bytes_atomic,
     write_json_atomic,
     write_text_atomic,
@@ -52,8 +54,30 @@ def test_a_reader_of_the_old_file_keeps_reading_the_old_file(tmp_path):
 def test_write_helpers(tmp_path):
     assert write_bytes_atomic(tmp_path / "a.bin", b"\x00\x01").read_bytes() == b"\x00\x01"
     assert write_text_atomic(tmp_path / "a.md", "★ full\n").read_text(encoding="utf-8") == "★ full\n"
-    path = write_json_atomic(tmp_path / "a.json", {"x": [1, 2], "y": float("nan")})
+    path = write_json_atomic(tmp_path / "a.json", {"x": [1, 2], "y": float("nan"), "z": [float("-inf")]})
     text = path.read_text()
-    assert text == json.dumps({"x": [1, 2], "y": float("nan")}, indent=2) + "\n"  # NaN as json.dump writes it
+    assert text == json.dumps({"x": [1, 2], "y": None, "z": [None]}, indent=2) + "\n"  # strict JSON: no bare NaN
     assert mode(path) == 0o644
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "a.json", "a.md"]
+
+
+def test_remove_temporaries_clears_what_a_killed_write_left(tmp_path):
+    (tmp_path / "policy.pt2").write_bytes(b"the export")
+    (tmp_path / ".policy.pt2.ab_cd123.pt2").write_bytes(b"half an export")
+    (tmp_path / ".metrics.csv.x1y2z3w4").write_text("half a table")
+    (tmp_path / ".hidden-by-the-user").write_text("not ours")
+    removed = remove_temporaries(tmp_path, ["policy.pt2"])
+    assert [p.name for p in removed] == [".policy.pt2.ab_cd123.pt2"]
+    remove_temporaries(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".hidden-by-the-user", "policy.pt2"]
+
+
+def test_a_refused_write_is_one_file_write_error_and_leaves_the_old_file(tmp_path):
+    target = write_text_atomic(tmp_path / "summary.json", "old\n")
+    with pytest.raises(FileWriteError, match="cannot write .*summary.json: No space left on device"):
+        with atomic_path(target) as tmp, tmp.open("wb") as fh, open("/dev/full", "wb") as full:
+            fh.write(b"new")
+            full.write(b"x" * 100_000)  # a full disk, as the system reports it
+            full.flush()
+    assert target.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["summary.json"]
