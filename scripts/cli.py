@@ -198,9 +198,15 @@ def _show_live_log() -> None:
     """The run's live log (rlpipe's INFO records: the tutorials' `step = N: ...` lines) on stdout."""
     import logging
 
+    class CurrentStdout(logging.StreamHandler):
+        """Writes to whatever ``sys.stdout`` is when a record comes: in-process callers of ``main``
+        (tests capturing output) swap it between runs, and a handler bound to a closed one errs."""
+
+        stream = property(lambda self: sys.stdout, lambda self, value: None)
+
     log = logging.getLogger("rlpipe")
     if not any(getattr(h, "rlpipe_live_log", False) for h in log.handlers):
-        handler = logging.StreamHandler(sys.stdout)
+        handler = CurrentStdout()
         handler.setFormatter(logging.Formatter("%(message)s"))
         handler.rlpipe_live_log = True
         log.addHandler(handler)

@@ -764,8 +764,9 @@ def test_summary_json_is_strict_json_when_the_return_is_nan(tmp_path):
 
     cfg = apply_overrides(preset("dqn"), ["initial_collect_steps=20", "num_iterations=10", "eval_interval=0",
                                           "num_eval_episodes=1"])
+    # NaN rewards in the evaluation only: training on them would stop the run as diverged
     nan_rewards = lambda: make_env("CartPole-v0").append_transform(RewardScaling(0.0, float("nan")))  # noqa: E731
-    result = DQN(cfg, env=nan_rewards).train(tmp_path / "run", progress=False)
+    result = DQN(cfg, env=lambda: make_env("CartPole-v0"), eval_env=nan_rewards).train(tmp_path / "run", progress=False)
     assert result.summary["final_average_return"] != result.summary["final_average_return"]  # NaN in Python
 
     def refuse(constant):

@@ -276,7 +276,7 @@ def test_a_folder_turned_read_only_mid_run_saves_where_it_can(tmp_path):
             code, _, err = finish(proc)
     assert code == 2, err
     line = error_line(err)
-    assert "policy.pt2" in line and REFUSED(line) and "saved a checkpoint at iteration 100" in line, line
+    assert "/policy/" in line and REFUSED(line) and "saved a checkpoint at iteration 100" in line, line
     assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000100"
 
     code, _, err = rlpipe(["train", "dqn", "--resume", run, "--no-progress"], cwd)
