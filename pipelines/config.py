@@ -13,6 +13,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import difflib
+import importlib.util
 import inspect
 import typing
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from rlpipe.pipelines.errors import InputError
 
 __all__ = [
     "CollectorConfig",
+    "RayConfig",
     "TrainConfig",
     "apply_overrides",
     "config_to_dict",
@@ -48,7 +50,19 @@ class CollectorConfig:
     frames_per_batch: int = 50
     """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
     weight_sync_interval: int = 1
-    """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container)"""
+    """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container); with backend=ray a worker gets the learner's weights each time it is asked for a block"""
+    backend: str = "local"
+    """'local': collector processes on this machine; 'ray': collectors as Ray actors placed by Ray (TorchRL's `RayCollector`; see the `ray` keys)"""
+
+
+@dataclass
+class RayConfig:
+    """Where Ray places the collectors when collector.backend=ray."""
+
+    address: str = ""
+    """the Ray cluster to use: empty starts a local Ray instance for this run (shut down at its end); 'auto' or HOST:PORT joins a running cluster (as RAY_ADDRESS does), which the run leaves up"""
+    num_cpus_per_worker: float = 1.0
+    """CPUs Ray reserves for each collector actor (a fraction packs several actors on one core)"""
 
 
 @dataclass
@@ -100,6 +114,7 @@ class TrainConfig:
     device: str = "cpu"
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
     collector: CollectorConfig = field(default_factory=CollectorConfig)
+    ray: RayConfig = field(default_factory=RayConfig)
 
     @property
     def total_frames(self) -> int:
@@ -157,6 +172,13 @@ def validate(cfg) -> None:
     if cfg.num_threads < -1:
         raise InputError(f"num_threads={cfg.num_threads}: expected -1 (chosen at start), 0 (torch's default) or a positive count")
     c = cfg.collector
+    if c.backend not in ("local", "ray"):
+        raise InputError(f"collector.backend={c.backend!r}: expected 'local' (collector processes) or 'ray' (Ray actors)")
+    if not cfg.ray.num_cpus_per_worker > 0:
+        raise InputError(f"ray.num_cpus_per_worker={cfg.ray.num_cpus_per_worker}: expected a positive number of CPUs")
+    if c.backend == "ray" and importlib.util.find_spec("ray") is None:
+        raise InputError("collector.backend=ray: Ray is not installed; expected `pip install 'rlpipe[ray]'` "
+                         "(or collector.backend=local)")
     per_block = c.envs_per_worker * (c.workers if c.sync else 1)
     if c.envs_per_worker > 1 and c.frames_per_batch % per_block:
         raise InputError(
@@ -164,6 +186,9 @@ def validate(cfg) -> None:
             f"{per_block} envs (collector.workers={c.workers} x collector.envs_per_worker={c.envs_per_worker}"
             f"{'' if c.sync else ', one worker per block'}): expected a multiple of {per_block}"
         )
+    if c.backend == "ray" and c.sync and c.frames_per_batch % c.workers:
+        raise InputError(f"collector.frames_per_batch={c.frames_per_batch} does not split evenly over "
+                         f"collector.workers={c.workers} Ray actors (collector.sync=true): expected a multiple of {c.workers}")
     if not 0.0 < cfg.gamma <= 1.0:
         raise InputError(f"gamma={cfg.gamma}: expected a discount in (0, 1]")
     if not 0.0 < cfg.target_update_tau <= 1.0:

@@ -89,9 +89,11 @@ class MetricsCSV:
     table is written here (TensorBoard gets the same scalars through TorchRL's logger).
     """
 
-    def __init__(self, path: Path, loss_names: list[str], resume_after_step: int | None = None):
+    def __init__(self, path: Path, loss_names: list[str], resume_after_step: int | None = None,
+                 extra_columns: list[str] = ()):
         self.path = Path(path)
-        self.columns = BASE_COLUMNS + [f"loss_{n}" for n in loss_names] + SPEED_COLUMNS
+        # extra_columns: what a collector backend reports (Ray: workers alive, weight versions)
+        self.columns = BASE_COLUMNS + [f"loss_{n}" for n in loss_names] + SPEED_COLUMNS + list(extra_columns)
         if resume_after_step is not None and self.path.exists():
             # Rows past the checkpoint will be produced again by the resumed run.
             with self.path.open(newline="") as fh:

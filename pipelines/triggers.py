@@ -75,7 +75,11 @@ class LogTrigger(Trigger):
     name = "log"
 
     def __call__(self, loop: Loop) -> None:
-        loop.log(loop.interval_stats.flush(loop.clock))
+        row = loop.interval_stats.flush(loop.clock)
+        collector_metrics = getattr(loop.collector, "metrics", None)  # a backend's own figures (Ray: workers alive)
+        if collector_metrics is not None:
+            row.update(collector_metrics())
+        loop.log(row)
 
 
 class EvalTrigger(Trigger):

@@ -1,0 +1,152 @@
+"""Collectors as Ray actors (``collector.backend=ray``) on a real Ray: a two-node cluster on this machine
+that a run joins, a local instance a run starts and stops, Ctrl-C on a Ray run.
+
+Runs are real ``rlpipe train`` processes, each in its own session, so that what Ray processes a run
+started can be found (and must be gone) after it exits.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rlpipe.pipelines import td3
+from rlpipe.pipelines.config import apply_overrides
+from rlpipe.pipelines.errors import InputError
+
+ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'` (scripts/setup.sh does)")
+
+MODULE = [sys.executable, "-m", "rlpipe.scripts.cli"]
+# td3 on Pendulum: 100 random steps, then 300 iterations; updates start at learning_starts=256
+TINY = ["num_iterations=300", "initial_collect_steps=100", "eval_interval=150", "num_eval_episodes=1",
+        "log_interval=100", "checkpoint_interval=150", "policy_save_interval=150", "collector.backend=ray",
+        "collector.workers=2", "num_threads=1"]
+FRAMES, UPDATES = 400, 400 - 256
+QUIET = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_DEDUP_LOGS": "0"}
+
+
+def train(args, cwd: Path, env: dict | None = None, timeout: float = 400) -> tuple[subprocess.CompletedProcess, int]:
+    """``rlpipe train`` in a session of its own; returns the process and its session id."""
+    proc = subprocess.Popen([*MODULE, "train", *map(str, args), "--no-progress"], cwd=cwd, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                            env={**os.environ, **QUIET, **(env or {})})
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"run did not finish in {timeout} s\n{err[-3000:]}")
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err), proc.pid
+
+
+def session_processes(sid: int) -> list[str]:
+    """Command lines of the processes in session ``sid``."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[3]) == sid:
+                found.append((stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"))
+        except (OSError, IndexError, ValueError):
+            continue
+    return found
+
+
+def assert_no_leftovers(sid: int, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while (left := session_processes(sid)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not left, f"processes the run started are still there: {left}"
+
+
+def metrics_rows(run: Path) -> list[dict[str, str]]:
+    with (run / "metrics.csv").open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def assert_finished(run: Path, proc: subprocess.CompletedProcess) -> list[dict[str, str]]:
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert (summary["iterations"], summary["frames"], summary["updates"]) == (300, FRAMES, UPDATES)
+    assert (run / "policy" / "policy.json").exists()
+    rows = metrics_rows(run)
+    logged = [r for r in rows if r["workers_alive"]]
+    assert [int(r["step"]) for r in logged] == [100, 200, 300]
+    assert all(int(r["workers_alive"]) == 2 for r in logged)
+    # the version the learner sends is its update count; frames were collected with versions at most that
+    assert [int(r["weight_version"]) for r in logged] == [int(r["updates"]) for r in logged]
+    staleness = [float(r["weight_staleness"]) for r in logged]
+    assert staleness[0] == 0 and all(0 <= s <= int(r["updates"]) for s, r in zip(staleness, logged))
+    return rows
+
+
+@pytest.fixture
+def cluster():
+    """A Ray cluster of two nodes on this machine: a head and one more, a CPU each."""
+    from ray.cluster_utils import Cluster
+
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    try:
+        c.add_node(num_cpus=1)
+        c.wait_for_nodes()
+        yield c
+    finally:
+        c.shutdown()
+
+
+def test_td3_joins_a_two_node_ray_cluster_and_leaves_it_up(cluster, tmp_path):
+    proc, sid = train(["td3", *TINY, "collector.sync=false", f"ray.address={cluster.address}", "--out", "run"],
+                      tmp_path)
+    assert_finished(tmp_path / "run", proc)
+    assert_no_leftovers(sid)
+    # one actor per node (a CPU each): the run needed both, and left the cluster as it found it
+    assert cluster.remaining_processes_alive()
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["config"]["ray"]["address"] == cluster.address
+
+
+def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
+    proc, sid = train(["td3", *TINY, "collector.sync=true", "ray.address=", "--out", "run"], tmp_path)
+    assert_finished(tmp_path / "run", proc)
+    assert_no_leftovers(sid)
+
+
+def test_ctrl_c_on_a_ray_run_saves_exits_130_and_resumes(tmp_path):
+    run = tmp_path / "run"
+    args = ["td3", *TINY, "collector.sync=false", "--out", "run"]
+    proc, sid = train(args, tmp_path, env={"RLPIPE_FAULT": "evaluate@150"})
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    assert (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir())
+    assert_no_leftovers(sid)
+    proc, sid = train(["td3", "--resume", "run"], tmp_path)
+    assert_finished(run, proc)
+    assert_no_leftovers(sid)
+
+
+# --- configuration, no Ray started --------------------------------------------------------------------
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("override, words", [
+    ("collector.backend=slurm", ["collector.backend='slurm'", "'ray'"]),
+    ("ray.num_cpus_per_worker=0", ["ray.num_cpus_per_worker=0", "positive"]),
+])
+def test_bad_ray_keys_are_one_clear_error(override, words):
+    with pytest.raises(InputError) as err:
+        apply_overrides(td3.preset("td3"), [override])
+    for word in words:
+        assert word in str(err.value)
+
+
+@pytest.mark.unit
+def test_sync_ray_blocks_must_split_over_the_actors():
+    with pytest.raises(InputError, match="multiple of 3"):
+        apply_overrides(td3.preset("td3"), ["collector.backend=ray", "collector.workers=3", "collector.sync=true",
+                                            "collector.frames_per_batch=50"])
