@@ -232,6 +232,8 @@ def apply_overrides(cfg, overrides: list[str]):
             close = difflib.get_close_matches(key, keys, n=3, cutoff=0.5)
             hint = f"; closest valid keys: {', '.join(close)}" if close else f"; valid keys: {', '.join(keys)}"
             raise InputError(f"unknown config key {key!r}{hint}")
+        if not value.strip() and _describe_type(cfg, key) == "a string":
+            value = "''"  # `ray.address=`: the empty string (OmegaConf reads an empty value as null)
         try:
             conf = OmegaConf.merge(conf, OmegaConf.from_dotlist([f"{key}={value}"]))
         except OmegaConfBaseException as exc:

@@ -9,5 +9,6 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q torch==2.13.0
-.venv/bin/python -m pip install -q -e ".[test]"
+# ray: collector.backend=ray and its tests (tests/test_ray.py)
+.venv/bin/python -m pip install -q -e ".[test,ray]"
 echo "rlpipe is set up in .venv (activate with: source .venv/bin/activate)"

@@ -150,3 +150,9 @@ def test_sync_ray_blocks_must_split_over_the_actors():
     with pytest.raises(InputError, match="multiple of 3"):
         apply_overrides(td3.preset("td3"), ["collector.backend=ray", "collector.workers=3", "collector.sync=true",
                                             "collector.frames_per_batch=50"])
+
+
+@pytest.mark.unit
+def test_an_empty_ray_address_means_a_local_instance():
+    assert apply_overrides(td3.preset("td3"), ["ray.address="]).ray.address == ""
+    assert apply_overrides(td3.preset("td3"), ["ray.address=auto"]).ray.address == "auto"
