@@ -49,15 +49,7 @@ def train(args, cwd: Path, env: dict | None = None, timeout: float = 400) -> tup
 
 def session_processes(sid: int) -> list[str]:
     """Command lines of the processes in session ``sid``."""
-    found = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            if int(fields[3]) == sid:
-                found.append((stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"))
-        except (OSError, IndexError, ValueError):
-            continue
-    return found
+    return [_cmdline(p) for p in Path("/proc").glob("[0-9]*") if _session(p) == sid]
 
 
 def assert_no_leftovers(sid: int, timeout: float = 30.0) -> None:
@@ -128,6 +120,47 @@ def test_ctrl_c_on_a_ray_run_saves_exits_130_and_resumes(tmp_path):
     proc, sid = train(["td3", "--resume", "run"], tmp_path)
     assert_finished(run, proc)
     assert_no_leftovers(sid)
+
+
+def test_a_lost_actor_stops_the_run_with_a_clear_error_not_a_hang(tmp_path):
+    """kill -9 of one collector actor once the run has logged: the learner learns of it at its next
+    block, stops with WorkerLost naming what was lost, and the local Ray instance goes with it."""
+    run = tmp_path / "run"
+    args = [*MODULE, "train", "td3", *TINY, "collector.sync=false", "num_iterations=3000", "--out", "run", "--no-progress"]
+    proc = subprocess.Popen(args, cwd=tmp_path, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True, env={**os.environ, **QUIET})
+    try:
+        deadline = time.monotonic() + 300
+        while not ((run / "metrics.csv").exists() and any(r["workers_alive"] for r in metrics_rows(run))):
+            assert proc.poll() is None and time.monotonic() < deadline, "the run ended or stalled before logging"
+            time.sleep(0.2)
+        actors = [p for p in Path("/proc").glob("[0-9]*") if _cmdline(p).startswith("ray::Collector")
+                  and _session(p) == proc.pid]
+        assert len(actors) == 2, [_cmdline(p) for p in actors]
+        os.kill(int(actors[0].name), signal.SIGKILL)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 1, err[-3000:]
+    assert "WorkerLost: a Ray collector actor was lost" in err, err[-3000:]
+    assert "1 of 2 alive" in err or "0 of 2 alive" in err, err[-3000:]
+    assert_no_leftovers(proc.pid)
+
+
+def _cmdline(proc_dir: Path) -> str:
+    try:
+        return (proc_dir / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _session(proc_dir: Path) -> int | None:
+    try:
+        return int((proc_dir / "stat").read_text().rsplit(")", 1)[1].split()[3])
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 # --- configuration, no Ray started --------------------------------------------------------------------
