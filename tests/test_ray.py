@@ -105,8 +105,11 @@ def test_td3_joins_a_two_node_ray_cluster_and_leaves_it_up(cluster, tmp_path):
 
 
 def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
-    proc, sid = train(["td3", *TINY, "collector.sync=true", "ray.address=", "--out", "run"], tmp_path)
-    assert_finished(tmp_path / "run", proc)
+    """Also with the evaluation in the background (its own process on the learner's machine)."""
+    proc, sid = train(["td3", *TINY, "collector.sync=true", "ray.address=", "eval_in_background=true", "--out", "run"],
+                      tmp_path)
+    rows = assert_finished(tmp_path / "run", proc)
+    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 150, 300]
     assert_no_leftovers(sid)
 
 
