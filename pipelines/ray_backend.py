@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+import socket
 import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -65,6 +66,7 @@ class RayRuntime:
         common = dict(include_dashboard=False, logging_level="error", configure_logging=True, log_to_driver=False)
         try:
             if address:
+                _check_reachable(address)
                 ray.init(address=address, **common)
             else:
                 # "local" rather than None: None would join whichever cluster was started last on this
@@ -228,6 +230,26 @@ def _check_cpus(ray, workers: int, per_worker: float, address: str) -> None:
         raise InputError(f"collector.workers={workers} x ray.num_cpus_per_worker={per_worker:g} needs "
                          f"{workers * per_worker:g} CPUs; {where} has {total:g}: expected fewer workers, a smaller "
                          "ray.num_cpus_per_worker, or more nodes")
+
+
+def _check_reachable(address: str) -> None:
+    """Raise ``ConnectionError`` at once if nothing listens at ``address``: ``ray.init`` would retry
+    its connection to the cluster's GCS for minutes (Ray 2.60), with no message a user can act on."""
+    if address.startswith("ray://"):  # Ray Client: its own handshake, with its own timeout
+        return
+    from ray._private.services import canonicalize_bootstrap_address
+
+    try:
+        host_port = canonicalize_bootstrap_address(address)  # "auto": the cluster this machine last started
+    except ValueError as exc:
+        raise ConnectionError(str(exc)) from exc
+    if host_port is None:
+        return
+    host, _, port = host_port.rpartition(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=5.0).close()
+    except (OSError, ValueError) as exc:
+        raise ConnectionError(f"nothing listens at {host_port}: {exc}") from exc
 
 
 def _first_line(exc: BaseException) -> str:

@@ -192,3 +192,11 @@ def test_sync_ray_blocks_must_split_over_the_actors():
 def test_an_empty_ray_address_means_a_local_instance():
     assert apply_overrides(td3.preset("td3"), ["ray.address="]).ray.address == ""
     assert apply_overrides(td3.preset("td3"), ["ray.address=auto"]).ray.address == "auto"
+
+
+def test_an_address_where_no_ray_listens_is_one_clear_error(tmp_path):
+    proc, sid = train(["td3", *TINY, "ray.address=127.0.0.1:9", "--out", "run"], tmp_path, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
+    assert lines[0].startswith("rlpipe: error: ray.address='127.0.0.1:9': no Ray cluster answers there"), lines[0]
+    assert_no_leftovers(sid)
