@@ -94,14 +94,21 @@ def cluster():
         c.shutdown()
 
 
-def test_td3_joins_a_two_node_ray_cluster_and_leaves_it_up(cluster, tmp_path):
-    proc, sid = train(["td3", *TINY, "collector.sync=false", f"ray.address={cluster.address}", "--out", "run"],
-                      tmp_path)
-    assert_finished(tmp_path / "run", proc)
+def test_td3_on_a_two_node_ray_cluster_stopped_by_ctrl_c_then_resumed(cluster, tmp_path):
+    """A run joins the cluster, is stopped by Ctrl-C (checkpoint, exit 130) and resumed there; the
+    cluster stays up throughout, and neither run leaves a process behind."""
+    run = tmp_path / "run"
+    args = ["td3", *TINY, "collector.sync=false", f"ray.address={cluster.address}", "--out", "run"]
+    proc, sid = train(args, tmp_path, env={"RLPIPE_FAULT": "evaluate@150"})
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    assert (run / "checkpoints" / "step_0000000150").is_dir()
     assert_no_leftovers(sid)
-    # one actor per node (a CPU each): the run needed both, and left the cluster as it found it
     assert cluster.remaining_processes_alive()
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["config"]["ray"]["address"] == cluster.address
+    proc, sid = train(["td3", "--resume", "run"], tmp_path)
+    assert_finished(run, proc)
+    assert_no_leftovers(sid)
+    assert cluster.remaining_processes_alive()
+    assert json.loads((run / "config.json").read_text())["config"]["ray"]["address"] == cluster.address
 
 
 def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
@@ -113,15 +120,13 @@ def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
     assert_no_leftovers(sid)
 
 
-def test_ctrl_c_on_a_ray_run_saves_exits_130_and_resumes(tmp_path):
+def test_ctrl_c_on_a_local_ray_run_saves_exits_130_and_stops_its_ray(tmp_path):
     run = tmp_path / "run"
-    args = ["td3", *TINY, "collector.sync=false", "--out", "run"]
-    proc, sid = train(args, tmp_path, env={"RLPIPE_FAULT": "evaluate@150"})
+    proc, sid = train(["td3", *TINY, "collector.sync=false", "--out", "run"], tmp_path,
+                      env={"RLPIPE_FAULT": "evaluate@150"})
     assert proc.returncode == 130, proc.stderr[-3000:]
-    assert (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir())
-    assert_no_leftovers(sid)
-    proc, sid = train(["td3", "--resume", "run"], tmp_path)
-    assert_finished(run, proc)
+    assert "--resume" in proc.stderr
+    assert (run / "checkpoints" / "step_0000000150").is_dir()
     assert_no_leftovers(sid)
 
 
