@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import os
 import socket
+import time
 import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -109,7 +110,8 @@ class RayCollectors:
         try:
             _check_cpus(ray, c.workers, r.num_cpus_per_worker, r.address)
             self.scheme = RayWeightSyncScheme()
-            # The version the first weights carry (a resumed run's policy is already trained).
+            # The version the first weights carry (a resumed run's policy is already trained). TorchRL
+            # 0.14 has no public setter; its own Ray trainer (trainers/_ray_execution.py) stamps so.
             self.scheme._set_model_version(learner_version())
             self.collector = _ray_collector(env_fn, policy, config, total_frames, init_random_frames, self.scheme)
             self._actors = list(self.collector.remote_collectors)
@@ -145,7 +147,11 @@ class RayCollectors:
                 batch = next(blocks)
             except StopIteration:
                 return
-            except ray.exceptions.RayActorError as exc:
+            except Exception as exc:
+                # Ray says so (the block of a dead actor), or the weight push finds its peer gone first
+                # (Gloo's "Connection closed by peer"): then Ray's actor table says so within seconds.
+                if not (isinstance(exc, ray.exceptions.RayActorError) or self._some_lost(within_s=10.0)):
+                    raise
                 raise WorkerLost(f"a Ray collector actor was lost ({_first_line(exc)}); "
                                  f"{self.alive_workers()} of {self.num_workers} alive") from exc
             self._note_versions(batch)
@@ -179,6 +185,14 @@ class RayCollectors:
             except Exception:  # an actor the GCS no longer knows is not alive
                 pass
         return alive
+
+    def _some_lost(self, within_s: float) -> bool:
+        deadline = time.monotonic() + within_s
+        while self.alive_workers() == self.num_workers:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.2)
+        return True
 
     def _note_versions(self, batch: TensorDictBase) -> None:
         versions = batch.get(("next", "policy_version"), None)

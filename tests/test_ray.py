@@ -130,11 +130,13 @@ def test_ctrl_c_on_a_local_ray_run_saves_exits_130_and_stops_its_ray(tmp_path):
     assert_no_leftovers(sid)
 
 
-def test_a_lost_actor_stops_the_run_with_a_clear_error_not_a_hang(tmp_path):
+@pytest.mark.parametrize("sync", ["false", "true"])
+def test_a_lost_actor_stops_the_run_with_a_clear_error_not_a_hang(tmp_path, sync):
     """kill -9 of one collector actor once the run has logged: the learner learns of it at its next
     block, stops with WorkerLost naming what was lost, and the local Ray instance goes with it."""
     run = tmp_path / "run"
-    args = [*MODULE, "train", "td3", *TINY, "collector.sync=false", "num_iterations=3000", "--out", "run", "--no-progress"]
+    args = [*MODULE, "train", "td3", *TINY, f"collector.sync={sync}", "num_iterations=3000", "--out", "run",
+            "--no-progress"]
     proc = subprocess.Popen(args, cwd=tmp_path, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True, env={**os.environ, **QUIET})
     try:
