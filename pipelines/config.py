@@ -60,7 +60,7 @@ class RayConfig:
     """Where Ray places the collectors when collector.backend=ray."""
 
     address: str = ""
-    """the Ray cluster to use: empty starts a local Ray instance for this run (shut down at its end); 'auto' or HOST:PORT joins a running cluster (as RAY_ADDRESS does), which the run leaves up"""
+    """the Ray cluster to use: empty starts a local Ray instance for this run (shut down at its end); HOST:PORT, or 'auto' (RAY_ADDRESS if set, else the cluster `ray start` began on this machine), joins a running cluster, which the run leaves up"""
     num_cpus_per_worker: float = 1.0
     """CPUs Ray reserves for each collector actor (a fraction packs several actors on one core)"""
 
