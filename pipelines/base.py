@@ -219,6 +219,8 @@ class OffPolicyPipeline:
 
     def make_collector(self, total_frames: int, init_random_frames: int):
         c = self.config.collector
+        if c.backend == "ray":
+            return self._make_ray_collector(total_frames, init_random_frames)
         if self.config.initial_collect_policy == "collect":  # the initial steps come from the exploring policy
             init_random_frames = 0
         common = dict(frames_per_batch=c.frames_per_batch, total_frames=total_frames,
@@ -240,8 +242,25 @@ class OffPolicyPipeline:
         cls = MultiSyncCollector if c.sync else MultiAsyncCollector
         return cls([self.env_fn] * c.workers, self.collect_policy, **common)
 
+    def _make_ray_collector(self, total_frames: int, init_random_frames: int):
+        from rlpipe.pipelines.ray_backend import RayCollectors
+
+        if self.env_fn is None:
+            raise InputError("collector.backend=ray: pass env as a function that makes the env (Ray actors make their own)")
+        return RayCollectors(self.env_fn, self.collect_policy, self.config, total_frames=total_frames,
+                             init_random_frames=init_random_frames, learner_version=lambda: self.state.updates)
+
+    def metrics_columns(self) -> list[str]:
+        """metrics.csv's columns past the losses and speeds: what the collector backend reports."""
+        if self.config.collector.backend == "ray":
+            from rlpipe.pipelines.ray_backend import METRIC_COLUMNS
+
+            return list(METRIC_COLUMNS)
+        return []
+
     def push_weights(self, collector) -> None:
-        """Send the policy's weights to collector processes (in-process collection shares them)."""
+        """Send the policy's weights to collector processes (in-process collection shares them; Ray
+        actors get them from TorchRL's ``RayCollector`` each time it asks one for a block)."""
         if not isinstance(collector, Collector):
             collector.update_policy_weights_()
 
@@ -384,7 +403,7 @@ class OffPolicyPipeline:
         """A run from its first iteration: (its empty metrics table, no evaluations, fresh)."""
         seed_everything(self.config.seed)  # replay sampling, exploration: the same seed gives the same run
         self.state.owed = ["eval"]  # the tutorials evaluate once before training
-        return MetricsCSV(run.metrics_path, list(self.loss_names)), [], True
+        return MetricsCSV(run.metrics_path, list(self.loss_names), extra_columns=self.metrics_columns()), [], True
 
     def _resume(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:
         if out is None:
@@ -416,7 +435,8 @@ class OffPolicyPipeline:
             raise InputError(f"{path / 'state.pt'}: {exc}{hint}") from exc
         if skipped:
             notice(f"{run.checkpoints}: {'; '.join(skipped)}; resuming from {path.name}")
-        metrics = MetricsCSV(run.metrics_path, list(self.loss_names), resume_after_step=self.state.iteration)
+        metrics = MetricsCSV(run.metrics_path, list(self.loss_names), resume_after_step=self.state.iteration,
+                             extra_columns=self.metrics_columns())
         run.write_config(self.algo, config_to_dict(self.config))  # keys changed on resume are recorded
         rows = metrics.rows()
         self.state.forget_done(rows)

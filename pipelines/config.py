@@ -13,6 +13,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import difflib
+import importlib.util
 import inspect
 import math
 import os
@@ -27,6 +28,7 @@ from rlpipe.pipelines.errors import InputError
 
 __all__ = [
     "CollectorConfig",
+    "RayConfig",
     "TrainConfig",
     "apply_overrides",
     "available_devices",
@@ -52,7 +54,19 @@ class CollectorConfig:
     frames_per_batch: int = 50
     """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
     weight_sync_interval: int = 1
-    """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container)"""
+    """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container); with backend=ray a worker gets the learner's weights each time it is asked for a block"""
+    backend: str = "local"
+    """'local': collector processes on this machine; 'ray': collectors as Ray actors placed by Ray (TorchRL's `RayCollector`; see the `ray` keys)"""
+
+
+@dataclass
+class RayConfig:
+    """Where Ray places the collectors when collector.backend=ray."""
+
+    address: str = ""
+    """the Ray cluster to use: empty starts a local Ray instance for this run (shut down at its end); HOST:PORT, or 'auto' (RAY_ADDRESS if set, else the cluster `ray start` began on this machine), joins a running cluster, which the run leaves up"""
+    num_cpus_per_worker: float = 1.0
+    """CPUs Ray reserves for each collector actor (a fraction packs several actors on one core)"""
 
 
 @dataclass
@@ -112,6 +126,7 @@ class TrainConfig:
     initial_collect_policy: str = "random"
     """policy of the `initial_collect_steps`: 'random' (uniform actions, the DQN and actor-learner SAC tutorials) or 'collect' (the exploring policy of the untrained networks, the older SAC tutorial's driver)"""
     collector: CollectorConfig = field(default_factory=CollectorConfig)
+    ray: RayConfig = field(default_factory=RayConfig)
 
     @property
     def total_frames(self) -> int:
@@ -177,6 +192,13 @@ def validate(cfg, *, machine: bool = True) -> None:
         raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
                          "cudagraph=false or null on this device")
     c = cfg.collector
+    if c.backend not in ("local", "ray"):
+        raise InputError(f"collector.backend={c.backend!r}: expected 'local' (collector processes) or 'ray' (Ray actors)")
+    if not cfg.ray.num_cpus_per_worker > 0:
+        raise InputError(f"ray.num_cpus_per_worker={cfg.ray.num_cpus_per_worker}: expected a positive number of CPUs")
+    if c.backend == "ray" and importlib.util.find_spec("ray") is None:
+        raise InputError("collector.backend=ray: Ray is not installed; expected `pip install 'rlpipe[ray]'` "
+                         "(or collector.backend=local)")
     per_block = c.envs_per_worker * (c.workers if c.sync else 1)
     if c.envs_per_worker > 1 and c.frames_per_batch % per_block:
         raise InputError(
@@ -184,6 +206,9 @@ def validate(cfg, *, machine: bool = True) -> None:
             f"{per_block} envs (collector.workers={c.workers} x collector.envs_per_worker={c.envs_per_worker}"
             f"{'' if c.sync else ', one worker per block'}): expected a multiple of {per_block}"
         )
+    if c.backend == "ray" and c.sync and c.frames_per_batch % c.workers:
+        raise InputError(f"collector.frames_per_batch={c.frames_per_batch} does not split evenly over "
+                         f"collector.workers={c.workers} Ray actors (collector.sync=true): expected a multiple of {c.workers}")
     if not 0.0 < cfg.gamma <= 1.0:
         raise InputError(f"gamma={cfg.gamma}: expected a discount in (0, 1]")
     if not 0.0 < cfg.target_update_tau <= 1.0:
@@ -270,6 +295,8 @@ def apply_overrides(cfg, overrides: list[str]):
             close = difflib.get_close_matches(key, keys, n=3, cutoff=0.5)
             hint = f"; closest valid keys: {', '.join(close)}" if close else f"; valid keys: {', '.join(keys)}"
             raise InputError(f"unknown config key {key!r}{hint}")
+        if not value.strip() and _describe_type(cfg, key) == "a string":
+            value = "''"  # `ray.address=`: the empty string (OmegaConf reads an empty value as null)
         try:
             conf = OmegaConf.merge(conf, OmegaConf.from_dotlist([f"{key}={value}"]))
         except OmegaConfBaseException as exc:

@@ -245,9 +245,11 @@ class MetricsCSV:
     (before a checkpoint counts them). A row a crash cut short is dropped when the file is read.
     """
 
-    def __init__(self, path: Path, loss_names: list[str], resume_after_step: int | None = None):
+    def __init__(self, path: Path, loss_names: list[str], resume_after_step: int | None = None,
+                 extra_columns: list[str] = ()):
         self.path = Path(path)
-        self.columns = BASE_COLUMNS + [f"loss_{n}" for n in loss_names] + SPEED_COLUMNS
+        # extra_columns: what a collector backend reports (Ray: workers alive, weight versions)
+        self.columns = BASE_COLUMNS + [f"loss_{n}" for n in loss_names] + SPEED_COLUMNS + list(extra_columns)
         if resume_after_step is None:
             self._rewrite([])
         else:
