@@ -47,6 +47,7 @@ from rlpipe.pipelines.loop import Loop, TrainResult
 from rlpipe.pipelines.meters import Clock
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir
 from rlpipe.pipelines.state import RunState
+from rlpipe.pipelines.supervision import TimedSharedMemScheme
 from rlpipe.pipelines.triggers import Trigger, default_triggers
 
 __all__ = ["Agent", "OffPolicyPipeline", "seed_everything"]
@@ -218,10 +219,16 @@ class OffPolicyPipeline:
             # (Each async worker's block is a whole `frames_per_batch`.)
             common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
         cls = MultiSyncCollector if c.sync else MultiAsyncCollector
-        return cls([self.env_fn] * c.workers, self.collect_policy, **common)
+        # TorchRL's weight sync for these collectors (shared memory), with a deadline on the workers'
+        # acknowledgements: a push to a dead worker is a WorkerFailure, not a wait for good.
+        scheme = TimedSharedMemScheme(ack_timeout=c.timeout)
+        return cls([self.env_fn] * c.workers, self.collect_policy, weight_sync_schemes={"policy": scheme}, **common)
 
     def push_weights(self, collector) -> None:
-        """Send the policy's weights to collector processes (in-process collection shares them)."""
+        """Send the policy's weights to collector processes (in-process collection shares them).
+
+        Raises ``supervision.WorkerFailure`` if a worker is dead or does not take them within
+        ``collector.timeout`` seconds."""
         if not isinstance(collector, Collector):
             collector.update_policy_weights_()
 

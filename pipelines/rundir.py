@@ -24,6 +24,9 @@ __all__ = ["RunDir", "default_run_dir"]
 
 BASE_COLUMNS = ["step", "frames", "updates", "average_return", "average_episode_length"]
 SPEED_COLUMNS = ["train_episode_return", "steps_per_s", "updates_per_s", "wall_time"]
+# collector workers alive, and the restarts of the collector and the background evaluator (blank for
+# a run that has none of them); see supervision.Supervisor
+WORKER_COLUMNS = ["workers_alive", "collector_restarts", "evaluator_restarts"]
 
 
 def default_run_dir(algo: str, env_id: str) -> Path:
@@ -91,7 +94,7 @@ class MetricsCSV:
 
     def __init__(self, path: Path, loss_names: list[str], resume_after_step: int | None = None):
         self.path = Path(path)
-        self.columns = BASE_COLUMNS + [f"loss_{n}" for n in loss_names] + SPEED_COLUMNS
+        self.columns = BASE_COLUMNS + [f"loss_{n}" for n in loss_names] + SPEED_COLUMNS + WORKER_COLUMNS
         if resume_after_step is not None and self.path.exists():
             # Rows past the checkpoint will be produced again by the resumed run.
             with self.path.open(newline="") as fh:

@@ -70,12 +70,13 @@ class IntervalTrigger(Trigger):
 
 
 class LogTrigger(Trigger):
-    """A metrics row of losses, speeds and training returns (TF-Agents' StepPerSecondLogTrigger)."""
+    """A metrics row of losses, speeds, training returns (TF-Agents' StepPerSecondLogTrigger) and the
+    workers' state (alive, restarts)."""
 
     name = "log"
 
     def __call__(self, loop: Loop) -> None:
-        loop.log(loop.interval_stats.flush(loop.clock))
+        loop.log({**loop.interval_stats.flush(loop.clock), **loop.supervisor.columns()})
 
 
 class EvalTrigger(Trigger):
