@@ -46,6 +46,7 @@ from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.loop import Loop, TrainResult
 from rlpipe.pipelines.meters import Clock
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir
+from rlpipe.pipelines.runtime import start_resource_tracker
 from rlpipe.pipelines.state import RunState
 from rlpipe.pipelines.supervision import TimedSharedMemScheme
 from rlpipe.pipelines.triggers import Trigger, default_triggers
@@ -97,6 +98,7 @@ class OffPolicyPipeline:
 
     def __init__(self, config: TrainConfig | None = None, *, env: EnvArg = None, eval_env: EnvArg = None,
                  observation_key: str | None = None):
+        start_resource_tracker()  # before the replay buffer's locks start it, not deaf to SIGHUP
         cfg = config if config is not None else self.Config()
         if not isinstance(cfg, self.Config):
             raise InputError(f"config is a {type(cfg).__name__}; expected {self.Config.__name__} for {self.algo}")

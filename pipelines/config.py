@@ -52,7 +52,7 @@ class CollectorConfig:
     max_restarts: int = 3
     """restarts allowed (each of the collector and of the background evaluator, per session) when a worker process dies or stops answering; one more failure saves a checkpoint and stops the run (exit status 75)"""
     timeout: float = 120.0
-    """seconds any wait on collector processes may take (start-up, a block of env steps, a weight push) before the wait counts as a failed worker"""
+    """seconds any wait on collector processes may take (a block of env steps, a weight push; their start-up: at least 300) before the wait counts as a failed worker"""
 
 
 @dataclass

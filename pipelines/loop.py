@@ -134,6 +134,9 @@ class Loop:
                 except WorkersLost as lost:
                     with contextlib.suppress(WorkerFailure):
                         self.take_background_results(feed=False)
+                    owed, pending = self.state.owed, self.state.pending_evals
+                    if owed[:1] == ["eval"] and any(at["step"] == self.state.iteration for at, _ in pending):
+                        owed.pop(0)  # asked before its evaluator failed: saved as pending, not asked twice
                     self.save()  # the collector's blocks handed out so far are in the replay buffer
                     lost.saved_at = self.state.iteration
                     raise
@@ -172,7 +175,9 @@ class Loop:
         try:
             for batch in self.collection:
                 yield batch
-                fault_point("collector_worker", state.iteration, pid=next(iter(self.collection.pids()), None))
+                fault_point("collected", state.iteration)  # the learner, once the block's work is done
+                fault_point("collector_worker", state.iteration,
+                            worker=lambda: next(iter(self.collection.pids()), None))
                 if state.frames >= cfg.total_frames:
                     break
         finally:
@@ -252,7 +257,7 @@ class Loop:
         """Evaluate the policy as it is now: in the background if the run does so, else here."""
         if self.background is not None and self.state.iteration > 0:
             self.background.ask(self.state.position(), self.background.snapshot(self.pipeline.policy))
-            fault_point("evaluator_worker", self.state.iteration, pid=self.background.worker_pid)
+            fault_point("evaluator_worker", self.state.iteration, worker=lambda: self.background.worker_pid)
             self.take_background_results()
         else:
             self.evaluate_now()
@@ -284,7 +289,7 @@ class Loop:
     def _start_evaluator(self) -> BackgroundEvaluator:
         cfg = self.config
         # TorchRL reads the new worker's first message with no timeout: the watchdog kills one that hangs
-        with self.clock.paused(), self.watchdog.limit(cfg.collector.timeout, kill_new_children()):
+        with self.clock.paused(), self.watchdog.limit(self.supervisor.start_timeout, kill_new_children()):
             evaluator = BackgroundEvaluator(self.pipeline.eval_env_fn, self.pipeline.policy, cfg.num_eval_episodes,
                                             self.state.pending_evals, timeout=cfg.eval_timeout,
                                             ack_timeout=cfg.collector.timeout)

@@ -16,10 +16,11 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 __all__ = [
     "STOP_SIGNALS", "DeferredInterrupt", "Interrupted", "Stopped", "fault_point", "gc_frozen", "keep_freed_memory",
-    "stop_signals_blocked",
+    "start_resource_tracker", "stop_signals_blocked",
 ]
 
 # What stops a run at its next safe point: Ctrl-C; what SLURM, Kubernetes, `timeout` and `kill` send;
@@ -151,6 +152,20 @@ def keep_freed_memory(mmap_threshold: int = 64 << 20, trim_threshold: int = 256 
     return _kept_freed_memory
 
 
+def start_resource_tracker() -> None:
+    """Start Python's multiprocessing resource tracker now, deaf to the stop signals, if it does not run yet.
+
+    Whatever first makes a multiprocessing lock or queue starts it (TorchRL's storages do), with the
+    signals of that moment: it ignores SIGINT and SIGTERM itself, but SIGHUP to the process group
+    kills it, and the tracker relaunched then prints a traceback for each lock the first one
+    tracked. Call before anything else makes one (the pipeline does, first thing).
+    """
+    from multiprocessing import resource_tracker
+
+    with stop_signals_blocked():
+        resource_tracker.ensure_running()
+
+
 @contextlib.contextmanager
 def stop_signals_blocked():
     """Start processes (and threads) with the stop signals blocked, so they reach the learner alone.
@@ -174,26 +189,36 @@ def stop_signals_blocked():
 
 # --- the test hook: a signal at an exact point of a run ------------------------------------------------
 
-# RLPIPE_FAULT="NAME@STEP" (or "NAME@STEP:SIGTERM", or several steps "NAME@100,200:SIGKILL"): a process
-# reaching point NAME at iteration STEP sends the signal (default SIGINT) to its whole process group,
-# as a terminal's Ctrl-C does, or to the one process the point names (a worker: ``pid``).
+# RLPIPE_FAULT="NAME@STEP" (or "NAME@STEP:SIGTERM", several steps "NAME@100,200:SIGKILL", several points
+# separated by ";"): a process reaching point NAME at iteration STEP sends the signal (default SIGINT)
+# to its whole process group, as a terminal's Ctrl-C does, or to the one process the point is about
+# (a worker: ``pid``), or, with a third field "self" ("NAME@STEP:SIGTERM:self"), to itself alone.
 # RLPIPE_FAULT_ONCE=PATH: only the first process to get there (it creates PATH and writes its command
 # line into it), so a study's other runs reaching the same point later do not press again.
-_FAULT = os.environ.get("RLPIPE_FAULT", "")
+_FAULTS = [f for f in os.environ.get("RLPIPE_FAULT", "").split(";") if f]
 
 
-def fault_point(name: str, step: int, pid: int | None = None) -> None:
+def fault_point(name: str, step: int, worker: Callable[[], int | None] | None = None) -> None:
     """Where tests inject a fault (see ``RLPIPE_FAULT`` above); does nothing in normal runs.
 
-    ``pid``: the process the point is about (a collector or evaluator worker), which gets the signal
-    instead of the process group.
+    ``worker``: for a point about a worker process, a function giving its pid (called only when the
+    fault fires; None: no such worker now, and no signal).
     """
-    if not _FAULT:
-        return
-    point, _, signame = _FAULT.partition(":")
-    point_name, _, steps = point.partition("@")
-    if point_name != name or str(step) not in steps.split(","):
-        return
+    for fault in _FAULTS:
+        point, _, rest = fault.partition(":")
+        signame, _, target = rest.partition(":")
+        point_name, _, steps = point.partition("@")
+        if point_name != name or str(step) not in steps.split(","):
+            continue
+        pid = os.getpid() if target == "self" else None
+        if worker is not None:
+            pid = worker()
+            if pid is None:
+                continue
+        _inject(getattr(signal, signame or "SIGINT"), pid)
+
+
+def _inject(signum: int, pid: int | None) -> None:
     marker = os.environ.get("RLPIPE_FAULT_ONCE")
     if marker:
         try:
@@ -202,7 +227,6 @@ def fault_point(name: str, step: int, pid: int | None = None) -> None:
             return
         with os.fdopen(fd, "w") as fh:
             fh.write(" ".join(sys.argv) + "\n")
-    signum = getattr(signal, signame or "SIGINT")
     if pid is None:
         os.killpg(os.getpgrp(), signum)
     else:

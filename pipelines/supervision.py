@@ -128,6 +128,12 @@ class _AckDeadline:
     ack_timeout = 60.0
     _POLL_S = 0.2
 
+    def __del__(self):
+        # TorchRL's __del__ shuts the scheme down, which starts a queue thread: at the interpreter's
+        # exit that start waits forever (Python 3.11). The process's end frees what it would.
+        if not sys.is_finalizing():
+            super().__del__()
+
     def _wait_for_ack(self, worker_ids=None, timeout=None) -> None:
         if not self._ack_queues:
             return
@@ -237,9 +243,13 @@ class Supervisor:
     """
 
     ROLES = ("collector", "evaluator")
+    MIN_START_TIMEOUT = 300.0
+    """starting workers (each imports torch and TorchRL, and makes its env) takes a minute on a loaded
+    2-core machine: their start-up waits at least this long, however short ``timeout`` is"""
 
     def __init__(self, max_restarts: int, timeout: float, *, log: Callable[[str], None] | None = None):
         self.max_restarts, self.timeout = int(max_restarts), float(timeout)
+        self.start_timeout = max(self.timeout, self.MIN_START_TIMEOUT)
         self.restarts: Counter[str] = Counter()
         self.alive: dict[str, tuple[int, int]] = {}
         self._log = log or (lambda line: print(line, file=sys.stderr, flush=True))
@@ -330,7 +340,7 @@ class SupervisedCollector:
         self._failure = self._timed_out = None
         restarts = self.supervisor.restarts[self.role]
         try:
-            with self.watchdog.limit(self.supervisor.timeout, kill_new_children()):
+            with self.watchdog.limit(self.supervisor.start_timeout, kill_new_children()):
                 self.collector = self._make(restarts)
         except (RuntimeError, ValueError, EOFError, OSError) as exc:
             if restarts == 0:
@@ -361,11 +371,9 @@ class SupervisedCollector:
             yield batch
 
     def _report(self) -> None:
-        procs = self.procs
+        procs = self.procs  # none for in-process collection: nothing to watch, nothing to report
         if procs:
             self.supervisor.report(self.role, sum(_alive(p) for p in procs), len(procs))
-        else:  # in-process collection: the learner is its one worker
-            self.supervisor.report(self.role, 1, 1)
 
     def _kill_on_timeout(self, what: str) -> Callable[[], None]:
         def expire():
@@ -411,12 +419,12 @@ def _cmdline(proc) -> list[str]:
 
 
 def close_weight_sync_queues(collector) -> None:
-    """Close the queues of a collector's weight-sync schemes (TorchRL's shutdown leaves them open, and
-    their feeder threads would otherwise live on until the interpreter's exit)."""
+    """Shut a collector's weight-sync schemes down (TorchRL 0.14's collector shutdown leaves them, and
+    their ``__del__`` would do it later, perhaps at the interpreter's exit, where starting the queue
+    thread it needs hangs). Their queues may have a dead reader: never wait for them to drain."""
     for scheme in (getattr(collector, "_weight_sync_schemes", None) or {}).values():
         with contextlib.suppress(Exception):
-            queues = [q for name in ("_weight_init_queues", "_instruction_queues", "_ack_queues")
-                      for q in (getattr(scheme, name, None) or {}).values()]
-            for q in {id(q): q for q in queues}.values():
-                q.cancel_join_thread()  # its reader may be dead: never block the exit on a full pipe
-                q.close()
+            for name in ("_weight_init_queues", "_instruction_queues", "_ack_queues"):
+                for q in (getattr(scheme, name, None) or {}).values():
+                    q.cancel_join_thread()
+            scheme.shutdown()
