@@ -158,10 +158,12 @@ class BackgroundEvaluator:
         """Raise ``WorkerFailure`` if the evaluator cannot answer: its process is gone, one of its
         threads ended on an error, or the evaluation in flight is past ``timeout``."""
         failure = dead_worker(self.role, self._procs())
-        if failure is None and self._thread_errors.first is not None:
-            error = self._thread_errors.first
-            failure = WorkerFailure(self.role, f"the {self.role} stopped on {type(error).__name__}: "
-                                               f"{str(error).strip().splitlines()[0] if str(error).strip() else ''}")
+        error = self._thread_errors.first
+        if failure is None and isinstance(error, WorkerFailure):  # its weight push timed out
+            failure = error
+        elif failure is None and error is not None:
+            first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            failure = WorkerFailure(self.role, f"the {self.role} stopped on {type(error).__name__}: {first}")
         if failure is None and self._in_flight is not None and time.monotonic() - self._asked_at > self.timeout:
             failure = WorkerFailure(self.role, f"the evaluation at step {self._in_flight[0]['step']} was not back "
                                                f"within eval_timeout={self.timeout:g} s")
