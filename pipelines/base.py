@@ -48,7 +48,9 @@ from rlpipe.pipelines.loop import Loop, TrainResult
 from rlpipe.pipelines.memory import check_memory
 from rlpipe.pipelines.meters import Clock
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir, notice
+from rlpipe.pipelines.runtime import start_resource_tracker
 from rlpipe.pipelines.state import RunState
+from rlpipe.pipelines.supervision import TimedSharedMemScheme
 from rlpipe.pipelines.triggers import Trigger, default_triggers
 from rlpipe.pipelines.update_graph import GraphedUpdate
 
@@ -99,6 +101,7 @@ class OffPolicyPipeline:
 
     def __init__(self, config: TrainConfig | None = None, *, env: EnvArg = None, eval_env: EnvArg = None,
                  observation_key: str | None = None):
+        start_resource_tracker()  # before the replay buffer's locks start it, not deaf to SIGHUP
         cfg = config if config is not None else self.Config()
         if not isinstance(cfg, self.Config):
             raise InputError(f"config is a {type(cfg).__name__}; expected {self.Config.__name__} for {self.algo}")
@@ -219,10 +222,10 @@ class OffPolicyPipeline:
 
     def make_collector(self, total_frames: int, init_random_frames: int):
         c = self.config.collector
-        if c.backend == "ray":
-            return self._make_ray_collector(total_frames, init_random_frames)
         if self.config.initial_collect_policy == "collect":  # the initial steps come from the exploring policy
             init_random_frames = 0
+        if c.backend == "ray":
+            return self._make_ray_collector(total_frames, init_random_frames)
         common = dict(frames_per_batch=c.frames_per_batch, total_frames=total_frames,
                       init_random_frames=init_random_frames,
                       # a user's env without the transforms the policy reads (InitTracker) gets them
@@ -240,7 +243,10 @@ class OffPolicyPipeline:
             # (Each async worker's block is a whole `frames_per_batch`.)
             common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
         cls = MultiSyncCollector if c.sync else MultiAsyncCollector
-        return cls([self.env_fn] * c.workers, self.collect_policy, **common)
+        # TorchRL's weight sync for these collectors (shared memory), with a deadline on the workers'
+        # acknowledgements: a push to a dead worker is a WorkerFailure, not a wait for good.
+        scheme = TimedSharedMemScheme(ack_timeout=c.timeout)
+        return cls([self.env_fn] * c.workers, self.collect_policy, weight_sync_schemes={"policy": scheme}, **common)
 
     def _make_ray_collector(self, total_frames: int, init_random_frames: int):
         from rlpipe.pipelines.ray_backend import RayCollectors
@@ -260,7 +266,10 @@ class OffPolicyPipeline:
 
     def push_weights(self, collector) -> None:
         """Send the policy's weights to collector processes (in-process collection shares them; Ray
-        actors get them from TorchRL's ``RayCollector`` each time it asks one for a block)."""
+        actors get them from TorchRL's ``RayCollector`` each time it asks one for a block).
+
+        Raises ``supervision.WorkerFailure`` if a worker is dead or does not take them within
+        ``collector.timeout`` seconds."""
         if not isinstance(collector, Collector):
             collector.update_policy_weights_()
 

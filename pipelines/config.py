@@ -57,6 +57,10 @@ class CollectorConfig:
     """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container); with backend=ray a worker gets the learner's weights each time it is asked for a block"""
     backend: str = "local"
     """'local': collector processes on this machine; 'ray': collectors as Ray actors placed by Ray (TorchRL's `RayCollector`; see the `ray` keys)"""
+    max_restarts: int = 3
+    """restarts allowed (each of the collector and of the background evaluator, per session) when a worker process dies or stops answering; one more failure saves a checkpoint and stops the run (exit status 75)"""
+    timeout: float = 120.0
+    """seconds any wait on collector processes may take (a block of env steps, a weight push; their start-up: at least 300) before the wait counts as a failed worker"""
 
 
 @dataclass
@@ -103,6 +107,8 @@ class TrainConfig:
     """episodes per evaluation; their mean return is AverageReturn"""
     eval_in_background: bool = False
     """evaluate in a separate process on a snapshot of the policy while training goes on (TorchRL's `Evaluator`); results land at the iteration they were taken"""
+    eval_timeout: float = 600.0
+    """seconds a background evaluation may take before its process counts as failed (it is restarted and asked again, as for `collector.max_restarts`)"""
     log_interval: int = 200
     """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
     policy_save_interval: int = 5000
@@ -143,9 +149,10 @@ _POSITIVE = {
     "num_iterations", "collect_steps_per_iteration", "replay_buffer_capacity", "batch_size",
     "target_update_period", "num_eval_episodes", "log_interval", "policy_save_interval",
     "checkpoint_interval", "collector.workers", "collector.frames_per_batch",
-    "collector.weight_sync_interval", "collector.envs_per_worker",
+    "collector.weight_sync_interval", "collector.envs_per_worker", "collector.timeout", "eval_timeout",
 }
-_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval", "policy_keep", "checkpoint_keep"}
+_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval", "policy_keep", "checkpoint_keep",
+                 "collector.max_restarts"}
 _CHOICES = {"initial_collect_policy": ("random", "collect")}
 
 MAX_SEED = 2**31 - 1
@@ -175,7 +182,7 @@ def validate(cfg, *, machine: bool = True) -> None:
         if isinstance(value, float) and not math.isfinite(value):
             raise InputError(f"{key}={value}: expected a finite number")
         if (key in _POSITIVE or leaf in _POSITIVE or leaf.endswith("_interval") and leaf not in _NON_NEGATIVE) and value <= 0:
-            raise InputError(f"{key}={value}: expected a positive integer")
+            raise InputError(f"{key}={value}: expected a positive {'number' if isinstance(value, float) else 'integer'}")
         if (key in _NON_NEGATIVE or leaf in _NON_NEGATIVE) and value < 0:
             raise InputError(f"{key}={value}: expected zero or a positive integer")
         if leaf.endswith("learning_rate") and not value > 0:

@@ -5,7 +5,9 @@ learner's process (``evaluate``) or in a process of its own while training goes 
 from __future__ import annotations
 
 import copy
+import sys
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 
@@ -16,7 +18,14 @@ from torchrl.collectors import Evaluator
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from rlpipe.pipelines.runtime import sigint_blocked
+from rlpipe.pipelines.runtime import stop_signals_blocked
+from rlpipe.pipelines.supervision import (
+    TimedMultiProcessScheme,
+    WorkerFailure,
+    close_weight_sync_queues,
+    dead_worker,
+    kill_processes,
+)
 
 __all__ = ["BackgroundEvaluator", "evaluate"]
 
@@ -59,7 +68,10 @@ class BackgroundEvaluator:
 
     ``pending`` is the queue of evaluations asked for and not back yet, oldest first, as
     ``(position, weights)``; it belongs to the run's state (checkpoints save it), and this object
-    works through it: ``ask`` appends, ``results`` hands back those finished.
+    works through it: ``ask`` appends, ``results`` hands back those finished. An evaluator that
+    fails (``results`` raises ``WorkerFailure``: its process died, or an evaluation was not back
+    within ``timeout`` seconds) is closed and replaced by a new one on the same ``pending``, which
+    asks again for the evaluation that was in flight.
 
     TorchRL 0.14's ``Evaluator`` loses a request when a second one is queued while the first
     finishes (its backend's poll clears the pending flag of the next request), and the run then
@@ -67,10 +79,13 @@ class BackgroundEvaluator:
     ``in_flight`` bookkeeping when TorchRL's queue holds.
     """
 
+    role = "evaluator"
+
     def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
-                 pending: deque[tuple[dict, TensorDictBase]]):
-        self.pending = pending
+                 pending: deque[tuple[dict, TensorDictBase]], timeout: float = 600.0, ack_timeout: float = 60.0):
+        self.pending, self.timeout = pending, float(timeout)
         self._in_flight: tuple[dict, TensorDictBase] | None = None
+        self._asked_at = 0.0
         self._evaluator = Evaluator(
             env_fn,
             policy_factory=_PolicyCopy(policy),
@@ -79,19 +94,24 @@ class BackgroundEvaluator:
             backend="process",
             busy_policy="queue",
             collector_kwargs={"traj_format": "padded"},  # what 0.14 does by default, without its FutureWarning
+            # TorchRL's default for the process backend, with a deadline on its acknowledgements
+            weight_sync_schemes={"policy": TimedMultiProcessScheme(ack_timeout, role=self.role)},
         )
+        self._thread_errors = _ThreadErrors(self._threads)
         # TorchRL 0.14 starts the worker process at the first request, from the evaluator's thread,
-        # where its seconds of start-up can be neither waited for briefly nor stopped: start it here,
-        # with the weight-sync scheme that first request would install (else it restarts the worker).
-        backend = self._evaluator._backend
-        with sigint_blocked():
-            backend._enable_process_weight_sync()
-            backend._ensure_collector()
+        # where its seconds of start-up can be neither waited for briefly nor stopped: start it here.
+        with stop_signals_blocked():
+            self._evaluator._backend._ensure_collector()
 
     @staticmethod
     def snapshot(policy: nn.Module) -> TensorDictBase:
         """The policy's weights now, to evaluate later."""
         return Evaluator.extract_weights(policy)
+
+    @property
+    def worker_pid(self) -> int | None:
+        procs = self._procs()
+        return procs[0].pid if procs else None
 
     def ask(self, at: dict, weights: TensorDictBase) -> None:
         self.pending.append((at, weights))
@@ -100,14 +120,16 @@ class BackgroundEvaluator:
     def _feed(self) -> None:
         if self.pending and self._in_flight is None:
             at, weights = self._in_flight = self.pending[0]
-            with sigint_blocked():  # the evaluator starts its thread at the first request
+            self._asked_at = time.monotonic()
+            with stop_signals_blocked():  # the evaluator starts its thread at the first request
                 self._evaluator.trigger_eval(weights, step=at["step"])
 
     def results(self, block: bool = False, feed: bool = True, interrupt: Callable[[], None] | None = None):
         """Yield ``(position, result)`` of the evaluations that are back, oldest first.
 
         ``block``: wait for all of them (calling ``interrupt`` between polls); ``feed=False``: only
-        take the one in flight, if it is back, and hand out no new request.
+        take the one in flight, if it is back, and hand out no new request. Raises ``WorkerFailure``
+        when the evaluator has failed (see the class).
         """
         while self.pending:
             if feed:
@@ -116,6 +138,8 @@ class BackgroundEvaluator:
                 return
             reply = self._evaluator.poll(timeout=0.2 if block else 0)
             if reply is None:
+                if feed:
+                    self.check()
                 if not block:
                     return
                 if interrupt is not None:
@@ -130,42 +154,85 @@ class BackgroundEvaluator:
             yield at, {"average_return": float(reply["eval/reward"]),
                        "average_episode_length": float(reply["eval/episode_length"]), "returns": None}
 
-    def close(self, timeout: float = 2.0) -> None:
-        """Stop the evaluator and its worker process within about ``timeout`` seconds; an evaluation
-        in flight is dropped (the run's ``pending`` still lists it, so a checkpoint keeps it).
+    def check(self) -> None:
+        """Raise ``WorkerFailure`` if the evaluator cannot answer: its process is gone, one of its
+        threads ended on an error, or the evaluation in flight is past ``timeout``."""
+        failure = dead_worker(self.role, self._procs())
+        error = self._thread_errors.first
+        if failure is None and isinstance(error, WorkerFailure):  # its weight push timed out
+            failure = error
+        elif failure is None and error is not None:
+            first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            failure = WorkerFailure(self.role, f"the {self.role} stopped on {type(error).__name__}: {first}")
+        if failure is None and self._in_flight is not None and time.monotonic() - self._asked_at > self.timeout:
+            failure = WorkerFailure(self.role, f"the evaluation at step {self._in_flight[0]['step']} was not back "
+                                               f"within eval_timeout={self.timeout:g} s")
+        if failure is not None:
+            raise failure
 
-        TorchRL 0.14's ``Evaluator.shutdown`` first joins its thread, which waits for the evaluation in
-        flight, then shuts the worker down with TorchRL's default 10 s: so the worker is stopped first
-        here, and the thread, which then finds its collector gone, ends without printing that as an error.
+    def close(self, timeout: float = 30.0) -> None:
+        """Stop the evaluator, its threads and its worker process, within about ``timeout`` seconds; an
+        evaluation in flight is dropped (the run's ``pending`` still lists it, so a checkpoint keeps it).
+
+        The order matters. The worker is killed first (an evaluation has nothing to save; asked to close,
+        it would finish its episodes first), which ends every wait of TorchRL's two evaluator threads
+        within a second; the threads are then joined until they have ended, before anything they use is
+        closed. A thread left running when Python exits is stopped mid-call by the interpreter
+        (``pthread_exit`` at its next take of the GIL), which aborts the process when that call is in
+        torch's C++ ("terminate called without an active exception", "Fatal Python error: Aborted"):
+        TorchRL 0.14's ``Evaluator.shutdown`` joins them for a few seconds only, and a loaded machine
+        left them running past that.
         """
-        backend = self._evaluator._backend
-        with _QuietThreadEnd(backend._thread):
-            backend._shutdown_flag = True
+        deadline = time.monotonic() + timeout
+        evaluator, backend = self._evaluator, self._evaluator._backend
+        with self._thread_errors:  # an error that ends a thread now is the shutdown itself: not printed
+            evaluator._async_shutdown = backend._shutdown_flag = True
+            evaluator._async_trigger.set()
+            backend._eval_ready.set()
+            kill_processes(self._procs(), timeout=max(0.0, deadline - time.monotonic()))
+            for thread in self._threads():
+                thread.join(timeout=max(0.0, deadline - time.monotonic()))
             if backend._collector is not None:
-                backend._collector.shutdown(timeout=timeout, raise_on_error=False)
-            self._evaluator.shutdown(timeout=timeout)
+                backend._collector.shutdown(timeout=2.0, raise_on_error=False)
+            evaluator.shutdown(timeout=max(0.0, deadline - time.monotonic()))
+            close_weight_sync_queues(backend._collector)
+        left = [t.name for t in self._threads() if t.is_alive()]
+        if left:
+            print(f"rlpipe: warning: the evaluator's threads {', '.join(left)} did not stop within {timeout:g} s",
+                  file=sys.stderr, flush=True)
+
+    def _procs(self) -> list:
+        collector = self._evaluator._backend._collector
+        return list(getattr(collector, "procs", None) or [])
+
+    def _threads(self) -> list[threading.Thread]:
+        """TorchRL's evaluator threads: the one feeding requests, the one running them."""
+        return [t for t in (self._evaluator._async_thread, self._evaluator._backend._thread) if t is not None]
 
 
-class _QuietThreadEnd:
-    """While inside, an exception that ends ``thread`` is not printed (it is the shutdown itself)."""
+class _ThreadErrors:
+    """Records (instead of printing) the exception that ends one of ``threads()``; as a context
+    manager, also restores ``threading.excepthook`` on leaving (installed from construction on)."""
 
-    def __init__(self, thread: threading.Thread | None):
-        self.thread = thread
-
-    def __enter__(self):
+    def __init__(self, threads: Callable[[], list[threading.Thread]]):
+        self.threads = threads
+        self.first: BaseException | None = None
         self._previous = threading.excepthook
-        if self.thread is not None:
-            threading.excepthook = self._hook
-        return self
+        threading.excepthook = self._hook
 
     def _hook(self, args) -> None:
-        if args.thread is not self.thread:
-            self._previous(args)
+        if args.thread is not None and any(args.thread is t for t in self.threads()):
+            if self.first is None:
+                self.first = args.exc_value
+            return
+        self._previous(args)
+
+    def __enter__(self):
+        return self
 
     def __exit__(self, *exc) -> None:
-        if self.thread is not None and self.thread.is_alive():
-            self.thread.join(timeout=1.0)
-        threading.excepthook = self._previous
+        if threading.excepthook is self._hook:
+            threading.excepthook = self._previous
 
 
 class _PolicyCopy:

@@ -7,10 +7,14 @@ a user adds). Everything else is a part with its own module: the run's state (``
 triggers (``triggers``), evaluation in the background (``evaluation``), Ctrl-C and worker start-up
 (``runtime``), speeds and losses (``meters``), the run directory and checkpoints.
 
-Ctrl-C stops at the next safe point (between two updates, two env steps of an evaluation, or two
-triggers); the checkpoint saved then records what that iteration still owes, and ``--resume`` does
-exactly that first. Collector and evaluator processes never see the Ctrl-C: they start with
-SIGINT blocked, and the learner stops them. A second Ctrl-C stops at once, without saving.
+Ctrl-C, SIGTERM or SIGHUP stops at the next safe point (between two updates, two env steps of an
+evaluation, or two triggers); the checkpoint saved then records what that iteration still owes, and
+``--resume`` does exactly that first. Collector and evaluator processes never see those signals:
+they start with them blocked, and the learner stops them. A second signal stops at once, unsaved.
+
+Workers are supervised (``supervision``): a collector or evaluator process that dies or stops
+answering is replaced, up to ``collector.max_restarts`` times; one more failure saves a checkpoint
+and ends the run with ``WorkersLost``.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import nn
@@ -41,11 +46,20 @@ from rlpipe.pipelines.meters import Clock, IntervalStats
 from rlpipe.pipelines.rundir import MetricsCSV, RunDir
 from rlpipe.pipelines.runtime import (
     DeferredInterrupt,
+    Interrupted,
     Stopped,
     fault_point,
     gc_frozen,
     keep_freed_memory,
-    sigint_blocked,
+    stop_signals_blocked,
+)
+from rlpipe.pipelines.supervision import (
+    SupervisedCollector,
+    Supervisor,
+    Watchdog,
+    WorkerFailure,
+    WorkersLost,
+    kill_new_children,
 )
 from rlpipe.pipelines.triggers import Trigger, eval_line
 
@@ -75,8 +89,8 @@ class Loop:
     """One run of ``pipeline`` into ``run``, from where ``pipeline.state`` says it is to its end.
 
     Triggers get this object; what they may use: ``pipeline``, ``config``, ``state`` (counters),
-    ``run_dir`` (the ``RunDir``), ``evaluations``, ``last_return``, ``clock``, ``interval_stats``, and
-    the methods ``log``, ``evaluate``, ``export``, ``save``.
+    ``run_dir`` (the ``RunDir``), ``evaluations``, ``last_return``, ``clock``, ``interval_stats``,
+    ``supervisor`` (workers alive, restarts), and the methods ``log``, ``evaluate``, ``export``, ``save``.
     """
 
     def __init__(self, pipeline: OffPolicyPipeline, run: RunDir, metrics: MetricsCSV, *, fresh: bool,
@@ -87,18 +101,27 @@ class Loop:
         self.triggers = {t.name: t for t in triggers}
         self.logger, self.callbacks = logger, list(callbacks)
         self.clock, self.interval_stats, self.stop = Clock(), IntervalStats(), DeferredInterrupt()
-        self.collector = self.background = self.exported_at = None
+        self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)
+        self.collection: SupervisedCollector | None = None
+        self.watchdog: Watchdog | None = None
+        self.background: BackgroundEvaluator | None = None
+        self.exported_at = None
         self._counts_at_start = (self.state.frames, self.state.updates)  # this session's speeds
         self.bar = tqdm(total=self.config.num_iterations, initial=self.state.iteration, unit="it", disable=not progress,
                         desc=f"{pipeline.algo} {self.config.env}", dynamic_ncols=True)
+
+    @property
+    def collector(self):
+        """The TorchRL collector collecting now (None outside ``collect``, or while one is replaced)."""
+        return None if self.collection is None else self.collection.collector
 
     @property
     def last_return(self) -> float:
         return self.evaluations[-1]["average_return"] if self.evaluations else math.nan
 
     def run(self) -> TrainResult:
-        # The deferred Ctrl-C handler stays on through the checkpoint saved on an interrupt: a SIGINT
-        # delivered twice (the terminal's and a parent's) must not cut that save short.
+        # The deferred stop-signal handler stays on through the checkpoint saved on an interrupt: a
+        # SIGINT delivered twice (the terminal's and a parent's) must not cut that save short.
         keep_freed_memory()
         # Console log handlers write through tqdm while the bar is up, so no line breaks it.
         with self.stop, gc_frozen(), logging_redirect_tqdm([logging.root, LIVE_LOG.parent]):
@@ -116,10 +139,19 @@ class Loop:
                     self.take_background_results(block=True)
                     if not self.evaluations or self.evaluations[-1]["step"] != self.state.iteration:
                         self.evaluate_now()
-                except Stopped:
+                except Stopped as stop:
                     self.take_background_results(feed=False)  # one already back is kept; the others are saved
                     self.save()  # with what this iteration still owes: --resume does that first
-                    raise KeyboardInterrupt from None
+                    raise Interrupted(stop.signum) from None
+                except WorkersLost as lost:
+                    with contextlib.suppress(WorkerFailure):
+                        self.take_background_results(feed=False)
+                    owed, pending = self.state.owed, self.state.pending_evals
+                    if owed[:1] == ["eval"] and any(at["step"] == self.state.iteration for at, _ in pending):
+                        owed.pop(0)  # asked before its evaluator failed: saved as pending, not asked twice
+                    self.save()  # the collector's blocks handed out so far are in the replay buffer
+                    lost.saved_at = self.state.iteration
+                    raise
             if self.exported_at != self.state.iteration:
                 self.export()
             self.save()
@@ -134,9 +166,9 @@ class Loop:
             self.save()  # iteration 0: a run stopped at any point from here on can be resumed
         self.measure_random_baseline()
         pending = self.state.pending_evals
+        self.watchdog = Watchdog()
         if self.config.eval_in_background:
-            self.background = BackgroundEvaluator(self.pipeline.eval_env_fn, self.pipeline.policy,
-                                                  self.config.num_eval_episodes, pending)
+            self.background = self._start_evaluator()
         while pending and self.background is None:  # asked for in the background before a resume that turned it off
             at, weights = pending[0]
             self.evaluate_now(weights, at)
@@ -146,25 +178,39 @@ class Loop:
     def collect(self) -> Iterator[TensorDictBase]:
         """Blocks of env steps from a TorchRL collector, until the run's frame budget is met.
 
-        Closed (``contextlib.closing``) however the run leaves it, so that TorchRL's iterator is
-        closed while its workers still run, and the workers are then shut down.
+        The collector is supervised (``SupervisedCollector``): one whose worker fails is replaced by a
+        new one for the frames still to collect. Closed (``contextlib.closing``) however the run leaves
+        it, so that TorchRL's iterator is closed while its workers still run, and the workers are then
+        shut down (within seconds: one that does not stop when asked is killed).
         """
         cfg, state = self.config, self.state
-        frames_left = cfg.total_frames - state.frames
-        if frames_left <= 0:
+        if cfg.total_frames - state.frames <= 0:
             return
-        with sigint_blocked(), self.clock.paused():  # worker start-up is not training time
-            self.collector = self.pipeline.make_collector(frames_left, max(0, cfg.initial_collect_steps - state.frames))
+        self.collection = SupervisedCollector(self._make_collector, self.supervisor, self.watchdog)
         try:
-            self.collector.set_seed(cfg.seed + state.frames)
-            for batch in self.collector:
+            for batch in self.collection:
                 yield batch
+                fault_point("collected", state.iteration)  # the learner, once the block's work is done
+                fault_point("collector_worker", state.iteration,
+                            worker=lambda: next(iter(self.collection.pids()), None))
                 if state.frames >= cfg.total_frames:
                     break
         finally:
-            # Workers left stepping past a safe stop are terminated after 2 s (TorchRL's default is 10).
-            self.collector.shutdown(timeout=2.0)
-            self.collector = None
+            self.collection.close()
+            self.collection = None
+
+    def _make_collector(self, restarts: int):
+        """A started collector for the frames still to collect, seeded; after a restart, with a seed
+        stream no earlier collector of the run used."""
+        cfg, state = self.config, self.state
+        seed = cfg.seed + state.frames
+        if restarts:
+            seed = int(np.random.SeedSequence([cfg.seed, state.frames, restarts]).generate_state(1)[0])
+        with stop_signals_blocked(), self.clock.paused():  # worker start-up is not training time
+            collector = self.pipeline.make_collector(cfg.total_frames - state.frames,
+                                                     max(0, cfg.initial_collect_steps - state.frames))
+            collector.set_seed(seed)
+        return collector
 
     def insert(self, batch: TensorDictBase) -> None:
         """Store a block in the replay buffer, count it, and note the triggers its iterations crossed."""
@@ -191,8 +237,8 @@ class Loop:
             self.interval_stats.add_losses(losses)
         if made:
             self.check_finite()  # once per block: a few scalars, before the collectors get the weights
-        if made and self.collector is not None and self.state.updates % self.config.collector.weight_sync_interval < made:
-            self.pipeline.push_weights(self.collector)
+        if made and self.collection is not None and self.state.updates % self.config.collector.weight_sync_interval < made:
+            self.collection.push_weights(self.pipeline.push_weights)
 
     def run_triggers(self) -> None:
         """Run what the current iteration owes, in order; each is crossed off once done."""
@@ -230,6 +276,7 @@ class Loop:
         """Evaluate the policy as it is now: in the background if the run does so, else here."""
         if self.background is not None and self.state.iteration > 0:
             self.background.ask(self.state.position(), self.background.snapshot(self.pipeline.policy))
+            fault_point("evaluator_worker", self.state.iteration, worker=lambda: self.background.worker_pid)
             self.take_background_results()
         else:
             self.evaluate_now()
@@ -247,10 +294,38 @@ class Loop:
         self._record_evaluation(result, at)
 
     def take_background_results(self, block: bool = False, feed: bool = True) -> None:
-        if self.background is not None:
-            with self.clock.paused() if block else contextlib.nullcontext():
-                for at, result in self.background.results(block=block, feed=feed, interrupt=self.stop.check):
-                    self._record_evaluation(result, at)
+        """Record the background evaluations that are back (``block``: wait for all of them); an
+        evaluator that failed is replaced, and asked again for what it had not answered."""
+        while self.background is not None:
+            try:
+                with self.clock.paused() if block else contextlib.nullcontext():
+                    for at, result in self.background.results(block=block, feed=feed, interrupt=self.stop.check):
+                        self._record_evaluation(result, at)
+                return
+            except WorkerFailure as failure:
+                self._restart_evaluator(failure)
+
+    def _start_evaluator(self) -> BackgroundEvaluator:
+        cfg = self.config
+        # TorchRL reads the new worker's first message with no timeout: the watchdog kills one that hangs
+        with self.clock.paused(), self.watchdog.limit(self.supervisor.start_timeout, kill_new_children()):
+            evaluator = BackgroundEvaluator(self.pipeline.eval_env_fn, self.pipeline.policy, cfg.num_eval_episodes,
+                                            self.state.pending_evals, timeout=cfg.eval_timeout,
+                                            ack_timeout=cfg.collector.timeout)
+        self.supervisor.report("evaluator", 1, 1)
+        return evaluator
+
+    def _restart_evaluator(self, failure: WorkerFailure) -> None:
+        with self.clock.paused():
+            self.background.close()
+        self.background = None
+        self.supervisor.report("evaluator", 0, 1)
+        while self.background is None:
+            self.supervisor.failed("evaluator", failure)  # WorkersLost when no restart is left
+            try:
+                self.background = self._start_evaluator()  # it asks again for the oldest pending evaluation
+            except (RuntimeError, ValueError, EOFError, OSError) as exc:
+                failure = WorkerFailure("evaluator", f"the evaluator did not start again: {exc}")
 
     def _record_evaluation(self, result: dict[str, Any], at: dict[str, int]) -> None:
         from rlpipe.pipelines.analysis import plot_training_returns  # matplotlib: imported when first needed
@@ -358,10 +433,13 @@ class Loop:
 
     @contextlib.contextmanager
     def _workers(self):
-        """Stop the evaluator process however the run ends (``collect`` stops the collector's)."""
+        """Stop the evaluator process and the watchdog however the run ends (``collect`` stops the
+        collector's processes)."""
         try:
             yield
         finally:
             if self.background is not None:
                 self.background.close()
+            if self.watchdog is not None:
+                self.watchdog.close()
             self.bar.close()

@@ -35,6 +35,9 @@ BASE_COLUMNS = ["step", "frames", "updates", "average_return", "average_episode_
 SPEED_COLUMNS = ["train_episode_return", "train_episode_length", "episodes", "steps_per_s", "updates_per_s", "wall_time"]
 # files a training run writes at the top of its folder (their temporaries are its to clear)
 RUN_FILES = ("config.json", "metrics.csv", "summary.json", "returns.png", "report.html")
+# collector workers alive, and the restarts of the collector and the background evaluator (blank for
+# a run that has none of them); see supervision.Supervisor
+WORKER_COLUMNS = ["workers_alive", "collector_restarts", "evaluator_restarts"]
 
 
 def default_run_dir(algo: str, env_id: str) -> Path:
@@ -248,8 +251,9 @@ class MetricsCSV:
     def __init__(self, path: Path, loss_names: list[str], resume_after_step: int | None = None,
                  extra_columns: list[str] = ()):
         self.path = Path(path)
-        # extra_columns: what a collector backend reports (Ray: workers alive, weight versions)
-        self.columns = BASE_COLUMNS + [f"loss_{n}" for n in loss_names] + SPEED_COLUMNS + list(extra_columns)
+        # extra_columns: what a collector backend reports (Ray: weight versions; workers_alive is shared)
+        self.columns = (BASE_COLUMNS + [f"loss_{n}" for n in loss_names] + SPEED_COLUMNS + WORKER_COLUMNS
+                        + [c for c in extra_columns if c not in WORKER_COLUMNS])
         if resume_after_step is None:
             self._rewrite([])
         else:

@@ -1,6 +1,6 @@
-"""What a training process needs from the operating system: Ctrl-C at safe points, workers started
-deaf to Ctrl-C, Python's garbage collector kept off long-lived objects, and freed memory kept for
-reuse.
+"""What a training process needs from the operating system: a stop signal (Ctrl-C, SIGTERM, SIGHUP)
+obeyed at safe points, workers started deaf to those signals, Python's garbage collector kept off
+long-lived objects, and freed memory kept for reuse.
 
 None of this is TorchRL's business (its collectors and evaluator leave signal handling to the
 caller), so it lives here, once, for the loop and for anyone driving rlpipe's parts by hand.
@@ -17,45 +17,80 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 
-__all__ = ["DeferredInterrupt", "Stopped", "fault_point", "gc_frozen", "keep_freed_memory", "sigint_blocked"]
+__all__ = [
+    "STOP_SIGNALS", "DeferredInterrupt", "Interrupted", "Stopped", "fault_point", "gc_frozen", "keep_freed_memory",
+    "start_resource_tracker", "stop_signals_blocked",
+]
+
+# What stops a run at its next safe point: Ctrl-C; what SLURM, Kubernetes, `timeout` and `kill` send;
+# the terminal closing. Where a platform lacks one (SIGHUP on Windows), it is left out.
+STOP_SIGNALS: tuple[signal.Signals, ...] = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
 class Stopped(Exception):
-    """Ctrl-C reached a safe point (an ``Exception``, so cleanup code in libraries runs as usual)."""
+    """A stop signal reached a safe point (an ``Exception``, so cleanup code in libraries runs as usual)."""
+
+    def __init__(self, signum: int = signal.SIGINT):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class Interrupted(KeyboardInterrupt):
+    """The run stopped on a signal (``signum``): after saving a checkpoint, or at once on a second signal.
+
+    A ``KeyboardInterrupt``, as a Ctrl-C has always been; ``exit_status`` is the shell's convention for a
+    process ended by that signal (128 + its number: 130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP).
+    """
+
+    def __init__(self, signum: int = signal.SIGINT):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+    @property
+    def exit_status(self) -> int:
+        return 128 + int(self.signum)
 
 
 class DeferredInterrupt:
-    """While active (main thread only), Ctrl-C sets a flag that ``check`` turns into ``Stopped``.
+    """While active (main thread only), a stop signal sets a flag that ``check`` turns into ``Stopped``.
 
-    A ``KeyboardInterrupt`` raised wherever the learner happens to be can land inside an optimiser
-    step or inside a library's context manager (tensordict's ``to_module`` turns it into an
-    unrelated ``RuntimeError``), and the state it leaves is not one to checkpoint. The loop calls
-    ``check`` where its state is whole. A second Ctrl-C raises ``KeyboardInterrupt`` at once.
+    The signals are ``STOP_SIGNALS``: Ctrl-C (SIGINT), SIGTERM (what schedulers and ``timeout`` send
+    before they kill) and SIGHUP, each handled as Ctrl-C always was. A ``KeyboardInterrupt`` raised
+    wherever the learner happens to be can land inside an optimiser step or inside a library's context
+    manager (tensordict's ``to_module`` turns it into an unrelated ``RuntimeError``), and the state it
+    leaves is not one to checkpoint. The loop calls ``check`` where its state is whole. A second
+    signal raises ``Interrupted`` at once.
     """
 
-    def __init__(self):
+    def __init__(self, signals: tuple[int, ...] = STOP_SIGNALS):
+        self.signals = tuple(signals)
         self.requested = False
+        self.signum: int | None = None
         self._first = 0.0
-        self._installed = False
-        self._previous = None
+        self._previous: dict[int, object] = {}
 
     def __enter__(self) -> DeferredInterrupt:
-        # A process started with SIGINT ignored (nohup, a background job) is meant to be immune to
-        # Ctrl-C, as Python itself leaves it then: keep it so.
-        if (threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-            self._installed = True
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for signum in self.signals:
+            # A process started with a signal ignored (nohup ignores SIGHUP; a background job,
+            # SIGINT) is meant to be immune to it, as Python itself leaves it then: keep it so.
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                self._previous[signum] = signal.signal(signum, self._handle)
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._installed:
+        for signum, previous in self._previous.items():
             # None: the handler was not set from Python; the default one is the closest to it
-            signal.signal(signal.SIGINT, signal.default_int_handler if self._previous is None else self._previous)
-            self._installed = False
+            if previous is None:
+                previous = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
+            signal.signal(signum, previous)
+        self._previous = {}
 
-    # A second SIGINT this soon after the first is the same Ctrl-C delivered twice (the terminal's to
+    # A second signal this soon after the first is the same stop delivered twice (the terminal's to
     # the process group, and a parent's such as `rlpipe ablate` forwarding it), not a second press.
     SAME_PRESS_S = 2.0
 
@@ -63,15 +98,16 @@ class DeferredInterrupt:
         if self.requested:
             if time.monotonic() - self._first < self.SAME_PRESS_S:
                 return
-            raise KeyboardInterrupt
-        self.requested = True
+            raise Interrupted(signum)
+        self.requested, self.signum = True, signum
         self._first = time.monotonic()
-        print("\nrlpipe: stopping at the next safe point to save a checkpoint (Ctrl-C again: stop now, unsaved)",
-              file=sys.stderr, flush=True)
+        what = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        print(f"\nrlpipe: {what}: stopping at the next safe point to save a checkpoint "
+              f"({what} again: stop now, unsaved)", file=sys.stderr, flush=True)
 
     def check(self) -> None:
         if self.requested:
-            raise Stopped
+            raise Stopped(self.signum)
 
 
 @contextlib.contextmanager
@@ -117,58 +153,96 @@ def keep_freed_memory(mmap_threshold: int = 64 << 20, trim_threshold: int = 256 
     return _kept_freed_memory
 
 
-@contextlib.contextmanager
-def sigint_blocked():
-    """Start processes (and threads) with SIGINT blocked, so a Ctrl-C reaches the learner alone.
+def start_resource_tracker() -> None:
+    """Start Python's multiprocessing resource tracker now, deaf to the stop signals, if it does not run yet.
 
-    The block is inherited by threads started here and by the processes they spawn (the signal
-    mask survives fork and exec); the learner's own SIGINT, if one comes meanwhile, waits until
-    the block is lifted. The learner then shuts the workers down itself.
+    Whatever first makes a multiprocessing lock or queue starts it (TorchRL's storages do), with the
+    signals of that moment: it ignores SIGINT and SIGTERM itself, but SIGHUP to the process group
+    kills it, and the tracker relaunched then prints a traceback for each lock the first one
+    tracked. Call before anything else makes one (the pipeline does, first thing).
+    """
+    from multiprocessing import resource_tracker
+
+    with stop_signals_blocked():
+        resource_tracker.ensure_running()
+
+
+@contextlib.contextmanager
+def stop_signals_blocked():
+    """Start processes (and threads) with the stop signals blocked, so they reach the learner alone.
+
+    Ctrl-C goes to a terminal's whole process group, and SLURM sends SIGTERM to every process of a
+    job: a worker that died of it would look like a lost worker, and the learner would stop with its
+    work half-saved. The block is inherited by threads started here and by the processes they spawn
+    (the signal mask survives fork and exec); the learner's own signal, if one comes meanwhile, waits
+    until the block is lifted. The learner then shuts the workers down itself (SIGKILL where one
+    does not stop when asked: a blocked SIGTERM does not stop it).
     """
     if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
         yield
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, set(STOP_SIGNALS))
     try:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
-# --- the test hook: a signal at an exact point of a run ------------------------------------------------
+# --- the test hook: a fault at an exact point of a run ------------------------------------------------
 
-# RLPIPE_FAULT="NAME@STEP" (or "NAME@STEP:SIGTERM"): a process reaching point NAME at iteration STEP
-# sends the signal (default SIGINT) to its whole process group, as a terminal's Ctrl-C does
-# (SIGSTOP holds the run there until the group gets SIGCONT). "NAME@STEP:ENOSPC" (any errno name)
-# raises that OSError there instead, as a full disk (or a refused write) would. "NAME@STEP:NAN"
-# sends nothing: fault_point returns True and the caller poisons its state (the loop: a parameter
-# becomes NaN after update STEP).
+# RLPIPE_FAULT="NAME@STEP" (or "NAME@STEP:SIGTERM", several steps "NAME@100,200:SIGKILL", several faults
+# separated by ";"): a process reaching point NAME at iteration STEP sends the signal (default SIGINT)
+# to its whole process group, as a terminal's Ctrl-C does (SIGSTOP holds it there until the group
+# gets SIGCONT), or to the one process the point is about (a worker), or, with a third field "self"
+# ("NAME@STEP:SIGTERM:self"), to itself alone. "NAME@STEP:ENOSPC" (any errno name) raises that
+# OSError there instead, as a full disk (or a refused write) would. "NAME@STEP:NAN" sends nothing:
+# fault_point returns True and the caller poisons its state (the loop: a parameter becomes NaN).
 # RLPIPE_FAULT_ONCE=PATH: only the first process to get there (it creates PATH and writes its command
 # line into it), so a study's other runs reaching the same point later do not press again.
-_FAULT = os.environ.get("RLPIPE_FAULT", "")
+_FAULTS = [f for f in os.environ.get("RLPIPE_FAULT", "").split(";") if f]
 
 
-def fault_point(name: str, step: int) -> bool:
+def fault_point(name: str, step: int, worker: Callable[[], int | None] | None = None) -> bool:
     """Where tests inject a fault (see ``RLPIPE_FAULT`` above); does nothing in normal runs.
 
-    Returns True when the fault is one the caller carries out itself (``:NAN``)."""
-    if not _FAULT:
-        return False
-    point, _, signame = _FAULT.partition(":")
-    if point != f"{name}@{step}":
-        return False
-    marker = os.environ.get("RLPIPE_FAULT_ONCE")
-    if marker:
-        try:
-            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            return
-        with os.fdopen(fd, "w") as fh:
-            fh.write(" ".join(sys.argv) + "\n")
-    if signame == "NAN":
-        return True
-    if signame.startswith("E"):
-        code = getattr(errno, signame)
-        raise OSError(code, os.strerror(code))
-    os.killpg(os.getpgrp(), getattr(signal, signame or "SIGINT"))
+    ``worker``: for a point about a worker process, a function giving its pid (called only when the
+    fault fires; None: no such worker now, and no signal). Returns True when the fault is one the
+    caller carries out itself (``:NAN``).
+    """
+    for fault in _FAULTS:
+        point, _, rest = fault.partition(":")
+        what, _, target = rest.partition(":")
+        point_name, _, steps = point.partition("@")
+        if point_name != name or str(step) not in steps.split(","):
+            continue
+        pid = os.getpid() if target == "self" else None
+        if worker is not None:
+            pid = worker()
+            if pid is None:
+                continue
+        if not _first_to_fire():
+            continue
+        if what == "NAN":
+            return True
+        if what.startswith("E"):
+            code = getattr(errno, what)
+            raise OSError(code, os.strerror(code))
+        signum = getattr(signal, what or "SIGINT")
+        if pid is None:
+            os.killpg(os.getpgrp(), signum)
+        else:
+            os.kill(pid, signum)
     return False
+
+
+def _first_to_fire() -> bool:
+    marker = os.environ.get("RLPIPE_FAULT_ONCE")
+    if not marker:
+        return True
+    try:
+        fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        return False
+    with os.fdopen(fd, "w") as fh:
+        fh.write(" ".join(sys.argv) + "\n")
+    return True

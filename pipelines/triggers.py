@@ -75,14 +75,14 @@ class IntervalTrigger(Trigger):
 
 
 class LogTrigger(Trigger):
-    """A metrics row of losses, speeds, training episodes' mean return and length, and the episodes
+    """A metrics row of losses, speeds, training episodes' mean return and length, the episodes
     finished so far (TF-Agents' StepPerSecondLogTrigger and train metrics: NumberOfEpisodes,
-    AverageReturnMetric, AverageEpisodeLengthMetric)."""
+    AverageReturnMetric, AverageEpisodeLengthMetric) and the workers' state (alive, restarts)."""
 
     name = "log"
 
     def __call__(self, loop: Loop) -> None:
-        row = {**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes}
+        row = {**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes, **loop.supervisor.columns()}
         collector_metrics = getattr(loop.collector, "metrics", None)  # a backend's own figures (Ray: workers alive)
         if collector_metrics is not None:
             row.update(collector_metrics())

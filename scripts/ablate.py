@@ -136,12 +136,34 @@ def _check_env(base, overrides: list[str]) -> None:
     pipeline.eval_env.close()
 
 
+# How long a run may take to save its checkpoint and exit once passed a stop signal, before it is killed.
+RUN_STOP_TIMEOUT = 120.0
+
+
+def stop_runs(procs: list[subprocess.Popen], signum: int, timeout: float) -> None:
+    """Pass ``signum`` to each of ``procs`` and wait for them to exit, ``timeout`` seconds in all; one
+    still running then is killed (its collector processes end when they lose it)."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signum)
+    deadline = time.monotonic() + timeout
+    for proc in procs:
+        try:
+            proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            print(f"rlpipe: run {proc.pid} did not stop within {timeout:g} s of {signal.Signals(signum).name}; "
+                  "killing it", file=sys.stderr)
+            proc.kill()
+            proc.wait(timeout=10.0)
+
+
 def run(args) -> int:
     from tqdm.auto import tqdm
 
     from rlpipe.pipelines.analysis import collect_runs, write_ablation_report
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.files import write_json_atomic
+    from rlpipe.pipelines.runtime import DeferredInterrupt
     from rlpipe.scripts.cli import check_output_dir
 
     jobs = plan(args)
@@ -166,30 +188,36 @@ def run(args) -> int:
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), unit="run", desc="ablation", dynamic_ncols=True)
     running: list[tuple[Job, subprocess.Popen]] = []
     failed: list[Job] = []
+    # Ctrl-C, SIGTERM or SIGHUP (to this process alone, or to its group, which the runs are in): the
+    # runs are passed the same signal, each saves a checkpoint, and a rerun resumes them. The first
+    # signal only sets a flag, so no run is started without being in `running`.
+    stop = DeferredInterrupt()
     try:
-        while todo or running:
-            while todo and len(running) < args.workers:
-                job = todo.pop(0)
-                log = open(job.run_dir.parent / f"{job.run_dir.name}.log", "a")
-                proc = subprocess.Popen(job.command(), stdout=log, stderr=subprocess.STDOUT,
-                                        env={**os.environ, "OMP_NUM_THREADS": "1"})
-                log.close()
-                running.append((job, proc))
-            time.sleep(0.5)
-            for job, proc in list(running):
-                if proc.poll() is not None:
-                    running.remove((job, proc))
-                    if proc.returncode != 0:
-                        failed.append(job)
-                    bar.update(1)
-            bar.set_postfix(running=len(running), failed=len(failed), refresh=False)
-    except KeyboardInterrupt:
-        for _, proc in running:
-            proc.send_signal(signal.SIGINT)  # each run checkpoints on SIGINT
-        for _, proc in running:
-            proc.wait()
+        with stop:
+            while (todo or running) and not stop.requested:
+                while todo and len(running) < args.workers:
+                    job = todo.pop(0)
+                    log = open(job.run_dir.parent / f"{job.run_dir.name}.log", "a")
+                    proc = subprocess.Popen(job.command(), stdout=log, stderr=subprocess.STDOUT,
+                                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+                    log.close()
+                    running.append((job, proc))
+                time.sleep(0.5)
+                for job, proc in list(running):
+                    if proc.poll() is not None:
+                        running.remove((job, proc))
+                        if proc.returncode != 0:
+                            failed.append(job)
+                        bar.update(1)
+                bar.set_postfix(running=len(running), failed=len(failed), refresh=False)
+            if stop.requested:
+                stop_runs([proc for _, proc in running], stop.signum, RUN_STOP_TIMEOUT)
+                print(f"rlpipe: interrupted; rerun the same command to resume {args.out}", file=sys.stderr)
+                return 128 + stop.signum
+    except KeyboardInterrupt as exc:  # a second signal: stop now, unsaved
+        stop_runs([proc for _, proc in running], signal.SIGKILL, 10.0)
         print(f"rlpipe: interrupted; rerun the same command to resume {args.out}", file=sys.stderr)
-        return 130
+        return getattr(exc, "exit_status", 130)
     finally:
         bar.close()
     if failed:

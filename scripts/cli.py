@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 import tempfile
 import time
@@ -154,6 +155,7 @@ def cmd_train(args) -> int:
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.rundir import RunDir, default_run_dir
+    from rlpipe.pipelines.supervision import WorkersLost
 
     algo, cfg = resolve_preset(args.preset)
     Pipeline = pipeline_class(algo)
@@ -182,10 +184,16 @@ def cmd_train(args) -> int:
     _show_live_log()
     try:
         result = pipeline.train(out, resume=args.resume is not None, progress=not args.no_progress)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM or SIGHUP: exit 128 + the signal's number
         run_dir = getattr(getattr(pipeline, "run_dir", None), "path", out)
-        print(f"rlpipe: interrupted; continue with: rlpipe train {args.preset} --resume {run_dir}", file=sys.stderr)
-        return 130
+        signame = getattr(exc, "signum", None)
+        by = f" by {signal.Signals(signame).name}" if signame not in (None, signal.SIGINT) else ""
+        print(f"rlpipe: interrupted{by}; continue with: rlpipe train {args.preset} --resume {run_dir}", file=sys.stderr)
+        return getattr(exc, "exit_status", 130)
+    except WorkersLost as exc:
+        run_dir = getattr(getattr(pipeline, "run_dir", None), "path", out)
+        print(f"rlpipe: error: {exc}; continue with: rlpipe train {args.preset} --resume {run_dir}", file=sys.stderr)
+        return exc.exit_status
     s = result.summary
     print(f"AverageReturn = {s['final_average_return']:.2f}  AverageEpisodeLength = {s['final_average_episode_length']:.1f}")
     print(f"{s['iterations']} iterations, {s['frames']} env steps, {s['updates']} updates in {s['wall_time_s']:.0f} s "

@@ -25,7 +25,7 @@ from rlpipe.pipelines.loop import TrainResult
 
 METRICS_COLUMNS = ["step", "frames", "updates", "average_return", "average_episode_length", "loss_loss",
                    "train_episode_return", "train_episode_length", "episodes", "steps_per_s", "updates_per_s",
-                   "wall_time"]
+                   "wall_time", "workers_alive", "collector_restarts", "evaluator_restarts"]
 
 TINY = ["num_iterations=300", "initial_collect_steps=100", "eval_interval=100", "num_eval_episodes=2",
         "log_interval=100", "checkpoint_interval=100", "policy_save_interval=100"]
