@@ -35,6 +35,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.supervision import WorkerFailure
 
 __all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost"]
 
@@ -45,8 +46,14 @@ START_TIMEOUT_S = 120.0
 """how long Ray may take to place every collector actor before the run stops with a clear line"""
 
 
-class WorkerLost(RuntimeError):
-    """A collector worker (here a Ray actor) died or its node went away; says which and how many are left."""
+class WorkerLost(WorkerFailure):
+    """A collector worker (here a Ray actor) died or its node went away; says which and how many are left.
+
+    A ``supervision.WorkerFailure`` of the collector: the loop's supervisor tears the Ray collectors
+    down and starts them again (``collector.max_restarts``), as it does local collector processes."""
+
+    def __init__(self, message: str):
+        super().__init__("collector", message)
 
 
 class RayRuntime:
@@ -160,9 +167,14 @@ class RayCollectors:
     def update_policy_weights_(self) -> None:
         """Nothing to do here: each worker gets the learner's weights when it is asked for its next block."""
 
-    def shutdown(self, timeout: float | None = None) -> None:
+    def shutdown(self, timeout: float | None = None, raise_on_error: bool = True) -> None:
+        """Stop the actors, then a local Ray instance this run started (``raise_on_error=False``, as
+        the supervisor tears a failed collector down: errors of dead actors are not raised)."""
         try:
             self.collector.shutdown(timeout=timeout)
+        except Exception:
+            if raise_on_error:
+                raise
         finally:
             self.runtime.close()
 

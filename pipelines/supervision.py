@@ -374,6 +374,8 @@ class SupervisedCollector:
         procs = self.procs  # none for in-process collection: nothing to watch, nothing to report
         if procs:
             self.supervisor.report(self.role, sum(_alive(p) for p in procs), len(procs))
+        elif hasattr(self.collector, "alive_workers"):  # Ray actors (ray_backend.RayCollectors)
+            self.supervisor.report(self.role, self.collector.alive_workers(), self.collector.num_workers)
 
     def _kill_on_timeout(self, what: str) -> Callable[[], None]:
         def expire():
