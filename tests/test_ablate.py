@@ -111,6 +111,7 @@ def study(tmp_path_factory):
     return info
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_the_study_and_its_runs(study):
     assert study["evaluating"] is not None, "no run was caught evaluating iteration 250"
     assert study["done_before_interrupt"] == [], "the study finished a run before it was interrupted"
@@ -122,6 +123,7 @@ def test_ctrl_c_stops_the_study_and_its_runs(study):
     assert study["in_flight"]["{}/seed{}".format(*study["evaluating"])] >= 0
 
 
+@pytest.mark.slow
 def test_rerun_completes_every_run(study):
     second = study["resume"]
     assert second.returncode == 0, second.stderr[-3000:]
@@ -147,6 +149,7 @@ def test_rerun_completes_every_run(study):
     assert read_rows(run_dir(out, variant, seed))[: len(kept)] == kept  # its rows before the interrupt
 
 
+@pytest.mark.slow
 def test_run_interrupted_while_evaluating_still_has_every_evaluation(study):
     run = study["evaluating"]
     rows = study["rows_after_interrupt"][run]
@@ -155,6 +158,7 @@ def test_run_interrupted_while_evaluating_still_has_every_evaluation(study):
     assert eval_steps(read_rows(run_dir(study["out"], *run))) == [0, 250, 500, 550]
 
 
+@pytest.mark.slow
 def test_report_lists_every_run(study):
     assert study["resume"].returncode == 0, study["resume"].stderr[-3000:]
     out = study["out"]
@@ -183,6 +187,7 @@ def test_report_lists_every_run(study):
         assert name in study["resume"].stdout
 
 
+@pytest.mark.slow
 def test_rerun_of_a_finished_study_skips_every_run(study):
     again = study["again"]
     assert again.returncode == 0, again.stderr[-3000:]

@@ -94,6 +94,7 @@ def cluster():
         c.shutdown()
 
 
+@pytest.mark.slow
 def test_td3_on_a_two_node_ray_cluster_stopped_by_ctrl_c_then_resumed(cluster, tmp_path):
     """A run joins the cluster, is stopped by Ctrl-C (checkpoint, exit 130) and resumed there; the
     cluster stays up throughout, and neither run leaves a process behind."""
@@ -111,6 +112,7 @@ def test_td3_on_a_two_node_ray_cluster_stopped_by_ctrl_c_then_resumed(cluster, t
     assert json.loads((run / "config.json").read_text())["config"]["ray"]["address"] == cluster.address
 
 
+@pytest.mark.slow
 def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
     """Also with the evaluation in the background (its own process on the learner's machine)."""
     proc, sid = train(["td3", *TINY, "collector.sync=true", "ray.address=", "eval_in_background=true", "--out", "run"],
@@ -120,6 +122,7 @@ def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
     assert_no_leftovers(sid)
 
 
+@pytest.mark.slow
 def test_ctrl_c_on_a_local_ray_run_saves_exits_130_and_stops_its_ray(tmp_path):
     run = tmp_path / "run"
     proc, sid = train(["td3", *TINY, "collector.sync=false", "--out", "run"], tmp_path,
@@ -131,6 +134,7 @@ def test_ctrl_c_on_a_local_ray_run_saves_exits_130_and_stops_its_ray(tmp_path):
 
 
 @pytest.mark.parametrize("sync", ["false", "true"])
+@pytest.mark.slow
 def test_a_lost_actor_is_replaced_and_the_run_finishes(tmp_path, sync):
     """kill -9 of one collector actor once the run has logged: the learner learns of it at its next
     block (WorkerLost, a WorkerFailure of the collector), the supervisor starts the Ray collectors

@@ -142,6 +142,7 @@ def copy_of(trained: Path, dest: Path) -> Path:
 
 
 @pytest.mark.parametrize("point", ["checkpoint.written", "checkpoint.exchanged"])
+@pytest.mark.slow
 def test_kill_inside_a_checkpoint_overwrite_leaves_a_resumable_run(trained, tmp_path, point):
     """Resuming a finished run saves its last checkpoint again (an overwrite): killed before the new one
     is in, or after it is in and before the old one is removed, the run resumes, and the next start
@@ -176,6 +177,7 @@ def killed_while_starting(tmp_path_factory) -> Path:
 
 
 @pytest.mark.parametrize("how", ["--resume", "--out"])
+@pytest.mark.slow
 def test_a_run_killed_before_its_first_checkpoint_resumes_or_restarts_in_place(killed_while_starting, tmp_path,
                                                                                how):
     run = copy_of(killed_while_starting, tmp_path / "run")
@@ -242,6 +244,7 @@ def fill(disk: Path) -> Path:
     return filler
 
 
+@pytest.mark.slow
 def test_a_full_disk_stops_the_run_with_one_line_and_loses_nothing(tiny_disk):
     run = tiny_disk / "run"
     with held(["train", "dqn", *TINY, "--no-progress", "--out", run], tiny_disk, "evaluate@100") as proc:
@@ -264,6 +267,7 @@ def test_a_full_disk_stops_the_run_with_one_line_and_loses_nothing(tiny_disk):
     assert_whole_run(run)
 
 
+@pytest.mark.slow
 def test_a_folder_turned_read_only_mid_run_saves_where_it_can(tmp_path):
     """The export folder turns read-only: the run stops with one line and a checkpoint of where it was
     (the checkpoints folder is still writable), and --resume goes on from there, losing nothing."""
@@ -284,6 +288,7 @@ def test_a_folder_turned_read_only_mid_run_saves_where_it_can(tmp_path):
     assert_whole_run(run)
 
 
+@pytest.mark.slow
 def test_ctrl_c_when_the_checkpoints_cannot_be_written_is_one_line(tmp_path):
     cwd, run = tmp_path, tmp_path / "run"
     with held(["train", "dqn", *TINY, "--no-progress", "--out", run], cwd, "evaluate@100") as proc:
@@ -300,6 +305,7 @@ def test_ctrl_c_when_the_checkpoints_cannot_be_written_is_one_line(tmp_path):
 
 
 @pytest.mark.parametrize("where", ["read-only-folder", "under-a-read-only-folder"])
+@pytest.mark.slow
 def test_an_unwritable_out_is_one_line_and_leaves_nothing(tmp_path, where):
     cwd = tmp_path
     locked = cwd / "locked"

@@ -129,6 +129,7 @@ def killed(tmp_path_factory):
     return run, done
 
 
+@pytest.mark.slow
 def test_a_killed_collector_worker_is_replaced_and_the_run_finishes(killed):
     run, done = killed
     assert done.exit == 0, done.stderr[-3000:]
@@ -144,6 +145,7 @@ def test_a_killed_collector_worker_is_replaced_and_the_run_finishes(killed):
     assert done.left == [], done.left  # no worker, evaluator or tracker outlives the run
 
 
+@pytest.mark.slow
 def test_a_killed_evaluator_is_replaced_and_asked_again(killed):
     run, done = killed
     assert done.exit == 0, done.stderr[-3000:]
@@ -153,6 +155,7 @@ def test_a_killed_evaluator_is_replaced_and_asked_again(killed):
     assert log_rows(run)[-1]["evaluator_restarts"] == "1"
 
 
+@pytest.mark.slow
 def test_a_restart_loses_no_replay_data(killed):
     run, _ = killed
     data = replay_data(checkpoint(run))
@@ -170,6 +173,7 @@ def frozen(tmp_path_factory):
     return run, done
 
 
+@pytest.mark.slow
 def test_a_wait_that_times_out_is_a_failed_worker(frozen):
     run, done = frozen
     assert done.exit == 0, done.stderr[-3000:]
@@ -198,6 +202,7 @@ def lost(tmp_path_factory):
     return run, stopped, state, resumed
 
 
+@pytest.mark.slow
 def test_past_max_restarts_the_run_saves_and_stops_with_one_line(lost):
     run, stopped, state, _ = lost
     assert stopped.exit == 75, stopped.stderr[-3000:]
@@ -210,6 +215,7 @@ def test_past_max_restarts_the_run_saves_and_stops_with_one_line(lost):
     assert stopped.left == [], stopped.left
 
 
+@pytest.mark.slow
 def test_the_replay_buffer_keeps_what_it_had_across_a_restart(lost):
     _, _, state, _ = lost
     before, after = replay_data(state["before"]), replay_data(state["latest"])
@@ -218,6 +224,7 @@ def test_the_replay_buffer_keeps_what_it_had_across_a_restart(lost):
         assert torch.equal(after[:200][key], before[key]), key
 
 
+@pytest.mark.slow
 def test_a_run_stopped_for_lost_workers_resumes_to_the_end(lost):
     run, _, _, resumed = lost
     assert resumed.exit == 0, resumed.stderr[-3000:]
@@ -235,6 +242,7 @@ def test_a_run_stopped_for_lost_workers_resumes_to_the_end(lost):
     ("collected@100:SIGTERM", 143),  # the whole process group (SLURM, a terminal's job control)
     ("collected@100:SIGHUP", 129),  # the terminal closing
 ])
+@pytest.mark.slow
 def test_a_stop_signal_saves_a_checkpoint_and_resume_finishes(fault, status, tmp_path):
     run = tmp_path / "run"
     stopped = train([*TD3_RUN, "collector.sync=false", "num_iterations=400"], run, fault=fault)
