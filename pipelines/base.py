@@ -321,9 +321,6 @@ class OffPolicyPipeline:
         names = [t.name for t in triggers]
         if len(set(names)) != len(names):
             raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
-        if self.config.checkpoint_keep < 0:
-            raise InputError(f"checkpoint_keep={self.config.checkpoint_keep}: expected zero (keep every checkpoint) "
-                             "or a positive count")
         if self.config.num_threads == -1:  # chosen once, before the run directory records the config
             self.config = dataclasses.replace(self.config, num_threads=self.choose_threads())
         run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
