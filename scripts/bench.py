@@ -6,6 +6,14 @@
     rlpipe bench minitaur [--steps 3000]
     rlpipe bench floor [key=value ...]
     rlpipe bench cleanrl [--algos sac td3 dqn] [--envs Pendulum-v1 ...] [--lengths N1 N2] [--seed 0]
+    rlpipe bench collect [--envs CartPole-v1 ...] [--envs-per-worker 1 8 32] [--frames 3000]
+    rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
+
+``collect``: collect-only env steps/s of the collectors rlpipe builds (each env's preset, its
+collection policy, ``collector.envs_per_worker`` envs as one batch), in-process and in one
+collector process, against the raw gymnasium env (issue 9's target: at least half of it).
+``ray``: Ray actors against local collector processes, collect-only and training the ``sac``
+preset, with the arithmetic of how many actors the learner can use (issue 10).
 
 Each prints a Markdown table (paste it into BENCHMARKS.md with the command) and, with ``--json``,
 writes the raw figures. These machines are shared and noisy: compare the ratios within one run.
@@ -23,18 +31,26 @@ from pathlib import Path
 
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
-    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu"])
+    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu",
+                                                  "collect", "ray"])
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs")
     bench.add_argument("--seeds", type=int, default=3)
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
-    bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac)")
+    bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac, ray: the shorter timed run)")
     bench.add_argument("--out", type=Path, help="keep the runs here (default: a temporary folder)")
     bench.add_argument("--json", type=Path, help="also write the figures as JSON here")
     bench.add_argument("--peer-iterations", type=int, default=3000, help="iterations timed for the plain-PyTorch peer")
     bench.add_argument("--algos", nargs="+", choices=["sac", "td3", "dqn"], help="cleanrl: algorithms to compare (default: all)")
-    bench.add_argument("--envs", nargs="+", help="cleanrl: env ids (default: Pendulum-v1 and HalfCheetah-v5; CartPole-v1 for dqn)")
+    bench.add_argument("--envs", nargs="+", help="cleanrl: env ids (default: Pendulum-v1 and HalfCheetah-v5; CartPole-v1 for "
+                       "dqn); collect: default CartPole-v1 Pendulum-v1 HalfCheetah-v5 MinitaurBulletEnv-v0; ray: "
+                       "the one env (default MinitaurBulletEnv-v0)")
+    bench.add_argument("--envs-per-worker", nargs="+", type=int, help="collect: collector.envs_per_worker values (default: 1 8 32)")
+    bench.add_argument("--workers", nargs="+", type=int, help="ray: collector workers (default: 1 2 4)")
+    bench.add_argument("--frames", type=int, help="collect, ray: collect-only frames timed per measurement "
+                       "(default 3000; ray 1000)")
     bench.add_argument("--lengths", nargs=2, type=int, metavar=("N1", "N2"),
-                       help="cleanrl: env steps after learning_starts of the two timed runs")
+                       help="cleanrl: env steps after learning_starts of the two timed runs; ray: iterations of the "
+                       "two timed training runs (default: --steps and 2000 more)")
     bench.add_argument("--parts", nargs="+", choices=["updates", "training"], default=["updates", "training"],
                        help="gpu: which tables to measure (default: both)")
     bench.add_argument("--seed", type=int, default=0, help="cleanrl: seed of both sides")
@@ -50,7 +66,8 @@ def run(args) -> int:
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
     figures = {"dqn": bench_dqn, "td3": bench_td3, "sac": bench_sac, "minitaur": bench_minitaur,
-               "floor": bench_floor, "cleanrl": bench_cleanrl, "gpu": bench_gpu}[args.target](args, out)
+               "floor": bench_floor, "cleanrl": bench_cleanrl, "gpu": bench_gpu, "collect": bench_collect,
+               "ray": bench_ray}[args.target](args, out)
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
@@ -205,6 +222,18 @@ def bench_gpu(args, out: Path) -> dict:
     from rlpipe.scripts.bench_gpu import bench_gpu as run_gpu
 
     return run_gpu(args, out)
+
+
+def bench_collect(args, out: Path) -> dict:
+    from rlpipe.scripts.bench_collect import bench_collect as run_collect
+
+    return run_collect(args, out)
+
+
+def bench_ray(args, out: Path) -> dict:
+    from rlpipe.scripts.bench_ray import bench_ray as run_ray
+
+    return run_ray(args, out)
 
 
 def bench_minitaur(args, out: Path) -> dict:
