@@ -108,9 +108,12 @@ def arithmetic_text(ceiling: dict, steps_per_actor_s: float, measured_it_s: floa
         f"{s['env_steps_per_s_ceiling']:.0f} env steps/s. One Ray actor gives {steps_per_actor_s:.0f} env steps/s "
         f"(collect-only, above). N actors saturate the learner at N = {ceiling['updates_per_s']:.0f} / "
         f"({steps_per_actor_s:.0f} x {r:g}) = **{s['saturating_actors']:.2f}**, i.e. {s['actors_needed']} "
-        "actor(s), each on a core (or machine) of its own; more actors only wait for the learner.",
+        f"actor{'s' if s['actors_needed'] > 1 else ''}, each on a core (or machine) of its own; more only wait for "
+        "the learner. (One actor's rate here shares this machine's cores with the driver and the other actors; "
+        "on a machine of its own it is nearer the raw env's.)",
     ]
     if measured_it_s:
+        lines.append("")
         lines.append(f"Measured training here (the sac preset, Ray): {measured_it_s:.1f} iterations/s, "
                      f"{measured_it_s / ceiling['updates_per_s']:.2f} of the ceiling (the rest: sampling, "
                      "inserting, the loop, and sharing 2 cores with the actors).")
@@ -177,9 +180,9 @@ def bench_ray(args, out: Path) -> dict:
         "",
         "| collector.backend | iterations/s (1 env step + 1 update) | ms per iteration |",
         "|---|---|---|",
-        f"| local ({trained.workers} collector process(es), sync={str(trained.sync).lower()}) | {local_it:.1f} | "
+        f"| local ({trained.workers} collector process{'es' if trained.workers > 1 else ''}, sync={str(trained.sync).lower()}) | {local_it:.1f} | "
         f"{1e3 / local_it:.1f} |",
-        f"| ray ({trained.workers} actor(s), sync={str(trained.sync).lower()}) | {ray_it:.1f} | {1e3 / ray_it:.1f} |",
+        f"| ray ({trained.workers} actor{'s' if trained.workers > 1 else ''}, sync={str(trained.sync).lower()}) | {ray_it:.1f} | {1e3 / ray_it:.1f} |",
         "",
         f"Ray / local: {ray_it / local_it:.2f} ({1e3 * (1 / ray_it - 1 / local_it):+.1f} ms per iteration).",
         "",

@@ -1,0 +1,41 @@
+"""The benchmarks' own arithmetic and tables (``rlpipe bench collect``, ``rlpipe bench ray``); no timing."""
+
+import pytest
+
+from rlpipe.scripts.bench_collect import collect_table, frames_per_batch, target_cell
+from rlpipe.scripts.bench_ray import saturation
+
+
+def test_blocks_are_the_presets_rounded_up_to_whole_vector_steps():
+    assert frames_per_batch(50, 1) == 50
+    assert frames_per_batch(50, 8) == 56
+    assert frames_per_batch(50, 32) == 64
+    assert frames_per_batch(160, 16) == 160
+
+
+def test_the_target_cell_marks_half_the_raw_speed_and_above():
+    assert target_cell(0.5) == "**0.50 met**"
+    assert target_cell(0.49) == "0.49"
+
+
+def test_the_collect_table_names_where_the_target_is_met():
+    def row(env, n, inproc, process):
+        return {"env": env, "preset": "p", "raw": 1000.0, "envs_per_worker": n, "frames_per_batch": 50 * n,
+                "inproc": inproc, "process": process, "inproc_run": {"threads": 1}}
+
+    table = collect_table([row("A", 1, 100.0, 200.0), row("A", 8, 400.0, 600.0), row("B", 1, 500.0, 10.0)], 3000, [])
+    assert "| A | p | 1000 | 8 | 400 | 400 | 0.40 | 600 | **0.60 met** |" in table
+    assert table.endswith("Target met (either collector) for: A at envs_per_worker=8; B at envs_per_worker=1.")
+    assert collect_table([row("A", 1, 1.0, 1.0)], 10, []).endswith("for: none.")
+
+
+def test_actors_saturate_the_learner_where_their_steps_pay_for_its_updates():
+    # 60 updates/s, 1 update per env step, 25 env steps/s per actor: 2.4 actors
+    s = saturation(60.0, 25.0, 1.0, actors=(1, 2, 4))
+    assert s["saturating_actors"] == pytest.approx(2.4)
+    assert s["actors_needed"] == 3
+    assert [(r["env_steps_per_s"], r["learner_bound"]) for r in s["rows"]] == [(25.0, False), (50.0, False), (60.0, True)]
+    # half an update per env step: the learner can use twice the env steps
+    assert saturation(60.0, 25.0, 0.5)["saturating_actors"] == pytest.approx(4.8)
+    with pytest.raises(ValueError):
+        saturation(60.0, 0.0, 1.0)
