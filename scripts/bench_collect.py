@@ -33,6 +33,30 @@ TARGET_FRACTION = 0.5
 """issue 9: collector env steps/s at least half the raw env's"""
 
 
+def check_args(args) -> None:
+    """``InputError`` for options of ``bench collect`` / ``bench ray`` that cannot work (nothing run yet)."""
+    from rlpipe.envs import EnvError, resolve_env_id
+    from rlpipe.pipelines.errors import InputError
+
+    if args.frames is not None and args.frames <= 0:
+        raise InputError(f"--frames={args.frames}: expected a positive number of frames")
+    for option, values in (("--envs-per-worker", args.envs_per_worker), ("--workers", args.workers)):
+        if values and any(v <= 0 for v in values):
+            raise InputError(f"{option} {' '.join(map(str, values))}: expected positive integers")
+    if args.target == "ray":
+        if args.envs and len(args.envs) > 1:
+            raise InputError(f"--envs {' '.join(args.envs)}: bench ray measures one env; expected one env id")
+        if args.lengths and not 0 < args.lengths[0] < args.lengths[1]:
+            raise InputError(f"--lengths {args.lengths[0]} {args.lengths[1]}: expected two iteration counts, 0 < N1 < N2")
+        if args.steps is not None and args.steps <= 0:
+            raise InputError(f"--steps={args.steps}: expected a positive number of iterations")
+    for env_id in args.envs or []:
+        try:
+            resolve_env_id(env_id)
+        except EnvError as exc:
+            raise InputError(f"--envs: {exc}") from exc
+
+
 def preset_for(env_id: str) -> tuple[str, list[str]]:
     """The preset whose collection policy collects ``env_id`` (another id: ``dqn`` or ``sac`` by its action space)."""
     if env_id in PRESETS:
@@ -182,13 +206,10 @@ def collect_table(rows: list[dict], steps: int, overrides: list[str]) -> str:
 
 
 def bench_collect(args, out: Path) -> dict:
-    from rlpipe.pipelines.errors import InputError
-
+    check_args(args)
     steps = 3000 if args.frames is None else args.frames
     envs = args.envs or list(PRESETS)
     counts = args.envs_per_worker or list(ENVS_PER_WORKER)
-    if steps <= 0 or any(n <= 0 for n in counts):
-        raise InputError(f"--frames={steps} --envs-per-worker={counts}: expected positive integers")
     rows = []
     for env_id in envs:
         preset, extra = preset_for(env_id)

@@ -124,14 +124,11 @@ def arithmetic_text(ceiling: dict, steps_per_actor_s: float, measured_it_s: floa
 
 
 def bench_ray(args, out: Path) -> dict:
-    from rlpipe.pipelines.errors import InputError
+    from rlpipe.scripts.bench_collect import check_args
     from rlpipe.scripts.bench_sac import rlpipe_iterations_per_s
 
+    check_args(args)
     workers = args.workers or list(WORKERS)
-    if any(w <= 0 for w in workers):
-        raise InputError(f"--workers {' '.join(map(str, workers))}: expected positive counts of collector workers")
-    if args.frames is not None and args.frames <= 0:
-        raise InputError(f"--frames={args.frames}: expected a positive number of frames")
     env_id = (args.envs or ["MinitaurBulletEnv-v0"])[0]
     preset = args.preset or "sac"
     env_override = [] if env_id == "MinitaurBulletEnv-v0" and preset == "sac" else [f"env={env_id}"]
@@ -145,8 +142,6 @@ def bench_ray(args, out: Path) -> dict:
                   f"(start-up {run['startup_s']:.1f} s)", file=sys.stderr)
     n = args.steps or 500
     iterations = tuple(args.lengths) if args.lengths else (n, n + 2000)
-    if not 0 < iterations[0] < iterations[1]:
-        raise InputError(f"--lengths {iterations[0]} {iterations[1]}: expected two iteration counts, 0 < N1 < N2")
     training = {}
     for backend in ("local", "ray"):
         training[backend] = rlpipe_iterations_per_s(iterations, out / backend, [*overrides, f"collector.backend={backend}"])

@@ -39,3 +39,22 @@ def test_actors_saturate_the_learner_where_their_steps_pay_for_its_updates():
     assert saturation(60.0, 25.0, 0.5)["saturating_actors"] == pytest.approx(4.8)
     with pytest.raises(ValueError):
         saturation(60.0, 0.0, 1.0)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"frames": 0}, "--frames=0: expected a positive number of frames"),
+    ({"workers": [1, 0]}, "--workers 1 0: expected positive integers"),
+    ({"envs": ["CartPole-v1", "Pendulum-v1"]}, "bench ray measures one env; expected one env id"),
+    ({"lengths": [5, 3]}, "--lengths 5 3: expected two iteration counts, 0 < N1 < N2"),
+    ({"envs": ["CartPol-v1"]}, "--envs: unknown env id 'CartPol-v1'; did you mean 'CartPole-v1'"),
+])
+def test_bad_options_are_refused_before_anything_runs(options, message):
+    from argparse import Namespace
+
+    from rlpipe.pipelines.errors import InputError
+    from rlpipe.scripts.bench_collect import check_args
+
+    args = Namespace(**{"target": "ray", "frames": None, "workers": None, "envs_per_worker": None, "envs": None,
+                        "lengths": None, "steps": None, **options})
+    with pytest.raises(InputError, match=message.replace("(", r"\(")):
+        check_args(args)
