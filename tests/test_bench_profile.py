@@ -1,0 +1,78 @@
+"""``rlpipe bench profile``'s classification of py-spy samples into parts, on real samples.
+
+tests/data/pyspy_raw_sample.txt holds lines of py-spy 0.4.3's ``record --format raw --idle --threads
+--subprocesses --full-filenames --nolineno`` output, taken from two real runs in their steady state:
+``rlpipe train dqn`` (pid 20926: the env stepped by TorchRL's in-process Collector) and the ``td3``
+preset with CleanRL's sizes (pid 21414, its collector process 21497). No timing is asserted.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rlpipe.scripts import bench_profile as bp
+
+pytestmark = pytest.mark.unit
+
+SAMPLE = Path(__file__).parent / "data" / "pyspy_raw_sample.txt"
+
+# (pid, thread, part) of each line of SAMPLE, in order
+EXPECTED = [
+    (21497, "MainThread", "collection policy"),
+    (21497, "MainThread", "collector bookkeeping (trajectory ids, stacking, copies)"),
+    (21497, "MainThread", "env step"),
+    (21497, "MainThread", "waiting for the learner to take the block / weights"),
+    (20926, "MainThread", "collection policy (in-process collector)"),
+    (20926, "MainThread", "collector bookkeeping (in-process: trajectory ids, stacking, copies)"),
+    (20926, "MainThread", "env step (in-process collector)"),
+    (20926, "MainThread", "insert a block into the replay buffer"),
+    (21414, "MainThread", "insert a block into the replay buffer"),
+    (20926, "MainThread", "replay sample"),
+    (21414, "MainThread", "replay sample"),
+    (20926, "MainThread", "triggers (log rows, checkpoints), loop bookkeeping, other"),
+    (21414, "MainThread", "triggers (log rows, checkpoints), loop bookkeeping, other"),
+    (20926, "MainThread", "update: backward (autograd engine)"),
+    (21414, "MainThread", "update: backward (autograd engine)"),
+    (20926, "MainThread", "update: forward (losses)"),
+    (21414, "MainThread", "update: forward (losses)"),
+    (20926, "MainThread", "update: optimiser step"),
+    (21414, "MainThread", "update: optimiser step"),
+    (21414, "MainThread", "update: target update"),
+    (21414, "MainThread", "waiting for a collected block"),
+    (21414, "MainThread", "weight push to collectors"),
+    (20926, "rlpipe-watchdog", None),
+]
+
+
+def test_each_real_stack_lands_in_its_part():
+    lines = SAMPLE.read_text().splitlines()
+    assert len(lines) == len(EXPECTED)
+    for line, (pid, thread, part) in zip(lines, EXPECTED, strict=True):
+        processes = bp.parse_raw([line])
+        assert list(processes) == [pid]
+        proc = processes[pid]
+        (name, stacks), = proc["threads"].items()
+        assert name == thread
+        if part is None:
+            continue
+        (stack, _), = stacks.items()
+        classify = bp.classify_learner if bp.role(proc) == "learner" else bp.classify_worker
+        assert classify(stack) == part, line[:200]
+
+
+def test_processes_roles_and_shares():
+    processes = bp.parse_raw(SAMPLE.read_text().splitlines())
+    # the collector process's command line holds ';' (multiprocessing's -c string): still one process
+    assert set(processes) == {20926, 21414, 21497}
+    assert processes[21497]["parent"] == 21414
+    assert {pid: bp.role(p) for pid, p in processes.items()} == {20926: "learner", 21414: "learner", 21497: "collector"}
+    figures = {f["pid"]: f for f in bp.shares(processes)}
+    # main threads only: the watchdog thread's 799 idle samples are not the learner's
+    assert figures[20926]["samples"] == 1 + 3 + 20 + 1 + 2 + 4 + 9 + 1 + 29
+    for f in figures.values():
+        assert sum(f["shares"].values()) == pytest.approx(1.0)
+    assert figures[21497]["shares"]["waiting for the learner to take the block / weights"] == pytest.approx(644 / 652)
+    table = bp.table(list(figures.values()))
+    assert "| update: target update |" in table and "collector process (pid 21497" in table
