@@ -33,7 +33,7 @@ def add_parser(sub) -> None:
     bench.add_argument("--seeds", type=int, default=3)
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
     bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac, profile: default 100000)")
-    bench.add_argument("--duration", type=float, default=20.0, help="profile: seconds sampled after learning starts")
+    bench.add_argument("--duration", type=int, default=20, help="profile: seconds sampled after learning starts")
     bench.add_argument("--rate", type=int, default=100, help="profile: py-spy samples per second")
     bench.add_argument("--out", type=Path, help="keep the runs here (default: a temporary folder)")
     bench.add_argument("--json", type=Path, help="also write the figures as JSON here")

@@ -254,6 +254,7 @@ def profile_run(preset: str, overrides: list[str], out: Path, *, steps: int, dur
     py_spy = find_py_spy()
     if py_spy is None:
         raise InputError("py-spy not found next to this Python or on PATH; expected it installed: pip install py-spy")
+    out.mkdir(parents=True, exist_ok=True)
     run_dir, raw = out / "run", out / "profile.txt"
     # evaluations off, a log row every 100 iterations (when learning starts is read from them); the
     # user's overrides come last and win
