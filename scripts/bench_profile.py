@@ -237,14 +237,21 @@ def _learning_started(metrics_csv: Path) -> dict | None:
     return None
 
 
-def _speed(metrics_csv: Path) -> float | None:
-    """updates/s of the run's last log row (its own count over training time)."""
+def _last_row(metrics_csv: Path) -> dict | None:
+    """The run's last log row with updates and a wall time, if any."""
     try:
         with metrics_csv.open(newline="") as f:
-            rows = [r for r in csv.DictReader(f) if r.get("updates_per_s")]
+            rows = [r for r in csv.DictReader(f) if r.get("updates_per_s") and r.get("wall_time")]
     except OSError:
         return None
-    return float(rows[-1]["updates_per_s"]) if rows else None
+    return rows[-1] if rows else None
+
+
+def _rate(first: dict | None, last: dict | None) -> float | None:
+    """Updates per second of wall time between two log rows (the sampled window, py-spy's pauses included)."""
+    if not first or not last or float(last["wall_time"]) <= float(first["wall_time"]):
+        return None
+    return (int(last["updates"]) - int(first["updates"])) / (float(last["wall_time"]) - float(first["wall_time"]))
 
 
 def profile_run(preset: str, overrides: list[str], out: Path, *, steps: int, duration: float, rate: int,
@@ -258,7 +265,8 @@ def profile_run(preset: str, overrides: list[str], out: Path, *, steps: int, dur
     run_dir, raw = out / "run", out / "profile.txt"
     # evaluations off, a log row every 100 iterations (when learning starts is read from them); the
     # user's overrides come last and win
-    cmd = [sys.executable, "-m", "rlpipe.scripts.cli", "train", preset, "eval_interval=0", "log_interval=100",
+    cmd = [sys.executable, "-m", "rlpipe.scripts.cli", "train", preset, "eval_interval=0", "eval_in_background=false",
+           "log_interval=100",
            "checkpoint_interval=100000000", "policy_save_interval=100000000", *overrides, f"num_iterations={steps}",
            "--out", str(run_dir), "--no-progress"]
     print("  " + " ".join(cmd[2:]), file=sys.stderr)
@@ -272,6 +280,7 @@ def profile_run(preset: str, overrides: list[str], out: Path, *, steps: int, dur
             if time.monotonic() > deadline:
                 raise RuntimeError(f"no metrics row with updates after {start_timeout:.0f} s: see {out / 'train.log'}")
             time.sleep(0.5)
+        first = _last_row(run_dir / "metrics.csv")
         print(f"  learning started (iteration {started['step']}); sampling {duration:g} s at {rate}/s", file=sys.stderr)
         spy = subprocess.run([py_spy, "record", "--pid", str(child.pid), "--duration", str(duration), "--rate", str(rate),
                               "--format", "raw", "--idle", "--threads", "--subprocesses", "--full-filenames",
@@ -279,14 +288,14 @@ def profile_run(preset: str, overrides: list[str], out: Path, *, steps: int, dur
         if spy.returncode != 0 or not raw.exists():
             raise RuntimeError(f"py-spy failed (exit {spy.returncode}): {spy.stderr.strip()[-500:]}")
         finished_early = child.poll() is not None
-        speed = _speed(run_dir / "metrics.csv")
+        speed = _rate(first, _last_row(run_dir / "metrics.csv"))
     finally:
         _stop(child)
     if finished_early:
         print("  warning: the run ended while being sampled; its end is in the profile (use more --steps)",
               file=sys.stderr)
     figures = shares(parse_raw(raw.read_text().splitlines()))
-    return {"command": " ".join(["rlpipe", *cmd[3:]]), "raw": str(raw), "updates_per_s_at_end": speed,
+    return {"command": " ".join(["rlpipe", *cmd[3:]]), "raw": str(raw), "updates_per_s_sampled": speed,
             "processes": figures}
 
 
@@ -313,10 +322,10 @@ def bench_profile(args, out: Path) -> dict:
         raise InputError(f"--duration={args.duration} --rate={args.rate}: expected positive numbers")
     steps = args.steps or 100_000
     figures = profile_run(preset, overrides, out, steps=steps, duration=args.duration, rate=args.rate)
-    speed = figures["updates_per_s_at_end"]
+    speed = figures["updates_per_s_sampled"]
     figures["table"] = "\n".join([
         f"Steady-state profile: `{figures['command']}`, py-spy {args.rate}/s for {args.duration:g} s after learning "
-        f"started" + (f" (the run's updates/s at its last log row: {speed:.0f})" if speed else ""),
+        f"started" + (f" (the run's updates/s over the sampled window, from its log rows: {speed:.0f})" if speed else ""),
         "",
         table(figures["processes"]),
         "",
