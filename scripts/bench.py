@@ -53,6 +53,10 @@ def run(args) -> int:
 
     if args.seeds <= 0:
         raise InputError(f"--seeds={args.seeds}: expected a positive integer")
+    if args.target == "profile":  # its preset and overrides, refused before any folder is made
+        from rlpipe.scripts.bench_profile import check_args
+
+        check_args(args)
     out = args.out or Path(tempfile.mkdtemp(prefix=f"rlpipe-bench-{args.target}-"))
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")

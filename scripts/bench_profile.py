@@ -310,16 +310,23 @@ def _stop(child: subprocess.Popen) -> None:
             child.wait()
 
 
-def bench_profile(args, out: Path) -> dict:
+def check_args(args) -> tuple[str, list[str]]:
+    """(preset, overrides) of ``rlpipe bench profile``'s arguments; an InputError (before anything is written) if bad."""
     from rlpipe.pipelines import resolve_preset
+    from rlpipe.pipelines.config import apply_overrides
     from rlpipe.pipelines.errors import InputError
 
     if not args.overrides or "=" in args.overrides[0]:
         raise InputError("bench profile: expected a preset first: rlpipe bench profile PRESET [key=value ...]")
     preset, overrides = args.overrides[0], args.overrides[1:]
-    resolve_preset(preset)  # an unknown preset is refused here, before anything runs
-    if args.duration <= 0 or args.rate <= 0:
-        raise InputError(f"--duration={args.duration} --rate={args.rate}: expected positive numbers")
+    apply_overrides(resolve_preset(preset)[1], overrides)  # an unknown preset or key is refused here
+    if args.duration <= 0 or args.rate <= 0 or (args.steps is not None and args.steps <= 0):
+        raise InputError(f"--duration={args.duration} --rate={args.rate} --steps={args.steps}: expected positive integers")
+    return preset, overrides
+
+
+def bench_profile(args, out: Path) -> dict:
+    preset, overrides = check_args(args)
     steps = args.steps or 100_000
     figures = profile_run(preset, overrides, out, steps=steps, duration=args.duration, rate=args.rate)
     speed = figures["updates_per_s_sampled"]

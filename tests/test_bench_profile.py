@@ -76,3 +76,21 @@ def test_processes_roles_and_shares():
     assert figures[21497]["shares"]["waiting for the learner to take the block / weights"] == pytest.approx(644 / 652)
     table = bp.table(list(figures.values()))
     assert "| update: target update |" in table and "collector process (pid 21497" in table
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["bench", "profile", "dqm", "--out", "new"], ["dqm", "dqn"]),
+    (["bench", "profile", "env=CartPole-v1", "--out", "new"], ["PRESET"]),
+    (["bench", "profile", "dqn", "batchsize=3", "--out", "new"], ["batchsize"]),
+    (["bench", "profile", "dqn", "--duration", "0", "--out", "new"], ["--duration=0"]),
+])
+def test_bad_profile_arguments_are_one_line_and_write_nothing(argv, words, tmp_path, monkeypatch, capsys):
+    from rlpipe.scripts.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    code = main(argv)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("rlpipe: error:"), lines
+    for word in words:
+        assert word in lines[0]
+    assert list(tmp_path.iterdir()) == []
