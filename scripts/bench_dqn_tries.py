@@ -24,21 +24,18 @@ VARIANTS = {
 }
 
 
-def best_plain(iterations: int, seed: int) -> float:
-    """The plain loop's best of torch's default threads and one thread (restored after): under load,
-    two OpenMP threads on a shared 2-core machine can make it 10x slower, which would flatter the
-    ratio (rlpipe's learner picks its own thread count, ``choose_threads``)."""
+def plain_one_thread(iterations: int, seed: int) -> float:
+    """The plain loop on one torch thread (restored after). On torch's default two threads, on this
+    shared 2-core machine under load (~12), it ran at 23 it/s, 10x slower: the OpenMP threads wait
+    for each other, which would flatter the ratio (rlpipe's learner picks its count, ``choose_threads``)."""
     import torch
 
     before = torch.get_num_threads()
-    speeds = [plain_pytorch_dqn_iterations_per_s(iterations, seed=seed)]
     try:
         torch.set_num_threads(1)
-        speeds.append(plain_pytorch_dqn_iterations_per_s(iterations, seed=seed))
+        return plain_pytorch_dqn_iterations_per_s(iterations, seed=seed)
     finally:
         torch.set_num_threads(before)
-    print(f"  plain loop: {speeds[0]:.0f} it/s on {before} threads, {speeds[1]:.0f} on 1", file=sys.stderr)
-    return max(speeds)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     speeds: dict[str, list[float]] = {name: [] for name in variants}
     peers = []
     for r in range(args.rounds):
-        peer = best_plain(args.peer_iterations, seed=r)
+        peer = plain_one_thread(args.peer_iterations, seed=r)
         peers.append(peer)
         for name, overrides in variants.items():
             algo, cfg = resolve_preset(args.preset)
