@@ -263,11 +263,11 @@ def profile_run(preset: str, overrides: list[str], out: Path, *, steps: int, dur
         raise InputError("py-spy not found next to this Python or on PATH; expected it installed: pip install py-spy")
     out.mkdir(parents=True, exist_ok=True)
     run_dir, raw = out / "run", out / "profile.txt"
-    # evaluations off, a log row every 100 iterations (when learning starts is read from them); the
-    # user's overrides come last and win
+    # evaluations off (one episode for the random baseline and the evaluation at step 0, which
+    # come before learning), a log row every 100 iterations (when learning starts is read from
+    # them); the user's overrides come last and win
     cmd = [sys.executable, "-m", "rlpipe.scripts.cli", "train", preset, "eval_interval=0", "eval_in_background=false",
-           "log_interval=100",
-           "checkpoint_interval=100000000", "policy_save_interval=100000000", *overrides, f"num_iterations={steps}",
+           "num_eval_episodes=1", "log_interval=100", "checkpoint_interval=100000000", "policy_save_interval=100000000", *overrides, f"num_iterations={steps}",
            "--out", str(run_dir), "--no-progress"]
     print("  " + " ".join(cmd[2:]), file=sys.stderr)
     with (out / "train.log").open("w") as log:
