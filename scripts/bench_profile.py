@@ -18,6 +18,7 @@ then on PATH). It needs to attach to the child (ptrace: root, or ``kernel.yama.p
 from __future__ import annotations
 
 import csv
+import functools
 import os
 import re
 import shutil
@@ -120,8 +121,9 @@ def _collector_part(rollout: tuple[Frame, ...]) -> str:
     return "env" if _is_env(rollout) else "bookkeeping"
 
 
-def classify_learner(stack: tuple[Frame, ...]) -> str:
-    """The part of the learner's work a main-thread sample belongs to (one of ``LEARNER_PARTS``)."""
+def classify_learner(stack: tuple[Frame, ...], in_process: bool = False) -> str:
+    """The part of the learner's work a main-thread sample belongs to (one of ``LEARNER_PARTS``);
+    ``in_process``: the learner steps the env itself (TorchRL's ``Collector``; see ``shares``)."""
     loop = _after(stack, "Loop.run")
     if not loop:
         return LEARNER_PARTS[-1]
@@ -149,8 +151,10 @@ def classify_learner(stack: tuple[Frame, ...]) -> str:
                 _collector_part(rollout)]
         if _has(loop, path="/multiprocessing/") or _has(loop, path="/collectors/_multi") or _has(loop, path="/ray/"):
             return "waiting for a collected block"  # collector processes: the learner reads their pipes
-        if _has(loop, path="/torchrl/collectors/"):  # the in-process Collector's iterator around its rollout
-            return "collector bookkeeping (in-process: trajectory ids, stacking, copies)"
+        if _has(loop, path="/collectors/_single") or (in_process and _has(loop, path="/torchrl/collectors/")):
+            return "collector bookkeeping (in-process: trajectory ids, stacking, copies)"  # around its rollout
+        if _has(loop, path="/torchrl/collectors/"):  # a collector's iterator between blocks of its processes
+            return "waiting for a collected block"
         return LEARNER_PARTS[-1]
     if top == "Loop.insert":
         return "insert a block into the replay buffer"
@@ -198,8 +202,11 @@ def shares(processes: dict[int, dict]) -> list[dict]:
         if kind not in ("learner", "collector"):
             continue
         parts, classify = (LEARNER_PARTS, classify_learner) if kind == "learner" else (WORKER_PARTS, classify_worker)
-        counts = Counter()
-        for stack, n in main_thread(proc).items():
+        counts, main = Counter(), main_thread(proc)
+        if kind == "learner":  # TorchRL's in-process Collector: its rollout shows on the learner's stacks
+            in_process = any(_after(stack, "Collector.rollout") is not None for stack in main)
+            classify = functools.partial(classify_learner, in_process=in_process)
+        for stack, n in main.items():
             counts[classify(stack)] += n
         total = sum(counts.values())
         out.append({"pid": pid, "role": kind, "samples": total,

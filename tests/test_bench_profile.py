@@ -2,8 +2,9 @@
 
 tests/data/pyspy_raw_sample.txt holds lines of py-spy 0.4.3's ``record --format raw --idle --threads
 --subprocesses --full-filenames --nolineno`` output, taken from two real runs in their steady state:
-``rlpipe train dqn`` (pid 20926: the env stepped by TorchRL's in-process Collector) and the ``td3``
-preset with CleanRL's sizes (pid 21414, its collector process 21497). No timing is asserted.
+``rlpipe train dqn`` (pid 20926: the env stepped by TorchRL's in-process Collector; pid 15882: with
+``collector.sync=false``) and the ``td3`` preset with CleanRL's sizes (pid 21414, its collector
+process 21497). No timing is asserted.
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ EXPECTED = [
     (21414, "MainThread", "waiting for a collected block"),
     (21414, "MainThread", "weight push to collectors"),
     (20926, "rlpipe-watchdog", None),
+    # the dqn preset with collector.sync=false (pid 15882): the async collector's iterator, no rollout here
+    (15882, "MainThread", "waiting for a collected block"),
 ]
 
 
@@ -65,12 +68,17 @@ def test_each_real_stack_lands_in_its_part():
 def test_processes_roles_and_shares():
     processes = bp.parse_raw(SAMPLE.read_text().splitlines())
     # the collector process's command line holds ';' (multiprocessing's -c string): still one process
-    assert set(processes) == {20926, 21414, 21497}
+    assert set(processes) == {20926, 21414, 21497, 15882}
     assert processes[21497]["parent"] == 21414
-    assert {pid: bp.role(p) for pid, p in processes.items()} == {20926: "learner", 21414: "learner", 21497: "collector"}
+    assert {pid: bp.role(p) for pid, p in processes.items()} == {20926: "learner", 21414: "learner", 21497: "collector",
+                                                                 15882: "learner"}
     figures = {f["pid"]: f for f in bp.shares(processes)}
     # main threads only: the watchdog thread's 799 idle samples are not the learner's
     assert figures[20926]["samples"] == 1 + 3 + 20 + 1 + 2 + 4 + 9 + 1 + 29
+    # a learner that steps its env in-process files its collector's iterator as bookkeeping, one with
+    # collector processes as waiting
+    assert "collector bookkeeping (in-process: trajectory ids, stacking, copies)" in figures[20926]["shares"]
+    assert figures[15882]["shares"] == {"waiting for a collected block": 1.0}
     for f in figures.values():
         assert sum(f["shares"].values()) == pytest.approx(1.0)
     assert figures[21497]["shares"]["waiting for the learner to take the block / weights"] == pytest.approx(644 / 652)
