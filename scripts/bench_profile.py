@@ -261,21 +261,20 @@ def _rate(first: dict | None, last: dict | None) -> float | None:
     return (int(last["updates"]) - int(first["updates"])) / (float(last["wall_time"]) - float(first["wall_time"]))
 
 
-def profile_run(preset: str, overrides: list[str], out: Path, *, steps: int, duration: float, rate: int,
+def profile_run(preset: str, overrides: list[str], out: Path, *, steps: int, duration: int, rate: int,
                 start_timeout: float = 900.0) -> dict:
-    from rlpipe.pipelines.errors import InputError
-
     py_spy = find_py_spy()
     if py_spy is None:
-        raise InputError("py-spy not found next to this Python or on PATH; expected it installed: pip install py-spy")
+        raise RuntimeError("py-spy not found next to this Python or on PATH: pip install py-spy")
     out.mkdir(parents=True, exist_ok=True)
     run_dir, raw = out / "run", out / "profile.txt"
     # evaluations off (one episode for the random baseline and the evaluation at step 0, which
     # come before learning), a log row every 100 iterations (when learning starts is read from
     # them); the user's overrides come last and win
     cmd = [sys.executable, "-m", "rlpipe.scripts.cli", "train", preset, "eval_interval=0", "eval_in_background=false",
-           "num_eval_episodes=1", "log_interval=100", "checkpoint_interval=100000000", "policy_save_interval=100000000", *overrides, f"num_iterations={steps}",
-           "--out", str(run_dir), "--no-progress"]
+           "num_eval_episodes=1", "log_interval=100", "checkpoint_interval=100000000",
+           "policy_save_interval=100000000", *overrides, f"num_iterations={steps}", "--out", str(run_dir),
+           "--no-progress"]
     print("  " + " ".join(cmd[2:]), file=sys.stderr)
     with (out / "train.log").open("w") as log:
         child = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
@@ -329,6 +328,9 @@ def check_args(args) -> tuple[str, list[str]]:
     apply_overrides(resolve_preset(preset)[1], overrides)  # an unknown preset or key is refused here
     if args.duration <= 0 or args.rate <= 0 or (args.steps is not None and args.steps <= 0):
         raise InputError(f"--duration={args.duration} --rate={args.rate} --steps={args.steps}: expected positive integers")
+    if find_py_spy() is None:
+        raise InputError("bench profile: py-spy not found next to this Python or on PATH; expected it installed "
+                         "(pip install py-spy)")
     return preset, overrides
 
 
