@@ -6,6 +6,11 @@
     rlpipe bench minitaur [--steps 3000]
     rlpipe bench floor [key=value ...]
     rlpipe bench cleanrl [--algos sac td3 dqn] [--envs Pendulum-v1 ...] [--lengths N1 N2] [--seed 0]
+    rlpipe bench profile PRESET [key=value ...] [--steps N] [--duration 20] [--rate 100]
+
+``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
+started and prints the share of each part (replay sample, update forward/backward, optimiser,
+target update, weight push, waiting, env step, ...) per process (``scripts/bench_profile.py``).
 
 Each prints a Markdown table (paste it into BENCHMARKS.md with the command) and, with ``--json``,
 writes the raw figures. These machines are shared and noisy: compare the ratios within one run.
@@ -23,11 +28,13 @@ from pathlib import Path
 
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
-    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu"])
-    bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs")
+    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu", "profile"])
+    bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs (profile: PRESET first)")
     bench.add_argument("--seeds", type=int, default=3)
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
-    bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac)")
+    bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac, profile: default 100000)")
+    bench.add_argument("--duration", type=int, default=20, help="profile: seconds sampled after learning starts")
+    bench.add_argument("--rate", type=int, default=100, help="profile: py-spy samples per second")
     bench.add_argument("--out", type=Path, help="keep the runs here (default: a temporary folder)")
     bench.add_argument("--json", type=Path, help="also write the figures as JSON here")
     bench.add_argument("--peer-iterations", type=int, default=3000, help="iterations timed for the plain-PyTorch peer")
@@ -46,11 +53,16 @@ def run(args) -> int:
 
     if args.seeds <= 0:
         raise InputError(f"--seeds={args.seeds}: expected a positive integer")
+    if args.target == "profile":  # its preset and overrides, refused before any folder is made
+        from rlpipe.scripts.bench_profile import check_args
+
+        check_args(args)
     out = args.out or Path(tempfile.mkdtemp(prefix=f"rlpipe-bench-{args.target}-"))
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
     figures = {"dqn": bench_dqn, "td3": bench_td3, "sac": bench_sac, "minitaur": bench_minitaur,
-               "floor": bench_floor, "cleanrl": bench_cleanrl, "gpu": bench_gpu}[args.target](args, out)
+               "floor": bench_floor, "cleanrl": bench_cleanrl, "gpu": bench_gpu,
+               "profile": bench_profile}[args.target](args, out)
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
@@ -205,6 +217,12 @@ def bench_gpu(args, out: Path) -> dict:
     from rlpipe.scripts.bench_gpu import bench_gpu as run_gpu
 
     return run_gpu(args, out)
+
+
+def bench_profile(args, out: Path) -> dict:
+    from rlpipe.scripts.bench_profile import bench_profile as run_profile
+
+    return run_profile(args, out)
 
 
 def bench_minitaur(args, out: Path) -> dict:
