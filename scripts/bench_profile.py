@@ -11,8 +11,8 @@ main-thread samples are classified into parts by the frames on their stacks (``c
 runs), and the shares print as one Markdown table per process. The run is stopped (SIGTERM, which it
 answers with a checkpoint) once sampled.
 
-py-spy is not a dependency of rlpipe: ``pip install py-spy`` (it is looked for next to this Python,
-then on PATH). It needs to attach to the child (ptrace: root, or ``kernel.yama.ptrace_scope=0``).
+py-spy is not a dependency of rlpipe: the ``bench`` extra (``pip install -e ".[bench]"``) installs it
+(it is looked for next to this Python, then on PATH). It needs to attach to the child (ptrace: root, or ``kernel.yama.ptrace_scope=0``).
 """
 
 from __future__ import annotations
@@ -330,7 +330,7 @@ def check_args(args) -> tuple[str, list[str]]:
         raise InputError(f"--duration={args.duration} --rate={args.rate} --steps={args.steps}: expected positive integers")
     if find_py_spy() is None:
         raise InputError("bench profile: py-spy not found next to this Python or on PATH; expected it installed "
-                         "(pip install py-spy)")
+                         "(pip install -e \".[bench]\" or pip install py-spy)")
     return preset, overrides
 
 
