@@ -105,6 +105,8 @@ class TrainConfig:
     """iterations between evaluations of the deterministic policy (0: only before and after training)"""
     num_eval_episodes: int = 10
     """episodes per evaluation; their mean return is AverageReturn"""
+    baseline_episodes: int = -1
+    """episodes of the random agent played once before training for its baseline return (RUN/baseline.json, the DQN tutorial's); -1: num_eval_episodes; 0: no baseline"""
     eval_in_background: bool = False
     """evaluate in a separate process on a snapshot of the policy while training goes on (TorchRL's `Evaluator`); results land at the iteration they were taken"""
     eval_timeout: float = 600.0
@@ -193,6 +195,9 @@ def validate(cfg, *, machine: bool = True) -> None:
             raise InputError(f"{key}={value!r}: expected one of {', '.join(repr(c) for c in _CHOICES[key])}")
     if not 0 <= cfg.seed <= MAX_SEED:
         raise InputError(f"seed={cfg.seed}: expected an integer from 0 to {MAX_SEED}")
+    if cfg.baseline_episodes < -1:
+        raise InputError(f"baseline_episodes={cfg.baseline_episodes}: expected -1 (num_eval_episodes), 0 (no baseline) "
+                         "or a positive count")
     if cfg.num_threads < -1:
         raise InputError(f"num_threads={cfg.num_threads}: expected -1 (chosen at start), 0 (torch's default) or a positive count")
     if cfg.cudagraph and str(cfg.device).split(":")[0] != "cuda":

@@ -368,21 +368,23 @@ class Loop:
         """
         from rlpipe.pipelines.analysis.pages import read_baseline, write_baseline
 
-        if read_baseline(self.run_dir.path) is not None or self.pipeline.eval_env_fn is None:
+        episodes = self.config.baseline_episodes
+        episodes = self.config.num_eval_episodes if episodes == -1 else episodes
+        if episodes == 0 or read_baseline(self.run_dir.path) is not None or self.pipeline.eval_env_fn is None:
             return
+        self.echo(f"random agent: playing {episodes} episodes for its baseline return (baseline_episodes)")
         generators = ckpt.rng_state()
         env = self.pipeline.eval_env_fn()
         try:
             env.set_seed(self.config.seed + 20_000)
-            result = evaluate(env, RandomPolicy(env.full_action_spec), self.config.num_eval_episodes,
-                              interrupt=self.stop.check)
+            result = evaluate(env, RandomPolicy(env.full_action_spec), episodes, interrupt=self.stop.check)
         finally:
             env.close()
             ckpt.set_rng_state(generators)
         write_baseline(self.run_dir.path, result)
         self.echo(f"random agent: AverageReturn = {result['average_return']:.6f}, "
                   f"AverageEpisodeLength = {result['average_episode_length']:.6f} "
-                  f"({self.config.num_eval_episodes} episodes)")
+                  f"({episodes} episodes)")
 
     def make_video(self) -> None:
         """``video=true``: the trained policy filmed to RUN/trained-agent.mp4, as ``rlpipe video RUN`` does."""

@@ -77,6 +77,8 @@ class SACConfig(TrainConfig):
     """iterations between evaluations of the deterministic policy"""
     num_eval_episodes: int = 20
     """episodes per evaluation; their mean return is AverageReturn"""
+    baseline_episodes: int = 5
+    """episodes of the random agent played once before training for its baseline return (RUN/baseline.json); 5 rather than num_eval_episodes: 20 random Minitaur episodes are ~70 s before the first update, for a baseline the SAC tutorial does not have; -1: num_eval_episodes; 0: none"""
     log_interval: int = 1000
     """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
     policy_save_interval: int = 5000

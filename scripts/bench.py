@@ -6,9 +6,13 @@
     rlpipe bench minitaur [--steps 3000]
     rlpipe bench floor [key=value ...]
     rlpipe bench cleanrl [--algos sac td3 dqn] [--envs Pendulum-v1 ...] [--lengths N1 N2] [--seed 0]
+    rlpipe bench profile PRESET [key=value ...] [--steps N] [--duration 20] [--rate 100]
     rlpipe bench collect [--envs CartPole-v1 ...] [--envs-per-worker 1 8 32] [--frames 3000]
     rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
 
+``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
+started and prints the share of each part (replay sample, update forward/backward, optimiser,
+target update, weight push, waiting, env step, ...) per process (``scripts/bench_profile.py``).
 ``collect``: collect-only env steps/s of the collectors rlpipe builds (each env's preset, its
 collection policy, ``collector.envs_per_worker`` envs as one batch), in-process and in one
 collector process, against the raw gymnasium env (issue 9's target: at least half of it).
@@ -31,12 +35,15 @@ from pathlib import Path
 
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
-    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu",
-                                                  "collect", "ray"])
-    bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs")
+    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu", "profile",
+                                          "collect", "ray"])
+    bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs (profile: PRESET first)")
     bench.add_argument("--seeds", type=int, default=3)
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
-    bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac, ray: the shorter timed run)")
+    bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac, profile: default 100000; "
+                       "ray: the shorter timed run)")
+    bench.add_argument("--duration", type=int, default=20, help="profile: seconds sampled after learning starts")
+    bench.add_argument("--rate", type=int, default=100, help="profile: py-spy samples per second")
     bench.add_argument("--out", type=Path, help="keep the runs here (default: a temporary folder)")
     bench.add_argument("--json", type=Path, help="also write the figures as JSON here")
     bench.add_argument("--peer-iterations", type=int, default=3000, help="iterations timed for the plain-PyTorch peer")
@@ -62,16 +69,20 @@ def run(args) -> int:
 
     if args.seeds <= 0:
         raise InputError(f"--seeds={args.seeds}: expected a positive integer")
-    if args.target in ("collect", "ray"):  # refused before anything is written
-        from rlpipe.scripts.bench_collect import check_args
+    if args.target == "profile":  # its preset and overrides, refused before any folder is made
+        from rlpipe.scripts.bench_profile import check_args
 
         check_args(args)
+    if args.target in ("collect", "ray"):  # refused before anything is written
+        from rlpipe.scripts.bench_collect import check_args as check_collect_args
+
+        check_collect_args(args)
     out = args.out or Path(tempfile.mkdtemp(prefix=f"rlpipe-bench-{args.target}-"))
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
     figures = {"dqn": bench_dqn, "td3": bench_td3, "sac": bench_sac, "minitaur": bench_minitaur,
-               "floor": bench_floor, "cleanrl": bench_cleanrl, "gpu": bench_gpu, "collect": bench_collect,
-               "ray": bench_ray}[args.target](args, out)
+               "floor": bench_floor, "cleanrl": bench_cleanrl, "gpu": bench_gpu,
+               "profile": bench_profile, "collect": bench_collect, "ray": bench_ray}[args.target](args, out)
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
@@ -226,6 +237,12 @@ def bench_gpu(args, out: Path) -> dict:
     from rlpipe.scripts.bench_gpu import bench_gpu as run_gpu
 
     return run_gpu(args, out)
+
+
+def bench_profile(args, out: Path) -> dict:
+    from rlpipe.scripts.bench_profile import bench_profile as run_profile
+
+    return run_profile(args, out)
 
 
 def bench_collect(args, out: Path) -> dict:

@@ -117,6 +117,30 @@ def test_the_random_agents_return_is_kept_in_the_run(runs):
     assert 8 <= baseline["average_return"] <= 200  # CartPole-v0 pays 1 a step, 200 steps at most
 
 
+@pytest.mark.parametrize("episodes, expected", [("0", None), ("3", 3)])
+def test_baseline_episodes_sets_the_random_agents_episodes_or_turns_it_off(tmp_path, episodes, expected):
+    from rlpipe.pipelines.config import apply_overrides
+    from rlpipe.pipelines.dqn import DQN, preset
+
+    cfg = apply_overrides(preset("dqn"), ["num_iterations=10", "initial_collect_steps=10", "eval_interval=0",
+                                          "num_eval_episodes=1", f"baseline_episodes={episodes}"])
+    DQN(cfg).train(tmp_path / "run", progress=False)
+    path = tmp_path / "run" / "baseline.json"
+    if expected is None:
+        assert not path.exists()
+    else:
+        assert json.loads(path.read_text())["episodes"] == expected
+
+
+def test_a_baseline_episodes_below_minus_one_is_one_clear_error():
+    from rlpipe.pipelines import InputError
+    from rlpipe.pipelines.config import apply_overrides, validate
+    from rlpipe.pipelines.dqn import preset
+
+    with pytest.raises(InputError, match=r"baseline_episodes=-2: expected -1 \(num_eval_episodes\), 0"):
+        validate(apply_overrides(preset("dqn"), ["baseline_episodes=-2"]))
+
+
 def test_rlpipe_video_puts_the_video_on_the_page(runs):
     train, before, film = runs["film"]
     run = runs["filmed"]
