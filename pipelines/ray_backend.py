@@ -13,9 +13,10 @@ learner's update count as its version, and every actor's env carries TorchRL's `
 transform (``track_policy_version``), so each collected frame says which weights collected it;
 ``metrics()`` turns that into staleness, in updates, for the log rows.
 
-A lost actor (its process or node gone) surfaces as ``WorkerLost`` when its block is asked for;
-``alive_workers()`` counts the actors Ray still holds alive. Restarting lost workers is the
-supervisor's job (issue 10, "Surviving failures"), not this module's.
+A lost actor (its process or node gone) surfaces as ``WorkerLost`` when its block is asked for,
+whichever of Ray's errors says so (``LOST_ERRORS``); ``alive_workers()`` counts the actors Ray
+still holds alive, and ``kill_workers()`` ends a wait on them that ran past its deadline.
+Restarting lost workers is the supervisor's job (issue 10, "Surviving failures"), not this module's.
 """
 
 from __future__ import annotations
@@ -42,8 +43,18 @@ __all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost"]
 METRIC_COLUMNS = ["workers_alive", "weight_version", "weight_staleness"]
 """what ``RayCollectors.metrics`` adds to each log row of metrics.csv"""
 
-START_TIMEOUT_S = 120.0
-"""how long Ray may take to place every collector actor before the run stops with a clear line"""
+
+
+def _lost_errors() -> tuple[type[BaseException], ...]:
+    """Ray's errors that mean a collector actor, its node or the object it owed is gone: each is a
+    ``WorkerLost``. Which one comes depends on where the loss is seen: a killed actor's block raises
+    ``ActorDiedError``; a node gone, ``ActorDiedError`` (node died), ``ActorUnavailableError`` while
+    Ray still tries to reach it, ``NodeDiedError``, ``ObjectLostError`` (``OwnerDiedError``, ...) for
+    a block stored there; a wait with a deadline, ``GetTimeoutError``."""
+    from ray import exceptions as e
+
+    return (e.RayActorError, e.NodeDiedError, e.ObjectLostError, e.WorkerCrashedError, e.LocalRayletDiedError,
+            e.GetTimeoutError, e.ActorUnschedulableError)
 
 
 class WorkerLost(WorkerFailure):
@@ -122,30 +133,37 @@ class RayCollectors:
             self.scheme._set_model_version(learner_version())
             self.collector = _ray_collector(env_fn, policy, config, total_frames, init_random_frames, self.scheme)
             self._actors = list(self.collector.remote_collectors)
-            self._wait_placed(ray)
+            self._wait_placed(ray, c.timeout)
             self.collector.update_policy_weights_()  # connects the weight sync (Gloo group) before collecting
+        except _lost_errors() as exc:  # an actor (or its node) lost while starting: a restart may do
+            self.runtime.close()
+            raise WorkerLost(f"a Ray collector actor was lost while starting ({_first_line(exc)})") from exc
         except BaseException:
             self.runtime.close()
             raise
 
-    def _wait_placed(self, ray) -> None:
+    def _wait_placed(self, ray, timeout: float) -> None:
+        """Until Ray has placed and started every actor, at most ``timeout`` (collector.timeout) seconds:
+        a cluster short of CPUs (a node gone since the CPUs were counted) would hold them pending for good."""
         refs = [a.__ray_ready__.remote() for a in self._actors]
-        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=START_TIMEOUT_S)
+        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=timeout)
         if len(ready) < len(refs):
             free = ray.available_resources().get("CPU", 0.0)
-            raise WorkerLost(f"Ray placed {len(ready)} of {len(refs)} collector actors within {START_TIMEOUT_S:.0f} s "
-                             f"({free:g} CPUs free in the cluster); expected fewer collector.workers, a smaller "
-                             "ray.num_cpus_per_worker, or more nodes")
+            raise WorkerLost(f"Ray placed {len(ready)} of {len(refs)} collector actors within collector.timeout="
+                             f"{timeout:g} s ({free:g} CPUs free in the cluster); expected fewer collector.workers, "
+                             "a smaller ray.num_cpus_per_worker, or more nodes")
         ray.get(ready)  # an actor that failed to start raises here, with its own error
 
     # --- what the loop uses of a collector -------------------------------------------------------
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
-        return self.collector.set_seed(seed, static_seed)
+        try:
+            return self.collector.set_seed(seed, static_seed)
+        except _lost_errors() as exc:
+            raise WorkerLost(f"a Ray collector actor was lost while starting ({_first_line(exc)})") from exc
 
     def __iter__(self) -> Iterator[TensorDictBase]:
-        import ray
-
+        lost_errors = _lost_errors()
         blocks = iter(self.collector)
         while True:
             # The weights the collector sends with its next request are the learner's as of now.
@@ -157,7 +175,7 @@ class RayCollectors:
             except Exception as exc:
                 # Ray says so (the block of a dead actor), or the weight push finds its peer gone first
                 # (Gloo's "Connection closed by peer"): then Ray's actor table says so within seconds.
-                if not (isinstance(exc, ray.exceptions.RayActorError) or self._some_lost(within_s=10.0)):
+                if not (isinstance(exc, lost_errors) or self._some_lost(within_s=10.0)):
                     raise
                 raise WorkerLost(f"a Ray collector actor was lost ({_first_line(exc)}); "
                                  f"{self.alive_workers()} of {self.num_workers} alive") from exc
@@ -179,6 +197,17 @@ class RayCollectors:
             self.runtime.close()
 
     # --- for the log rows and a supervisor --------------------------------------------------------
+
+    def kill_workers(self) -> None:
+        """Kill the actors (the supervisor's action on a wait past collector.timeout): the block or
+        weight push waited on then fails at once, as a lost actor's does."""
+        import ray
+
+        for actor in self._actors:
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception:  # gone already, or Ray itself is: the wait ends either way
+                pass
 
     def alive_workers(self) -> int:
         """Collector actors Ray holds alive now (from Ray's actor table, so a busy actor counts as alive)."""
