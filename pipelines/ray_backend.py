@@ -21,9 +21,12 @@ Restarting lost workers is the supervisor's job (issue 10, "Surviving failures")
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import signal
 import socket
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -36,6 +39,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.runtime import STOP_SIGNALS
 from rlpipe.pipelines.supervision import WorkerFailure
 
 __all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost"]
@@ -84,13 +88,14 @@ class RayRuntime:
         # actor's failure still reaches the learner, as the exception of the block it owed.
         common = dict(include_dashboard=False, logging_level="error", configure_logging=True, log_to_driver=False)
         try:
-            if address:
-                _check_reachable(address)
-                ray.init(address=address, **common)
-            else:
-                # "local" rather than None: None would join whichever cluster was started last on this
-                # machine. Ray's CPUs are logical: as many as the workers ask for, at least the cores.
-                ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(cpus_needed)), **common)
+            with _stop_signals_kept():
+                if address:
+                    _check_reachable(address)
+                    ray.init(address=address, **common)
+                else:
+                    # "local" rather than None: None would join whichever cluster was started last on this
+                    # machine. Ray's CPUs are logical: as many as the workers ask for, at least the cores.
+                    ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(cpus_needed)), **common)
         except ConnectionError as exc:
             raise InputError(f"ray.address={address!r}: no Ray cluster answers there ({_first_line(exc)}); "
                              "expected the address `ray start --head` printed, 'auto' on one of its nodes, "
@@ -276,6 +281,26 @@ def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_
             remote_configs={"num_cpus": r.num_cpus_per_worker, "num_gpus": None, "memory": None},
             weight_sync_schemes={"policy": scheme},
         )
+
+
+@contextlib.contextmanager
+def _stop_signals_kept():
+    """The process's handlers of the stop signals as they were, whatever ``ray.init`` does to them.
+
+    Ray 2.60's ``ray.init`` sets a SIGTERM handler of its own (``sys.exit``), and the driver's core
+    worker then installs a C++ one over it that prints a stack and aborts (exit -6): a run's SIGTERM
+    would no longer save a checkpoint (``runtime.DeferredInterrupt``). Setting the Python handlers
+    again puts them back in front (main thread only, where Python handles signals at all)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in before.items():
+            if handler is not None:  # None: not set from Python; nothing of ours to put back
+                signal.signal(signum, handler)
 
 
 def _check_cpus(ray, workers: int, per_worker: float, address: str) -> None:

@@ -244,8 +244,8 @@ def test_a_node_removed_mid_run_its_actor_is_started_on_another_and_the_run_fini
 
 @pytest.mark.slow
 def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(cluster, tmp_path):
-    """SIGTERM to the learner alone right after the block of iteration 100: it saves a checkpoint there
-    and exits 143, leaving the cluster up and no process of its own; ``--resume`` joins the same
+    """SIGTERM to the learner alone right after the block of iteration 100: it saves a checkpoint at its
+    next safe point and exits 143, leaving the cluster up and no process of its own; ``--resume`` joins the same
     cluster and finishes; the counters go on from the checkpoint (frames and updates exactly the
     run's), and no metrics row is lost or written twice."""
     run = tmp_path / "run"
@@ -254,7 +254,9 @@ def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(clus
     assert code == 143, err[-3000:]
     last = [line for line in err.splitlines() if line.startswith("rlpipe:")][-1]
     assert last.startswith("rlpipe: interrupted by SIGTERM") and "--resume" in last, err[-3000:]
-    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000100"
+    # its next safe point: the triggers of iteration 150 (no update is owed before 256 frames); the
+    # checkpoint saved there records them as owed, and --resume does them first
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000150"
     assert [int(r["step"]) for r in log_rows(metrics_rows(run))] == [50, 100]
     assert_no_leftovers(sid)
     poll_until(lambda: not collector_actors(cluster), "the stopped run's actors are still there")
