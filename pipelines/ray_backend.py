@@ -47,6 +47,10 @@ __all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost"]
 METRIC_COLUMNS = ["workers_alive", "weight_version", "weight_staleness"]
 """what ``RayCollectors.metrics`` adds to each log row of metrics.csv"""
 
+MIN_START_TIMEOUT_S = 120.0
+"""placing and starting the actors waits ``collector.timeout`` seconds, at least this long (each
+actor imports torch and TorchRL and makes its env: most of a minute on a loaded 2-core machine)"""
+
 
 
 def _lost_errors() -> tuple[type[BaseException], ...]:
@@ -138,7 +142,7 @@ class RayCollectors:
             self.scheme._set_model_version(learner_version())
             self.collector = _ray_collector(env_fn, policy, config, total_frames, init_random_frames, self.scheme)
             self._actors = list(self.collector.remote_collectors)
-            self._wait_placed(ray, c.timeout)
+            self._wait_placed(ray, max(c.timeout, MIN_START_TIMEOUT_S))
             self.collector.update_policy_weights_()  # connects the weight sync (Gloo group) before collecting
         except _lost_errors() as exc:  # an actor (or its node) lost while starting: a restart may do
             self.runtime.close()
@@ -148,8 +152,8 @@ class RayCollectors:
             raise
 
     def _wait_placed(self, ray, timeout: float) -> None:
-        """Until Ray has placed and started every actor, at most ``timeout`` (collector.timeout) seconds:
-        a cluster short of CPUs (a node gone since the CPUs were counted) would hold them pending for good."""
+        """Until Ray has placed and started every actor, at most ``timeout`` seconds: a cluster short of
+        CPUs (a node gone since they were counted) would hold an actor pending for good."""
         refs = [a.__ray_ready__.remote() for a in self._actors]
         ready, _ = ray.wait(refs, num_returns=len(refs), timeout=timeout)
         if len(ready) < len(refs):
