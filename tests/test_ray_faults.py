@@ -239,6 +239,32 @@ def test_a_node_removed_mid_run_its_actor_is_started_on_another_and_the_run_fini
     assert c.remaining_processes_alive()
 
 
+@pytest.mark.slow
+def test_an_actor_that_stops_answering_is_killed_at_the_deadline_and_replaced(tmp_path):
+    """A collector actor frozen (SIGSTOP) while the learner holds itself after the block of iteration
+    100: the learner's next block is not back within collector.timeout, so the actor is killed (the
+    supervisor's deadline, ``RayCollectors.kill_workers``) and the collector started again."""
+    run = tmp_path / "run"
+    proc = start([*RUN, "collector.workers=1", "collector.sync=true", "collector.timeout=30", "--out", "run"],
+                 tmp_path, fault="collected@100:SIGSTOP:self")
+    try:
+        wait_stopped(proc)
+        actors = [int(p.name) for p in _procs() if _stat(p)[4] == proc.pid and _cmdline(p).startswith("ray::Collector")]
+        assert len(actors) == 1, actors
+        os.kill(actors[0], signal.SIGSTOP)
+        os.kill(proc.pid, signal.SIGCONT)
+        code, err = finish(proc)
+    finally:
+        if proc.poll() is None:
+            _kill_session(proc.pid)
+            proc.communicate()
+    assert code == 0, err[-3000:]
+    assert "a block of env steps was not back within 30 s; restarting the collector (restart 1 of" in err, err[-3000:]
+    logged = log_rows(assert_whole_run(run))
+    assert [r["collector_restarts"] for r in logged] == ["0", "0"] + ["1"] * 4, logged
+    assert_no_leftovers(proc.pid)
+
+
 # --- SIGTERM, then --resume -----------------------------------------------------------------------------
 
 
