@@ -14,7 +14,7 @@ transform (``track_policy_version``), so each collected frame says which weights
 ``metrics()`` turns that into staleness, in updates, for the log rows.
 
 A lost actor (its process or node gone) surfaces as ``WorkerLost`` when its block is asked for,
-whichever of Ray's errors says so (``LOST_ERRORS``); ``alive_workers()`` counts the actors Ray
+whichever of Ray's errors says so (``_lost_errors``); ``alive_workers()`` counts the actors Ray
 still holds alive, and ``kill_workers()`` ends a wait on them that ran past its deadline.
 Restarting lost workers is the supervisor's job (issue 10, "Surviving failures"), not this module's.
 """
@@ -50,7 +50,6 @@ METRIC_COLUMNS = ["workers_alive", "weight_version", "weight_staleness"]
 MIN_START_TIMEOUT_S = 120.0
 """placing and starting the actors waits ``collector.timeout`` seconds, at least this long (each
 actor imports torch and TorchRL and makes its env: most of a minute on a loaded 2-core machine)"""
-
 
 
 def _lost_errors() -> tuple[type[BaseException], ...]:
@@ -158,8 +157,8 @@ class RayCollectors:
         ready, _ = ray.wait(refs, num_returns=len(refs), timeout=timeout)
         if len(ready) < len(refs):
             free = ray.available_resources().get("CPU", 0.0)
-            raise WorkerLost(f"Ray placed {len(ready)} of {len(refs)} collector actors within collector.timeout="
-                             f"{timeout:g} s ({free:g} CPUs free in the cluster); expected fewer collector.workers, "
+            raise WorkerLost(f"Ray placed {len(ready)} of {len(refs)} collector actors within {timeout:g} s "
+                             f"(collector.timeout, at least {MIN_START_TIMEOUT_S:g}; {free:g} CPUs free in the cluster); expected fewer collector.workers, "
                              "a smaller ray.num_cpus_per_worker, or more nodes")
         ray.get(ready)  # an actor that failed to start raises here, with its own error
 
