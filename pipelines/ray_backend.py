@@ -159,7 +159,8 @@ class RayCollectors:
             free = ray.available_resources().get("CPU", 0.0)
             raise WorkerLost(f"Ray placed {len(ready)} of {len(refs)} collector actors within {timeout:g} s "
                              f"(collector.timeout, at least {MIN_START_TIMEOUT_S:g}; {free:g} CPUs free in the "
-                             "cluster); expected fewer collector.workers, a smaller ray.num_cpus_per_worker, or more nodes")
+                             "cluster); expected fewer collector.workers, a smaller ray.num_cpus_per_worker, "
+                             "or more nodes")
         ray.get(ready)  # an actor that failed to start raises here, with its own error
 
     # --- what the loop uses of a collector -------------------------------------------------------

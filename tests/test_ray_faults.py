@@ -294,7 +294,8 @@ def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(clus
     # (the row of 150, owed by the stopped run, is written before the resumed run's actors start)
     logged = [r for r in log_rows(rows) if r["step"] != "150"]
     assert all(r["collector_restarts"] == "0" and r["workers_alive"] == "2" for r in logged), logged
-    assert [int(r["weight_version"]) for r in logged] == [int(r["updates"]) for r in logged]  # go on from the checkpoint
+    # the weights' version goes on from the checkpoint's update count
+    assert [int(r["weight_version"]) for r in logged] == [int(r["updates"]) for r in logged]
     assert_no_leftovers(sid)
     assert cluster.remaining_processes_alive()
 
@@ -337,7 +338,7 @@ def test_kill_9_of_a_learner_inside_a_checkpoint_write_on_a_cluster_ends_its_act
     assert [p.name.split("-")[0] for p in (run / "checkpoints").glob(".tmp-*")] == [".tmp"], "the kill left no trace?"
     assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000100"
     assert_no_leftovers(sid)
-    poll_until(lambda: not collector_actors(cluster), f"the killed learner's actors live on: {collector_actors(cluster)}",
+    poll_until(lambda: not collector_actors(cluster), f"the dead learner's actors live on: {collector_actors(cluster)}",
                timeout=120)
     assert cluster.remaining_processes_alive()
 
@@ -380,7 +381,7 @@ def test_sac_learns_pendulum_with_ray_collectors(run_dir):
     result, first, last = _learned(sac.SAC, sac.preset("sac"), SAC_LEARN, run_dir)
     assert first["step"] == 0 and first["average_return"] < -900, first
     assert last["step"] == 3000
-    assert last["average_return"] > -500, f"SAC did not learn Pendulum-v1 with Ray collectors: {last['average_return']:.0f}"
+    assert last["average_return"] > -500, f"SAC did not learn Pendulum-v1: {last['average_return']:.0f}"
     logged = [r for r in result.metrics if r.get("workers_alive")]
     assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
 
@@ -390,6 +391,6 @@ def test_td3_learns_pendulum_with_ray_collectors(run_dir):
     result, first, last = _learned(td3.TD3, td3.preset("td3"), TD3_LEARN, run_dir)
     assert first["step"] == 0 and first["average_return"] < -900, first
     assert last["step"] == 8000
-    assert last["average_return"] > -400, f"TD3 did not learn Pendulum-v1 with Ray collectors: {last['average_return']:.0f}"
+    assert last["average_return"] > -400, f"TD3 did not learn Pendulum-v1: {last['average_return']:.0f}"
     logged = [r for r in result.metrics if r.get("workers_alive")]
     assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
