@@ -13,16 +13,20 @@ learner's update count as its version, and every actor's env carries TorchRL's `
 transform (``track_policy_version``), so each collected frame says which weights collected it;
 ``metrics()`` turns that into staleness, in updates, for the log rows.
 
-A lost actor (its process or node gone) surfaces as ``WorkerLost`` when its block is asked for;
-``alive_workers()`` counts the actors Ray still holds alive. Restarting lost workers is the
-supervisor's job (issue 10, "Surviving failures"), not this module's.
+A lost actor (its process or node gone) surfaces as ``WorkerLost`` when its block is asked for,
+whichever of Ray's errors says so (``_lost_errors``); ``alive_workers()`` counts the actors Ray
+still holds alive, and ``kill_workers()`` ends a wait on them that ran past its deadline.
+Restarting lost workers is the supervisor's job (issue 10, "Surviving failures"), not this module's.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import signal
 import socket
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -35,6 +39,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.runtime import STOP_SIGNALS
 from rlpipe.pipelines.supervision import WorkerFailure
 
 __all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost"]
@@ -42,8 +47,21 @@ __all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost"]
 METRIC_COLUMNS = ["workers_alive", "weight_version", "weight_staleness"]
 """what ``RayCollectors.metrics`` adds to each log row of metrics.csv"""
 
-START_TIMEOUT_S = 120.0
-"""how long Ray may take to place every collector actor before the run stops with a clear line"""
+MIN_START_TIMEOUT_S = 120.0
+"""placing and starting the actors waits ``collector.timeout`` seconds, at least this long (each
+actor imports torch and TorchRL and makes its env: most of a minute on a loaded 2-core machine)"""
+
+
+def _lost_errors() -> tuple[type[BaseException], ...]:
+    """Ray's errors that mean a collector actor, its node or the object it owed is gone: each is a
+    ``WorkerLost``. Which one comes depends on where the loss is seen: a killed actor's block raises
+    ``ActorDiedError``; a node gone, ``ActorDiedError`` (node died), ``ActorUnavailableError`` while
+    Ray still tries to reach it, ``NodeDiedError``, ``ObjectLostError`` (``OwnerDiedError``, ...) for
+    a block stored there; a wait with a deadline, ``GetTimeoutError``."""
+    from ray import exceptions as e
+
+    return (e.RayActorError, e.NodeDiedError, e.ObjectLostError, e.WorkerCrashedError, e.LocalRayletDiedError,
+            e.GetTimeoutError, e.ActorUnschedulableError)
 
 
 class WorkerLost(WorkerFailure):
@@ -73,13 +91,14 @@ class RayRuntime:
         # actor's failure still reaches the learner, as the exception of the block it owed.
         common = dict(include_dashboard=False, logging_level="error", configure_logging=True, log_to_driver=False)
         try:
-            if address:
-                _check_reachable(address)
-                ray.init(address=address, **common)
-            else:
-                # "local" rather than None: None would join whichever cluster was started last on this
-                # machine. Ray's CPUs are logical: as many as the workers ask for, at least the cores.
-                ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(cpus_needed)), **common)
+            with _stop_signals_kept():
+                if address:
+                    _check_reachable(address)
+                    ray.init(address=address, **common)
+                else:
+                    # "local" rather than None: None would join whichever cluster was started last on this
+                    # machine. Ray's CPUs are logical: as many as the workers ask for, at least the cores.
+                    ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(cpus_needed)), **common)
         except ConnectionError as exc:
             raise InputError(f"ray.address={address!r}: no Ray cluster answers there ({_first_line(exc)}); "
                              "expected the address `ray start --head` printed, 'auto' on one of its nodes, "
@@ -122,30 +141,38 @@ class RayCollectors:
             self.scheme._set_model_version(learner_version())
             self.collector = _ray_collector(env_fn, policy, config, total_frames, init_random_frames, self.scheme)
             self._actors = list(self.collector.remote_collectors)
-            self._wait_placed(ray)
+            self._wait_placed(ray, max(c.timeout, MIN_START_TIMEOUT_S))
             self.collector.update_policy_weights_()  # connects the weight sync (Gloo group) before collecting
+        except _lost_errors() as exc:  # an actor (or its node) lost while starting: a restart may do
+            self.runtime.close()
+            raise WorkerLost(f"a Ray collector actor was lost while starting ({_first_line(exc)})") from exc
         except BaseException:
             self.runtime.close()
             raise
 
-    def _wait_placed(self, ray) -> None:
+    def _wait_placed(self, ray, timeout: float) -> None:
+        """Until Ray has placed and started every actor, at most ``timeout`` seconds: a cluster short of
+        CPUs (a node gone since they were counted) would hold an actor pending for good."""
         refs = [a.__ray_ready__.remote() for a in self._actors]
-        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=START_TIMEOUT_S)
+        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=timeout)
         if len(ready) < len(refs):
             free = ray.available_resources().get("CPU", 0.0)
-            raise WorkerLost(f"Ray placed {len(ready)} of {len(refs)} collector actors within {START_TIMEOUT_S:.0f} s "
-                             f"({free:g} CPUs free in the cluster); expected fewer collector.workers, a smaller "
-                             "ray.num_cpus_per_worker, or more nodes")
+            raise WorkerLost(f"Ray placed {len(ready)} of {len(refs)} collector actors within {timeout:g} s "
+                             f"(collector.timeout, at least {MIN_START_TIMEOUT_S:g}; {free:g} CPUs free in the "
+                             "cluster); expected fewer collector.workers, a smaller ray.num_cpus_per_worker, "
+                             "or more nodes")
         ray.get(ready)  # an actor that failed to start raises here, with its own error
 
     # --- what the loop uses of a collector -------------------------------------------------------
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
-        return self.collector.set_seed(seed, static_seed)
+        try:
+            return self.collector.set_seed(seed, static_seed)
+        except _lost_errors() as exc:
+            raise WorkerLost(f"a Ray collector actor was lost while starting ({_first_line(exc)})") from exc
 
     def __iter__(self) -> Iterator[TensorDictBase]:
-        import ray
-
+        lost_errors = _lost_errors()
         blocks = iter(self.collector)
         while True:
             # The weights the collector sends with its next request are the learner's as of now.
@@ -157,7 +184,7 @@ class RayCollectors:
             except Exception as exc:
                 # Ray says so (the block of a dead actor), or the weight push finds its peer gone first
                 # (Gloo's "Connection closed by peer"): then Ray's actor table says so within seconds.
-                if not (isinstance(exc, ray.exceptions.RayActorError) or self._some_lost(within_s=10.0)):
+                if not (isinstance(exc, lost_errors) or self._some_lost(within_s=10.0)):
                     raise
                 raise WorkerLost(f"a Ray collector actor was lost ({_first_line(exc)}); "
                                  f"{self.alive_workers()} of {self.num_workers} alive") from exc
@@ -179,6 +206,17 @@ class RayCollectors:
             self.runtime.close()
 
     # --- for the log rows and a supervisor --------------------------------------------------------
+
+    def kill_workers(self) -> None:
+        """Kill the actors (the supervisor's action on a wait past collector.timeout): the block or
+        weight push waited on then fails at once, as a lost actor's does."""
+        import ray
+
+        for actor in self._actors:
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception:  # gone already, or Ray itself is: the wait ends either way
+                pass
 
     def alive_workers(self) -> int:
         """Collector actors Ray holds alive now (from Ray's actor table, so a busy actor counts as alive)."""
@@ -247,6 +285,26 @@ def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_
             remote_configs={"num_cpus": r.num_cpus_per_worker, "num_gpus": None, "memory": None},
             weight_sync_schemes={"policy": scheme},
         )
+
+
+@contextlib.contextmanager
+def _stop_signals_kept():
+    """The process's handlers of the stop signals as they were, whatever ``ray.init`` does to them.
+
+    Ray 2.60's ``ray.init`` sets a SIGTERM handler of its own (``sys.exit``), and the driver's core
+    worker then installs a C++ one over it that prints a stack and aborts (exit -6): a run's SIGTERM
+    would no longer save a checkpoint (``runtime.DeferredInterrupt``). Setting the Python handlers
+    again puts them back in front (main thread only, where Python handles signals at all)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in before.items():
+            if handler is not None:  # None: not set from Python; nothing of ours to put back
+                signal.signal(signum, handler)
 
 
 def _check_cpus(ray, workers: int, per_worker: float, address: str) -> None:

@@ -381,6 +381,9 @@ class SupervisedCollector:
         def expire():
             self._timed_out = f"{self.role}: {what} was not back within {self.supervisor.timeout:g} s"
             kill_processes(self.procs, timeout=0)  # TorchRL's loops then see them dead within ~1 s
+            kill_workers = getattr(self.collector, "kill_workers", None)  # Ray actors: no process of ours
+            if kill_workers is not None:
+                kill_workers()
         return expire
 
     def _timeout_failure(self) -> WorkerFailure | None:

@@ -1,0 +1,399 @@
+"""Ray collectors against faults, on a real Ray: a node of a cluster removed mid-run, the learner
+stopped by SIGTERM or killed (kill -9, also inside a checkpoint's write) and resumed, and what Ray
+processes outlive a killed learner; then SAC and TD3 learning Pendulum with Ray collectors.
+
+Runs are real ``rlpipe train`` processes, each in a session of its own: what a run's local Ray
+instance started is found by that session (other Ray instances may run on this machine at the
+same time), and a joined cluster's actors by their node's raylet (the cluster is the test's own).
+Faults come at exact points (``RLPIPE_FAULT``): a node is removed while the learner holds itself
+stopped (SIGSTOP) right after a block, never after a sleep.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines import sac, td3
+from rlpipe.pipelines.config import apply_overrides
+
+ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'` (scripts/setup.sh does)")
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+MODULE = [sys.executable, "-m", "rlpipe.scripts.cli"]
+QUIET = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_DEDUP_LOGS": "0", "PYTHONFAULTHANDLER": "1"}
+N = 300
+# td3 on Pendulum: 100 random frames, then 300 iterations; blocks of 50 frames end at iterations 0, 50, 100, ...
+# (updates start at learning_starts=256 frames, so a run makes FRAMES - 256 of them)
+RUN = ["td3", f"num_iterations={N}", "initial_collect_steps=100", "eval_interval=150", "num_eval_episodes=1",
+       "log_interval=50", "checkpoint_interval=100", "policy_save_interval=150", "collector.backend=ray",
+       "num_threads=1", "--no-progress"]
+FRAMES, UPDATES = N + 100, N + 100 - 256
+DEADLINE_S = 400  # generous: the machine is shared; nothing waits on time, only on events
+
+
+# --- processes -----------------------------------------------------------------------------------------
+
+
+def start(args, cwd: Path, fault: str = "") -> subprocess.Popen:
+    """``rlpipe train ARGS`` in a session of its own (its id is its pid), with ``RLPIPE_FAULT=fault``."""
+    return subprocess.Popen([*MODULE, "train", *map(str, args)], cwd=cwd, text=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, start_new_session=True,
+                            env={**os.environ, **QUIET, "RLPIPE_FAULT": fault})
+
+
+def finish(proc: subprocess.Popen, timeout: float = DEADLINE_S) -> tuple[int, str]:
+    """Exit status and stderr; a run still going after ``timeout`` is a hang: dumped and killed."""
+    try:
+        _, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.kill(proc.pid, signal.SIGABRT)  # faulthandler prints where it waits
+        _, err = proc.communicate(timeout=30)
+        _kill_session(proc.pid)
+        pytest.fail(f"the run hung (killed after {timeout} s):\n{err[-5000:]}")
+    return proc.returncode, err
+
+
+def train(args, cwd: Path, fault: str = "") -> tuple[int, str, int]:
+    proc = start(args, cwd, fault)
+    code, err = finish(proc)
+    return code, err, proc.pid
+
+
+def wait_stopped(proc: subprocess.Popen) -> None:
+    """Until ``proc`` is stopped (SIGSTOP from its fault point): its state in /proc says so."""
+    deadline = time.monotonic() + DEADLINE_S
+    while _stat(Path(f"/proc/{proc.pid}"))[0] != "T":
+        assert proc.poll() is None, f"the run ended before its fault point: {proc.communicate()[1][-3000:]}"
+        assert time.monotonic() < deadline, "the run did not reach its fault point"
+        time.sleep(0.05)
+
+
+def poll_until(condition, what: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.2)
+
+
+def session_processes(sid: int) -> list[str]:
+    """Command lines of the live processes in session ``sid`` (a run's, and its local Ray's)."""
+    return [_cmdline(p) for p in _procs() if _stat(p)[4] == sid and _stat(p)[0] != "Z"]
+
+
+def assert_no_leftovers(sid: int, timeout: float = 60.0) -> None:
+    poll_until(lambda: not session_processes(sid), f"processes of the run are still there: {session_processes(sid)}",
+               timeout)
+
+
+def collector_actors(cluster) -> dict[int, object]:
+    """The cluster's collector actor processes (pid -> node): each is a child of its node's raylet."""
+    raylets = {node.all_processes["raylet"][0].process.pid: node for node in cluster.list_all_nodes()
+               if node.all_processes.get("raylet")}
+    found = {}
+    for p in _procs():
+        stat = _stat(p)
+        if stat[0] != "Z" and stat[1] in raylets and _cmdline(p).startswith("ray::Collector"):
+            found[int(p.name)] = raylets[stat[1]]
+    return found
+
+
+def _procs():
+    return Path("/proc").glob("[0-9]*")
+
+
+def _cmdline(proc_dir: Path) -> str:
+    try:
+        return (proc_dir / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
+    except OSError:
+        return ""
+
+
+def _stat(proc_dir: Path) -> tuple:
+    """(state, ppid, pgrp, session id) as /proc/PID/stat says, padded: ``[4]`` is the session."""
+    try:
+        fields = (proc_dir / "stat").read_text().rsplit(")", 1)[1].split()
+        return fields[0], int(fields[1]), int(fields[2]), None, int(fields[3])
+    except (OSError, IndexError, ValueError):
+        return "", None, None, None, None
+
+
+def _kill_session(sid: int) -> None:
+    for p in _procs():
+        if _stat(p)[4] == sid:
+            try:
+                os.kill(int(p.name), signal.SIGKILL)
+            except OSError:
+                pass
+
+
+# --- the run directory ---------------------------------------------------------------------------------
+
+
+def metrics_rows(run: Path) -> list[dict[str, str]]:
+    with (run / "metrics.csv").open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def assert_whole_run(run: Path) -> list[dict[str, str]]:
+    """A finished run: its counters at their ends, every log and evaluation row once and in order,
+    every row whole, every checkpoint loadable, nothing half-written left."""
+    summary = json.loads((run / "summary.json").read_text())
+    assert (summary["iterations"], summary["frames"], summary["updates"]) == (N, FRAMES, UPDATES), summary
+    rows = metrics_rows(run)
+    assert all(None not in r.values() and None not in r for r in rows), rows
+    assert [int(r["step"]) for r in rows if r["steps_per_s"]] == list(range(50, N + 1, 50))
+    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 150, 300]
+    steps = sorted(int(p.name.split("_")[1]) for p in (run / "checkpoints").glob("step_*"))
+    assert steps and steps[-1] == N, steps
+    for step in steps:
+        state = ckpt.load_checkpoint(run / "checkpoints" / f"step_{step:010d}", "td3", "Pendulum-v1")
+        assert state["counters"]["iteration"] == step
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == f"step_{N:010d}"
+    assert sorted(str(p.relative_to(run)) for p in run.rglob(".*") if p.name != ".mpl") == []
+    assert (run / "policy" / "policy.json").exists()
+    return rows
+
+
+def log_rows(rows):
+    return [r for r in rows if r["steps_per_s"]]
+
+
+# --- clusters ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def cluster():
+    """A Ray cluster of two nodes on this machine, a CPU each (as tests/test_ray.py's)."""
+    from ray.cluster_utils import Cluster
+
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    try:
+        c.add_node(num_cpus=1)
+        c.wait_for_nodes()
+        yield c
+    finally:
+        c.shutdown()
+
+
+@pytest.fixture
+def spare_nodes():
+    """A cluster whose head takes no actor (no CPU) and two worker nodes of one CPU each: a collector
+    actor lands on one of them, and when that node goes the other can take its replacement."""
+    from ray.cluster_utils import Cluster
+
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False})
+    try:
+        nodes = [c.add_node(num_cpus=1) for _ in range(2)]
+        c.wait_for_nodes()
+        yield c, nodes
+    finally:
+        c.shutdown()
+
+
+# --- a node lost -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sync", ["false", "true"])
+@pytest.mark.slow
+def test_a_node_removed_mid_run_its_actor_is_started_on_another_and_the_run_finishes(spare_nodes, tmp_path, sync):
+    """The learner holds itself (SIGSTOP) right after the block of iteration 100; the node holding its
+    collector actor is removed (its raylet and the actor's process with it); the learner goes on,
+    finds the actor lost at its next block or weight push, and the supervisor starts the collector
+    again on the node left. The run finishes, whole, with the restart counted."""
+    c, _ = spare_nodes
+    run = tmp_path / "run"
+    proc = start([*RUN, "collector.workers=1", f"collector.sync={sync}", f"ray.address={c.address}",
+                  "--out", "run"], tmp_path, fault="collected@100:SIGSTOP:self")
+    try:
+        wait_stopped(proc)
+        actors = collector_actors(c)
+        assert len(actors) == 1, actors
+        ((pid, lost_node),) = actors.items()
+        c.remove_node(lost_node)
+        poll_until(lambda: _stat(Path(f"/proc/{pid}"))[0] in ("", "Z"), "the removed node's actor still runs")
+        os.kill(proc.pid, signal.SIGCONT)
+        code, err = finish(proc)
+    finally:
+        if proc.poll() is None:
+            _kill_session(proc.pid)
+            proc.communicate()
+    assert code == 0, err[-3000:]
+    assert "a Ray collector actor was lost" in err and "restarting the collector (restart 1 of" in err, err[-3000:]
+    rows = assert_whole_run(run)
+    logged = log_rows(rows)
+    assert [r["collector_restarts"] for r in logged] == ["0", "0"] + ["1"] * 4, logged
+    assert all(r["workers_alive"] == "1" for r in logged)
+    assert_no_leftovers(proc.pid)
+    poll_until(lambda: not collector_actors(c), f"the run's actors live on: {collector_actors(c)}")
+    assert c.remaining_processes_alive()
+
+
+@pytest.mark.slow
+def test_an_actor_that_stops_answering_is_killed_at_the_deadline_and_replaced(tmp_path):
+    """A collector actor frozen (SIGSTOP) while the learner holds itself after the block of iteration
+    100: the learner's next block is not back within collector.timeout, so the actor is killed (the
+    supervisor's deadline, ``RayCollectors.kill_workers``) and the collector started again."""
+    run = tmp_path / "run"
+    proc = start([*RUN, "collector.workers=1", "collector.sync=true", "collector.timeout=30", "--out", "run"],
+                 tmp_path, fault="collected@100:SIGSTOP:self")
+    try:
+        wait_stopped(proc)
+        actors = [int(p.name) for p in _procs() if _stat(p)[4] == proc.pid and _cmdline(p).startswith("ray::Collector")]
+        assert len(actors) == 1, actors
+        os.kill(actors[0], signal.SIGSTOP)
+        os.kill(proc.pid, signal.SIGCONT)
+        code, err = finish(proc)
+    finally:
+        if proc.poll() is None:
+            _kill_session(proc.pid)
+            proc.communicate()
+    assert code == 0, err[-3000:]
+    assert "a block of env steps was not back within 30 s; restarting the collector (restart 1 of" in err, err[-3000:]
+    logged = log_rows(assert_whole_run(run))
+    assert [r["collector_restarts"] for r in logged] == ["0", "0"] + ["1"] * 4, logged
+    assert_no_leftovers(proc.pid)
+
+
+# --- SIGTERM, then --resume -----------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(cluster, tmp_path):
+    """SIGTERM to the learner alone right after the block of iteration 100: it saves a checkpoint at its
+    next safe point and exits 143, leaving the cluster up and no process of its own; ``--resume`` joins the same
+    cluster and finishes; the counters go on from the checkpoint (frames and updates exactly the
+    run's), and no metrics row is lost or written twice."""
+    run = tmp_path / "run"
+    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={cluster.address}",
+                            "--out", "run"], tmp_path, fault="collected@100:SIGTERM:self")
+    assert code == 143, err[-3000:]
+    last = [line for line in err.splitlines() if line.startswith("rlpipe:")][-1]
+    assert last.startswith("rlpipe: interrupted by SIGTERM") and "--resume" in last, err[-3000:]
+    # its next safe point: the triggers of iteration 150 (no update is owed before 256 frames); the
+    # checkpoint saved there records them as owed, and --resume does them first
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000150"
+    assert [int(r["step"]) for r in log_rows(metrics_rows(run))] == [50, 100]
+    assert_no_leftovers(sid)
+    poll_until(lambda: not collector_actors(cluster), "the stopped run's actors are still there")
+    assert cluster.remaining_processes_alive()
+
+    code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
+    assert code == 0, err[-3000:]
+    rows = assert_whole_run(run)
+    # (the row of 150, owed by the stopped run, is written before the resumed run's actors start)
+    logged = [r for r in log_rows(rows) if r["step"] != "150"]
+    assert all(r["collector_restarts"] == "0" and r["workers_alive"] == "2" for r in logged), logged
+    # the weights' version goes on from the checkpoint's update count
+    assert [int(r["weight_version"]) for r in logged] == [int(r["updates"]) for r in logged]
+    assert_no_leftovers(sid)
+    assert cluster.remaining_processes_alive()
+
+
+# --- kill -9 of the learner, then --resume ----------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_kill_9_of_a_learner_with_a_local_ray_leaves_no_ray_process_and_resumes(tmp_path):
+    """A learner that started its own Ray instance (ray.address empty), kill -9'd between two
+    checkpoints: Ray's processes go with it, none stays behind. (Ray starts its GCS and raylet
+    fate-sharing with the driver that started them: the kernel kills them with it. The actors see
+    their raylet gone and exit within seconds; Ray's dashboard and runtime-env agents see it within
+    2 s, then try to tell the dead GCS for 60 s, a timeout fixed in Ray 2.60, and exit.) The run
+    resumes from its last checkpoint (one interval lost at most), whole."""
+    run = tmp_path / "run"
+    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", "--out", "run"], tmp_path,
+                           fault="collected@250:SIGKILL:self")
+    assert code == -signal.SIGKILL, err[-3000:]
+    assert_no_leftovers(sid, timeout=180)
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000200"
+    assert int(log_rows(metrics_rows(run))[-1]["step"]) == 250  # rows past the checkpoint, dropped on resume
+
+    code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
+    assert code == 0, err[-3000:]
+    assert_whole_run(run)
+    assert_no_leftovers(sid)
+
+
+@pytest.mark.slow
+def test_kill_9_of_a_learner_inside_a_checkpoint_write_on_a_cluster_ends_its_actors_and_resumes(cluster, tmp_path):
+    """kill -9 of a learner that joined a cluster, halfway through writing the checkpoint of iteration
+    200: Ray ends the dead driver's actors (they are not detached), the cluster stays up, and
+    ``--resume`` there goes on from the checkpoint before (100) and finishes, whole: no corrupt file,
+    no row lost or doubled."""
+    run = tmp_path / "run"
+    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={cluster.address}",
+                            "--out", "run"], tmp_path, fault="checkpoint.write@200:SIGKILL:self")
+    assert code == -signal.SIGKILL, err[-3000:]
+    assert [p.name.split("-")[0] for p in (run / "checkpoints").glob(".tmp-*")] == [".tmp"], "the kill left no trace?"
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000100"
+    assert_no_leftovers(sid)
+    poll_until(lambda: not collector_actors(cluster), f"the dead learner's actors live on: {collector_actors(cluster)}",
+               timeout=120)
+    assert cluster.remaining_processes_alive()
+
+    code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
+    assert code == 0, err[-3000:]
+    assert_whole_run(run)
+    assert_no_leftovers(sid)
+    assert cluster.remaining_processes_alive()
+
+
+# --- it learns, with Ray collectors -----------------------------------------------------------------------
+
+# tests/test_sac.py's and tests/test_td3.py's learning checks, with the env stepped by one Ray actor
+# (a local Ray instance) that gets the learner's weights before each block (collector.sync=true).
+# Seen on this 2-core machine under load (3-4 min each): SAC -1268 -> -163, -164, -485, -163; TD3 -1383 ->
+# -160, -156, -157 (random and untrained: -1100 to -1700). Runs of the same seed differ here (cause not found):
+# SAC's threshold is looser than its in-process check's (-500), with room below the -485 seen.
+SAC_LEARN = [
+    "env=Pendulum-v1", "seed=0", "num_iterations=3000", "initial_collect_steps=1000",
+    "replay_buffer_capacity=100000", "actor_fc_layer_params=[64,64]", "critic_joint_fc_layer_params=[64,64]",
+    "actor_learning_rate=1e-3", "critic_learning_rate=1e-3", "alpha_learning_rate=1e-3",
+    "eval_in_background=false", "eval_interval=0", "num_eval_episodes=5", "log_interval=1000",
+    "checkpoint_interval=100000", "policy_save_interval=100000",
+    "collector.backend=ray", "collector.workers=1", "collector.sync=true", "ray.address=",
+]
+TD3_LEARN = [
+    "seed=0", "num_iterations=8000", "initial_collect_steps=1000", "learning_starts=1000",
+    "learning_rate=1e-3", "eval_interval=0", "num_eval_episodes=5", "log_interval=2000",
+    "checkpoint_interval=100000", "policy_save_interval=100000",
+    "collector.backend=ray", "collector.workers=1", "collector.sync=true", "ray.address=",
+]
+
+
+def _learned(pipeline, preset: str, overrides, run_dir):
+    result = pipeline(apply_overrides(preset, overrides)).train(run_dir, progress=False)
+    first, last = result.evaluations[0], result.evaluations[-1]
+    print(f"{overrides is SAC_LEARN and 'sac' or 'td3'}: {first['average_return']:.0f} -> {last['average_return']:.0f}")
+    return result, first, last
+
+
+@pytest.mark.slow
+def test_sac_learns_pendulum_with_ray_collectors(run_dir):
+    result, first, last = _learned(sac.SAC, sac.preset("sac"), SAC_LEARN, run_dir)
+    assert first["step"] == 0 and first["average_return"] < -900, first
+    assert last["step"] == 3000
+    assert last["average_return"] > -700, f"SAC did not learn Pendulum-v1: {last['average_return']:.0f}"
+    logged = [r for r in result.metrics if r.get("workers_alive")]
+    assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
+
+
+@pytest.mark.slow
+def test_td3_learns_pendulum_with_ray_collectors(run_dir):
+    result, first, last = _learned(td3.TD3, td3.preset("td3"), TD3_LEARN, run_dir)
+    assert first["step"] == 0 and first["average_return"] < -900, first
+    assert last["step"] == 8000
+    assert last["average_return"] > -400, f"TD3 did not learn Pendulum-v1: {last['average_return']:.0f}"
+    logged = [r for r in result.metrics if r.get("workers_alive")]
+    assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
