@@ -151,8 +151,8 @@ class RayEvaluator:
             try:
                 result = ray.get(self._ref)
             except ray.exceptions.RayActorError as exc:  # its process or node is gone
-                raise WorkerFailure(self.role, f"the evaluator actor (pid {self.worker_pid}) died: "
-                                               f"{_first_line(exc)}") from exc
+                raise WorkerFailure(self.role, f"the evaluator actor (pid {self.worker_pid}) died "
+                                               f"({_first_line(exc).rstrip('.')})") from exc
             except ray.exceptions.RayError as exc:  # the evaluation raised: as the process evaluator's thread
                 cause = getattr(exc, "cause", None) or exc
                 raise WorkerFailure(self.role, f"the evaluator stopped on {type(cause).__name__}: "
