@@ -311,7 +311,8 @@ class Loop:
         if cfg.collector.backend == "ray":  # on a Ray actor, on the Ray the run holds until its end
             from rlpipe.pipelines.ray_eval import RayEvaluator, hold_ray
 
-            with self.clock.paused():
+            # a local Ray's processes start deaf to the stop signals, as Ray collectors start it (_make_collector)
+            with self.clock.paused(), stop_signals_blocked():
                 self.ray = self.ray or hold_ray(cfg)
                 evaluator = RayEvaluator(self.pipeline.eval_env_fn, self.pipeline.policy, cfg.num_eval_episodes,
                                          self.state.pending_evals, config=cfg, timeout=cfg.eval_timeout,
