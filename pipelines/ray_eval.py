@@ -100,7 +100,7 @@ class RayEvaluator:
         self._in_flight: tuple[dict, TensorDictBase] | None = None
         self._ref = None
         self._asked_at = self._checked_at = 0.0
-        self.worker_pid: int | None = None
+        self.worker_pid: int | None = None  # the actor's process on its node (the test hook kills it there)
         cpus = config.ray.num_cpus_per_worker
         _check_cpus(ray, config)
         remote = ray.remote(num_cpus=cpus, num_gpus=0, max_restarts=0, max_task_retries=0)(EvalActor)
