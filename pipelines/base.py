@@ -323,6 +323,10 @@ class OffPolicyPipeline:
             raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
         if self.config.num_threads == -1:  # chosen once, before the run directory records the config
             self.config = dataclasses.replace(self.config, num_threads=self.choose_threads())
+        if self.config.collector.backend == "ray":  # no Ray at ray.address: one line, and nothing written
+            from rlpipe.pipelines.ray_backend import check_address
+
+            check_address(self.config.ray.address)
         run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
         self.run_dir, loop = run, None
         try:

@@ -105,6 +105,7 @@ class Loop:
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
         self.background: BackgroundEvaluator | None = None
+        self.ray = None  # the run's hold on Ray while its evaluator is a Ray actor (ray_eval.hold_ray)
         self.exported_at = None
         self._counts_at_start = (self.state.frames, self.state.updates)  # this session's speeds
         self.bar = tqdm(total=self.config.num_iterations, initial=self.state.iteration, unit="it", disable=not progress,
@@ -307,6 +308,17 @@ class Loop:
 
     def _start_evaluator(self) -> BackgroundEvaluator:
         cfg = self.config
+        if cfg.collector.backend == "ray":  # on a Ray actor, on the Ray the run holds until its end
+            from rlpipe.pipelines.ray_eval import RayEvaluator, hold_ray
+
+            # a local Ray's processes start deaf to the stop signals, as Ray collectors start it (_make_collector)
+            with self.clock.paused(), stop_signals_blocked():
+                self.ray = self.ray or hold_ray(cfg)
+                evaluator = RayEvaluator(self.pipeline.eval_env_fn, self.pipeline.policy, cfg.num_eval_episodes,
+                                         self.state.pending_evals, config=cfg, timeout=cfg.eval_timeout,
+                                         start_timeout=self.supervisor.start_timeout)
+            self.supervisor.report("evaluator", 1, 1)
+            return evaluator
         # TorchRL reads the new worker's first message with no timeout: the watchdog kills one that hangs
         with self.clock.paused(), self.watchdog.limit(self.supervisor.start_timeout, kill_new_children()):
             evaluator = BackgroundEvaluator(self.pipeline.eval_env_fn, self.pipeline.policy, cfg.num_eval_episodes,
@@ -435,13 +447,15 @@ class Loop:
 
     @contextlib.contextmanager
     def _workers(self):
-        """Stop the evaluator process and the watchdog however the run ends (``collect`` stops the
-        collector's processes)."""
+        """Stop the evaluator (its process or Ray actor, then the run's hold on Ray) and the watchdog
+        however the run ends (``collect`` stops the collector's processes)."""
         try:
             yield
         finally:
             if self.background is not None:
                 self.background.close()
+            if self.ray is not None:
+                self.ray.close()
             if self.watchdog is not None:
                 self.watchdog.close()
             self.bar.close()

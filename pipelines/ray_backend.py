@@ -42,7 +42,7 @@ from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.runtime import STOP_SIGNALS
 from rlpipe.pipelines.supervision import WorkerFailure
 
-__all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost"]
+__all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost", "check_address"]
 
 METRIC_COLUMNS = ["workers_alive", "weight_version", "weight_staleness"]
 """what ``RayCollectors.metrics`` adds to each log row of metrics.csv"""
@@ -100,9 +100,7 @@ class RayRuntime:
                     # machine. Ray's CPUs are logical: as many as the workers ask for, at least the cores.
                     ray.init(address="local", num_cpus=max(os.cpu_count() or 1, math.ceil(cpus_needed)), **common)
         except ConnectionError as exc:
-            raise InputError(f"ray.address={address!r}: no Ray cluster answers there ({_first_line(exc)}); "
-                             "expected the address `ray start --head` printed, 'auto' on one of its nodes, "
-                             "or empty to start a local Ray instance") from exc
+            raise _address_error(address, exc) from exc
         self.started = True
 
     def close(self) -> None:
@@ -314,6 +312,23 @@ def _check_cpus(ray, workers: int, per_worker: float, address: str) -> None:
         raise InputError(f"collector.workers={workers} x ray.num_cpus_per_worker={per_worker:g} needs "
                          f"{workers * per_worker:g} CPUs; {where} has {total:g}: expected fewer workers, a smaller "
                          "ray.num_cpus_per_worker, or more nodes")
+
+
+def check_address(address: str) -> None:
+    """``InputError`` at once if nothing answers at ``address`` (empty: a local instance, nothing to
+    check); the run calls it before it writes anything, so such a command leaves nothing behind."""
+    if not address:
+        return
+    try:
+        _check_reachable(address)
+    except ConnectionError as exc:
+        raise _address_error(address, exc) from exc
+
+
+def _address_error(address: str, exc: BaseException) -> InputError:
+    return InputError(f"ray.address={address!r}: no Ray cluster answers there ({_first_line(exc)}); "
+                      "expected the address `ray start --head` printed, 'auto' on one of its nodes, "
+                      "or empty to start a local Ray instance")
 
 
 def _check_reachable(address: str) -> None:

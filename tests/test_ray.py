@@ -7,20 +7,27 @@ started can be found (and must be gone) after it exits.
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
+import math
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
+from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import torch
 
 from rlpipe.pipelines import td3
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.evaluation import evaluate
 
 ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'` (scripts/setup.sh does)")
 
@@ -33,16 +40,27 @@ FRAMES, UPDATES = 400, 400 - 256
 QUIET = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_DEDUP_LOGS": "0"}
 
 
-def train(args, cwd: Path, env: dict | None = None, timeout: float = 400) -> tuple[subprocess.CompletedProcess, int]:
-    """``rlpipe train`` in a session of its own; returns the process and its session id."""
-    proc = subprocess.Popen([*MODULE, "train", *map(str, args), "--no-progress"], cwd=cwd, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-                            env={**os.environ, **QUIET, **(env or {})})
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
+def train(args, cwd: Path, env: dict | None = None, timeout: float = 400,
+          watch: Callable[[int], None] | None = None) -> tuple[subprocess.CompletedProcess, int]:
+    """``rlpipe train`` in a session of its own; returns the process and its session id. ``watch``,
+    if given, is called with the session id every 0.2 s while the run goes on."""
+    with tempfile.TemporaryFile("w+") as out_fh, tempfile.TemporaryFile("w+") as err_fh:
+        proc = subprocess.Popen([*MODULE, "train", *map(str, args), "--no-progress"], cwd=cwd, text=True,
+                                stdout=out_fh, stderr=err_fh, start_new_session=True,
+                                env={**os.environ, **QUIET, **(env or {})})
+        deadline = time.monotonic() + timeout
+        while proc.poll() is None and time.monotonic() < deadline:
+            if watch is not None:
+                watch(proc.pid)
+            time.sleep(0.2)
+        timed_out = proc.poll() is None
+        if timed_out:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        out_fh.seek(0)
+        err_fh.seek(0)
+        out, err = out_fh.read(), err_fh.read()
+    if timed_out:
         pytest.fail(f"run did not finish in {timeout} s\n{err[-3000:]}")
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err), proc.pid
 
@@ -114,10 +132,82 @@ def test_td3_on_a_two_node_ray_cluster_stopped_by_ctrl_c_then_resumed(cluster, t
 
 @pytest.mark.slow
 def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
-    """Also with the evaluation in the background (its own process on the learner's machine)."""
+    """Also with the evaluation in the background, which runs on a Ray actor (a Ray worker process,
+    not a child of the learner)."""
+    actors: dict[int, int] = {}  # pid -> parent pid of the evaluator actors seen while the run went on
+
+    def watch(sid: int) -> None:
+        for p in Path("/proc").glob("[0-9]*"):
+            if _cmdline(p).startswith("ray::EvalActor") and _session(p) == sid:
+                actors.setdefault(int(p.name), _parent(p))
+
     proc, sid = train(["td3", *TINY, "collector.sync=true", "ray.address=", "eval_in_background=true", "--out", "run"],
-                      tmp_path)
+                      tmp_path, watch=watch)
     rows = assert_finished(tmp_path / "run", proc)
+    evaluated = [r for r in rows if r["average_return"]]
+    assert [int(r["step"]) for r in evaluated] == [0, 150, 300]  # 0 in the learner, before training; the rest on Ray
+    assert all(math.isfinite(float(r["average_return"])) and float(r["average_episode_length"]) == 200
+               for r in evaluated), evaluated
+    assert len(actors) == 1, actors  # one actor, alive from the start to the end
+    assert sid not in actors.values(), actors  # Ray's worker, not the learner's child process
+    assert [int(r["evaluator_restarts"]) for r in rows if r["evaluator_restarts"]] == [0, 0, 0]
+    assert_no_leftovers(sid)
+
+
+@pytest.mark.slow
+def test_a_killed_evaluator_actor_is_replaced_and_asked_again(tmp_path):
+    """kill -9 of the evaluator actor's process right after the evaluation at 150 was sent to it: the
+    learner sees the actor dead, starts another (counted in metrics.csv), which makes that evaluation;
+    each one asked for is recorded once, and the run ends as usual."""
+    run = tmp_path / "run"
+    proc, sid = train(["td3", *TINY, "collector.sync=false", "eval_in_background=true", "--out", "run"], tmp_path,
+                      env={"RLPIPE_FAULT": "evaluator_worker@150:SIGKILL"})
+    rows = assert_finished(run, proc)
+    restarts = [line for line in proc.stderr.splitlines() if "restarting the evaluator" in line]
+    assert len(restarts) == 1 and "the evaluator actor (pid" in restarts[0] and "restart 1 of" in restarts[0], \
+        proc.stderr[-3000:]
+    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 150, 300]
+    logged = [r for r in rows if r["evaluator_restarts"]]
+    assert logged[-1]["evaluator_restarts"] == "1", logged[-1]
+    assert_no_leftovers(sid)
+
+
+@pytest.mark.slow
+def test_ctrl_c_with_an_evaluation_on_the_ray_actor_saves_it_as_owed(tmp_path):
+    """Ctrl-C to the whole process group just after the evaluation at 150 was sent to the actor: the
+    actor, deaf to it, is not lost (no restart); the checkpoint owes that evaluation unless it was
+    back in time, and --resume records it once."""
+    run = tmp_path / "run"
+    proc, sid = train(["td3", *TINY, "collector.sync=false", "eval_in_background=true", "--out", "run"], tmp_path,
+                      env={"RLPIPE_FAULT": "collected@150"})
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    assert "restarting" not in proc.stderr and "died" not in proc.stderr, proc.stderr[-3000:]
+    assert (run / "checkpoints" / "step_0000000150").is_dir()
+    assert_no_leftovers(sid)
+    proc, sid = train(["td3", "--resume", "run"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    # (not assert_finished: a log row the stop left owed is written before the resumed run's collectors
+    # start, so it has no workers_alive)
+    assert json.loads((run / "summary.json").read_text())["frames"] == FRAMES
+    assert [int(r["step"]) for r in metrics_rows(run) if r["average_return"]] == [0, 150, 300]
+    assert_no_leftovers(sid)
+
+
+@pytest.mark.slow
+def test_an_evaluator_actor_lost_past_max_restarts_saves_and_stops_with_one_line(tmp_path):
+    """No restart left (collector.max_restarts=0): a checkpoint, one line, exit 75, nothing left running;
+    the evaluation that was lost is saved as pending and made by --resume."""
+    run = tmp_path / "run"
+    proc, sid = train(["td3", *TINY, "collector.sync=false", "eval_in_background=true", "collector.max_restarts=0",
+                       "--out", "run"], tmp_path, env={"RLPIPE_FAULT": "evaluator_worker@150:SIGKILL"})
+    assert proc.returncode == 75, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("rlpipe: error: the evaluator actor (pid") and "no restart left" in last, last
+    assert "checkpoint saved at iteration" in last and "--resume" in last, last
+    assert_no_leftovers(sid)
+    proc, sid = train(["td3", "--resume", "run"], tmp_path)
+    rows = assert_finished(run, proc)
     assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 150, 300]
     assert_no_leftovers(sid)
 
@@ -174,6 +264,13 @@ def _cmdline(proc_dir: Path) -> str:
         return ""
 
 
+def _parent(proc_dir: Path) -> int | None:
+    try:
+        return int((proc_dir / "stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def _session(proc_dir: Path) -> int | None:
     try:
         return int((proc_dir / "stat").read_text().rsplit(")", 1)[1].split()[3])
@@ -210,8 +307,95 @@ def test_an_empty_ray_address_means_a_local_instance():
 
 
 def test_an_address_where_no_ray_listens_is_one_clear_error(tmp_path):
+    """Checked before the run writes anything: a refused command leaves nothing behind."""
     proc, sid = train(["td3", *TINY, "ray.address=127.0.0.1:9", "--out", "run"], tmp_path, timeout=120)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
     assert lines[0].startswith("rlpipe: error: ray.address='127.0.0.1:9': no Ray cluster answers there"), lines[0]
+    assert list(tmp_path.iterdir()) == []  # no run directory (--out run), nor a default one under runs/
     assert_no_leftovers(sid)
+
+
+# --- the evaluator's Ray actor, driven from this process -----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """A local Ray instance in this process, as a run holds one (``ray_eval.hold_ray``)."""
+    from rlpipe.pipelines.ray_backend import RayRuntime
+
+    runtime = RayRuntime("", 2)
+    try:
+        yield
+    finally:
+        runtime.close()
+
+
+def _ray_eval_setup():
+    from rlpipe.pipelines.ray_eval import RayEvaluator
+
+    cfg = apply_overrides(td3.preset("td3"), ["actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]",
+                                              "collector.backend=ray", "collector.workers=1"])
+    return cfg, td3.TD3(cfg), RayEvaluator
+
+
+@pytest.mark.slow
+def test_an_evaluation_on_the_ray_actor_is_the_one_the_learner_makes(local_ray):
+    """The same weights on the same seed (the eval env's, seed + 10000) give the same episodes on the
+    actor as in the learner's process; the actor is Ray's worker, not a child of the learner."""
+    import psutil
+
+    cfg, pipeline, RayEvaluator = _ray_eval_setup()
+    pending = deque()
+    evaluator = RayEvaluator(pipeline.eval_env_fn, pipeline.policy, 3, pending, config=cfg)
+    try:
+        assert psutil.Process(evaluator.worker_pid).ppid() != os.getpid()
+        weights = evaluator.snapshot(pipeline.policy)
+        evaluator.ask({"step": 7, "frames": 7, "updates": 0}, weights)
+        with torch.no_grad():  # the learner goes on: the snapshot is what is evaluated
+            for p in pipeline.policy.parameters():
+                p.add_(0.5)
+        (at, result), = list(evaluator.results(block=True))
+    finally:
+        evaluator.close()
+    policy = copy.deepcopy(pipeline.policy)
+    weights.to_module(policy)
+    local = evaluate(pipeline.eval_env, policy, 3)  # seeded seed + 10000 by the pipeline, not used before
+    assert at["step"] == 7 and not pending
+    assert result["returns"] == pytest.approx(local["returns"], rel=1e-6)
+    assert result["average_episode_length"] == local["average_episode_length"] == 200
+
+
+@pytest.mark.slow
+def test_a_dead_or_late_evaluator_actor_is_a_worker_failure(local_ray):
+    """kill -9 of the actor with an evaluation in flight: a WorkerFailure (not a wait until eval_timeout);
+    an evaluation not back within eval_timeout: a WorkerFailure; close() leaves no actor process."""
+    import psutil
+
+    from rlpipe.pipelines.supervision import WorkerFailure
+
+    cfg, pipeline, RayEvaluator = _ray_eval_setup()
+    pending = deque()
+    long = 50  # episodes of 200 steps: seconds of work
+    evaluator = RayEvaluator(pipeline.eval_env_fn, pipeline.policy, long, pending, config=cfg, timeout=300)
+    try:
+        evaluator.ask({"step": 1, "frames": 1, "updates": 0}, evaluator.snapshot(pipeline.policy))
+        os.kill(evaluator.worker_pid, signal.SIGKILL)
+        with pytest.raises(WorkerFailure, match=r"the evaluator actor \(pid \d+\) died") as failure:
+            list(evaluator.results(block=True))
+        assert failure.value.role == "evaluator"
+    finally:
+        evaluator.close()
+    assert len(pending) == 1  # still owed: the next evaluator asks again
+    evaluator = RayEvaluator(pipeline.eval_env_fn, pipeline.policy, long, pending, config=cfg, timeout=0.5)
+    worker = psutil.Process(evaluator.worker_pid)
+    try:
+        with pytest.raises(WorkerFailure, match=r"evaluation at step 1 was not back within eval_timeout=0.5 s"):
+            list(evaluator.results(block=True))
+    finally:
+        evaluator.close()
+    assert len(pending) == 1
+    deadline = time.monotonic() + 30  # Ray reaps the killed worker
+    while worker.is_running() and worker.status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not worker.is_running() or worker.status() == psutil.STATUS_ZOMBIE

@@ -1,0 +1,230 @@
+"""The background evaluation on a Ray actor (``collector.backend=ray`` with ``eval_in_background=true``).
+
+``RayEvaluator`` is what ``evaluation.BackgroundEvaluator`` is to the loop (``ask``, ``results``,
+``check``, ``close``, ``worker_pid``, ``snapshot``), with the evaluation in a Ray actor that Ray
+places on any node with ``ray.num_cpus_per_worker`` CPUs free: one actor, ``EvalActor``, that makes
+the eval env (seeded ``seed + 10_000``, as the learner's own eval env is) and a CPU copy of the
+policy, and runs ``evaluation.evaluate`` on each snapshot of weights sent to it. The same weights on
+the same seed give the same result as an evaluation in the learner's process.
+
+Why not TorchRL's ``Evaluator(backend="ray")`` (``RayEvalWorker``): in 0.14 it plays one rollout
+of at most ``max_steps`` steps and reports the mean reward per step of it; it ignores
+``num_trajectories``, so it cannot give the average return and episode length over
+``num_eval_episodes`` full episodes that the tutorials' metrics are. Ray's own actor calls carry
+the weights (a TensorDict, as RayEvalWorker sends them) and the result.
+
+Supervision, as for the process evaluator: an actor that dies (its process killed, its node gone)
+makes ``results``/``check`` raise ``WorkerFailure("evaluator", ...)`` within seconds (Ray fails the
+call in flight; an idle actor is looked up in Ray's actor table); so does an evaluation not back
+within ``eval_timeout``. The loop then closes it (``ray.kill``) and starts another on the same
+``pending`` queue, which asks again for the evaluation that was in flight.
+
+The run holds Ray for its whole length (``hold_ray``): the evaluator and the Ray collectors come
+and go on it (each restart of one leaves the other running), and it is let go at the run's end.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.envs import EnvBase
+
+from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.evaluation import BackgroundEvaluator, _PolicyCopy, evaluate
+from rlpipe.pipelines.ray_backend import START_TIMEOUT_S, RayRuntime
+from rlpipe.pipelines.runtime import STOP_SIGNALS
+from rlpipe.pipelines.supervision import WorkerFailure
+
+__all__ = ["EvalActor", "RayEvaluator", "hold_ray"]
+
+EVAL_SEED_OFFSET = 10_000
+"""the eval env's seed is the run's seed plus this (as ``OffPolicyPipeline`` seeds its own eval env)"""
+
+
+def hold_ray(config: TrainConfig) -> RayRuntime:
+    """The run's hold on Ray while its evaluator lives there: joins ``ray.address`` or starts a local
+    instance with a CPU for each collector actor and one for the evaluator; ``close()`` lets go."""
+    c, r = config.collector, config.ray
+    return RayRuntime(r.address, (c.workers + 1) * r.num_cpus_per_worker)
+
+
+class EvalActor:
+    """Runs in a Ray worker process: the eval env and a copy of the policy, evaluating weights sent to it."""
+
+    def __init__(self, env_fn: Callable[[], EnvBase], policy_factory: Callable[[], nn.Module], seed: int):
+        # Deaf to the stop signals, as the learner's other workers are (runtime.stop_signals_blocked):
+        # a Ctrl-C to the terminal's process group reaches the learner, which stops this actor itself.
+        for signum in STOP_SIGNALS:
+            with contextlib.suppress(ValueError, OSError):
+                signal.signal(signum, signal.SIG_IGN)
+        self.env = env_fn()
+        self.env.set_seed(seed)
+        self.policy = policy_factory()
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def evaluate(self, weights: TensorDictBase, num_episodes: int) -> dict:
+        weights.to_module(self.policy)
+        return evaluate(self.env, self.policy, num_episodes)
+
+
+class RayEvaluator:
+    """Evaluations on snapshots of the policy's weights, on a Ray actor, while training goes on.
+
+    The interface and the ``pending`` queue are ``BackgroundEvaluator``'s (see there): ``ask``
+    appends, ``results`` hands back those finished, oldest first; one evaluation is in flight at a
+    time, so ``eval_timeout`` counts from when it was sent. ``Ray`` must be up (``hold_ray``).
+    """
+
+    role = "evaluator"
+    snapshot = staticmethod(BackgroundEvaluator.snapshot)
+    _CHECK_EVERY_S = 1.0
+    """how often an idle actor is looked up in Ray's actor table (one call to Ray's GCS)"""
+
+    def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
+                 pending: deque[tuple[dict, TensorDictBase]], *, config: TrainConfig, timeout: float = 600.0,
+                 start_timeout: float = START_TIMEOUT_S):
+        import ray
+
+        self.pending, self.timeout, self.num_episodes = pending, float(timeout), int(num_episodes)
+        self._in_flight: tuple[dict, TensorDictBase] | None = None
+        self._ref = None
+        self._asked_at = self._checked_at = 0.0
+        self.worker_pid: int | None = None  # the actor's process on its node (the test hook kills it there)
+        cpus = config.ray.num_cpus_per_worker
+        _check_cpus(ray, config)
+        remote = ray.remote(num_cpus=cpus, num_gpus=0, max_restarts=0, max_task_retries=0)(EvalActor)
+        self._actor = remote.remote(env_fn, _PolicyCopy(policy), config.seed + EVAL_SEED_OFFSET)
+        try:
+            ready, _ = ray.wait([ref := self._actor.pid.remote()], timeout=start_timeout)
+            if not ready:
+                free = ray.available_resources().get("CPU", 0.0)
+                raise WorkerFailure(self.role, f"Ray did not place the evaluator actor within {start_timeout:g} s "
+                                               f"({free:g} CPUs free, {cpus:g} asked)")
+            try:
+                self.worker_pid = ray.get(ref)
+            except ray.exceptions.RayError as exc:
+                raise WorkerFailure(self.role, f"the evaluator actor did not start: {_first_line(exc)}") from exc
+        except BaseException:
+            self.close()
+            raise
+
+    def ask(self, at: dict, weights: TensorDictBase) -> None:
+        self.pending.append((at, weights))
+        self._feed()
+
+    def _feed(self) -> None:
+        if self.pending and self._in_flight is None:
+            at, weights = self._in_flight = self.pending[0]
+            self._asked_at = time.monotonic()
+            self._ref = self._actor.evaluate.remote(weights, self.num_episodes)
+
+    def results(self, block: bool = False, feed: bool = True, interrupt: Callable[[], None] | None = None):
+        """Yield ``(position, result)`` of the evaluations that are back, oldest first (the arguments
+        are ``BackgroundEvaluator.results``'s). Raises ``WorkerFailure`` when the evaluator has failed."""
+        import ray
+
+        while self.pending:
+            if feed:
+                self._feed()
+            elif self._in_flight is None:
+                return
+            ready, _ = ray.wait([self._ref], timeout=0.2 if block else 0)
+            if not ready:
+                self.check()
+                if not block:
+                    return
+                if interrupt is not None:
+                    interrupt()
+                continue
+            at, _ = self._in_flight
+            try:
+                result = ray.get(self._ref)
+            except ray.exceptions.RayActorError as exc:  # its process or node is gone
+                raise WorkerFailure(self.role, f"the evaluator actor (pid {self.worker_pid}) died "
+                                               f"({_first_line(exc).rstrip('.')})") from exc
+            except ray.exceptions.RayError as exc:  # the evaluation raised: as the process evaluator's thread
+                cause = getattr(exc, "cause", None) or exc
+                raise WorkerFailure(self.role, f"the evaluator stopped on {type(cause).__name__}: "
+                                               f"{_first_line(cause)}") from exc
+            self._in_flight = self._ref = None
+            self.pending.popleft()
+            yield at, result
+
+    def check(self) -> None:
+        """Raise ``WorkerFailure`` if the evaluation in flight is past ``timeout``, or if Ray's actor
+        table says the actor is dead (looked up at most once a second)."""
+        if self._in_flight is not None and time.monotonic() - self._asked_at > self.timeout:
+            raise WorkerFailure(self.role, f"the evaluation at step {self._in_flight[0]['step']} was not back "
+                                           f"within eval_timeout={self.timeout:g} s")
+        now = time.monotonic()
+        if now - self._checked_at < self._CHECK_EVERY_S:
+            return
+        self._checked_at = now
+        state = _actor_state(self._actor)
+        if state == "DEAD":
+            raise WorkerFailure(self.role, f"the evaluator actor (pid {self.worker_pid}) died")
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Kill the actor (an evaluation in flight is dropped: ``pending`` still lists it) and wait, at
+        most ``timeout`` seconds, until Ray's actor table says it is dead."""
+        import ray
+
+        actor, self._actor, self._ref, self._in_flight = self._actor, None, None, None
+        if actor is None or not ray.is_initialized():
+            return
+        with contextlib.suppress(Exception):
+            ray.kill(actor, no_restart=True)
+        deadline = time.monotonic() + timeout
+        while _actor_state(actor) not in ("DEAD", None):
+            if time.monotonic() > deadline:
+                print(f"rlpipe: warning: the evaluator actor (pid {self.worker_pid}) did not stop within "
+                      f"{timeout:g} s", file=sys.stderr, flush=True)
+                return
+            time.sleep(0.05)
+
+
+def _actor_state(actor) -> str | None:
+    """The actor's state in Ray's actor table (GCS): "ALIVE", "DEAD", ...; None if Ray does not know it.
+
+    The table, not a ping: a ping would queue behind the evaluation in flight; the public state API
+    (ray.util.state) needs the dashboard, which the run does not start (as ``RayCollectors.alive_workers``)."""
+    import ray
+    from ray._private.state import actors
+
+    if not ray.is_initialized():
+        return None
+    try:
+        state = actors(actor_id=actor._actor_id.hex()).get("State")
+    except Exception:
+        return None
+    return {2: "ALIVE", 4: "DEAD"}.get(state, state) if isinstance(state, int) else state
+
+
+def _check_cpus(ray, config: TrainConfig) -> None:
+    """The collector actors and the evaluator's each need ``ray.num_cpus_per_worker``: the cluster
+    must have that many CPUs, or one of them would wait for Ray to place it."""
+    c, r = config.collector, config.ray
+    needed = (c.workers + 1) * r.num_cpus_per_worker
+    total = ray.cluster_resources().get("CPU", 0.0)
+    if total < needed:
+        where = f"the Ray cluster at {r.address!r}" if r.address else "the local Ray instance"
+        raise InputError(f"collector.workers={c.workers} collector actors and the background evaluator's, "
+                         f"x ray.num_cpus_per_worker={r.num_cpus_per_worker:g}, need {needed:g} CPUs; {where} has "
+                         f"{total:g}: expected fewer workers, a smaller ray.num_cpus_per_worker, more nodes, "
+                         "or eval_in_background=false")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:200] if text else type(exc).__name__
