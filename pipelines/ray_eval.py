@@ -40,7 +40,7 @@ from torchrl.envs import EnvBase
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.evaluation import BackgroundEvaluator, _PolicyCopy, evaluate
-from rlpipe.pipelines.ray_backend import START_TIMEOUT_S, RayRuntime
+from rlpipe.pipelines.ray_backend import MIN_START_TIMEOUT_S, RayRuntime
 from rlpipe.pipelines.runtime import STOP_SIGNALS
 from rlpipe.pipelines.supervision import WorkerFailure
 
@@ -93,7 +93,7 @@ class RayEvaluator:
 
     def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
                  pending: deque[tuple[dict, TensorDictBase]], *, config: TrainConfig, timeout: float = 600.0,
-                 start_timeout: float = START_TIMEOUT_S):
+                 start_timeout: float = MIN_START_TIMEOUT_S):
         import ray
 
         self.pending, self.timeout, self.num_episodes = pending, float(timeout), int(num_episodes)
@@ -102,6 +102,7 @@ class RayEvaluator:
         self._asked_at = self._checked_at = 0.0
         self.worker_pid: int | None = None  # the actor's process on its node (the test hook kills it there)
         cpus = config.ray.num_cpus_per_worker
+        start_timeout = max(start_timeout, MIN_START_TIMEOUT_S)  # as the collector actors' (ray_backend)
         _check_cpus(ray, config)
         remote = ray.remote(num_cpus=cpus, num_gpus=0, max_restarts=0, max_task_retries=0)(EvalActor)
         self._actor = remote.remote(env_fn, _PolicyCopy(policy), config.seed + EVAL_SEED_OFFSET)
