@@ -25,6 +25,7 @@ writes the raw figures. These machines are shared and noisy: compare the ratios 
 
 from __future__ import annotations
 
+import importlib
 import json
 import statistics
 import sys
@@ -80,9 +81,10 @@ def run(args) -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix=f"rlpipe-bench-{args.target}-"))
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
-    figures = {"dqn": bench_dqn, "td3": bench_td3, "sac": bench_sac, "minitaur": bench_minitaur,
-               "floor": bench_floor, "cleanrl": bench_cleanrl, "gpu": bench_gpu,
-               "profile": bench_profile, "collect": bench_collect, "ray": bench_ray}[args.target](args, out)
+    figures = {"dqn": bench_dqn, "td3": bench_td3, "minitaur": bench_minitaur}.get(args.target)
+    if figures is None:  # each other target is scripts/bench_TARGET.py's bench_TARGET, imported when asked for
+        figures = getattr(importlib.import_module(f"rlpipe.scripts.bench_{args.target}"), f"bench_{args.target}")
+    figures = figures(args, out)
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
@@ -215,46 +217,11 @@ def bench_td3(args, out: Path) -> dict:
     return run_td3(args, out, _train_seeds)
 
 
-def bench_sac(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_sac import bench_sac as run_sac
-
-    return run_sac(args, out)
 
 
-def bench_floor(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_floor import bench_floor as run_floor
-
-    return run_floor(args, out)
 
 
-def bench_cleanrl(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_cleanrl import bench_cleanrl as run_cleanrl
 
-    return run_cleanrl(args, out)
-
-
-def bench_gpu(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_gpu import bench_gpu as run_gpu
-
-    return run_gpu(args, out)
-
-
-def bench_profile(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_profile import bench_profile as run_profile
-
-    return run_profile(args, out)
-
-
-def bench_collect(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_collect import bench_collect as run_collect
-
-    return run_collect(args, out)
-
-
-def bench_ray(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_ray import bench_ray as run_ray
-
-    return run_ray(args, out)
 
 
 def bench_minitaur(args, out: Path) -> dict:
