@@ -18,13 +18,14 @@ from rlpipe.modules.actors import (
     make_tanh_normal_actor,
 )
 from rlpipe.modules.critics import make_qvalue_critic
-from rlpipe.modules.exploration import epsilon_greedy
+from rlpipe.modules.exploration import EGreedyQPolicy, epsilon_greedy
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.qnetworks import make_qvalue_actor
 from rlpipe.modules.target_updates import ForeachSoftUpdate, make_target_updater
 from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
 
 __all__ = [
+    "EGreedyQPolicy",
     "ForeachSoftUpdate",
     "LeanAdam",
     "TD3AblationLoss",

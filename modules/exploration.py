@@ -5,10 +5,17 @@ They are TorchRL's own modules; the factories only fix the tutorials' convention
 
 from __future__ import annotations
 
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
-from torchrl.modules import EGreedyModule
+from torchrl.data import Categorical, Composite
+from torchrl.envs.utils import ExplorationType, exploration_type
+from torchrl.modules import EGreedyModule, QValueActor, QValueModule
 
-__all__ = ["epsilon_greedy"]
+from rlpipe.modules.tensor_nets import is_plain_module, mlp_layers
+
+__all__ = ["EGreedyQPolicy", "epsilon_greedy"]
 
 
 def epsilon_greedy(
@@ -23,7 +30,8 @@ def epsilon_greedy(
     With ``epsilon_end=None`` epsilon stays at ``epsilon`` (TF-Agents' ``DqnAgent`` default of 0.1);
     otherwise it decays linearly to ``epsilon_end`` over ``annealing_steps`` calls of ``.step()``.
     The greedy (evaluation) policy is ``policy`` itself, or this one under
-    ``ExplorationType.DETERMINISTIC``.
+    ``ExplorationType.DETERMINISTIC``. The result is an ``EGreedyQPolicy``: a
+    ``TensorDictSequential(policy, greedy)`` that runs on tensors when ``policy`` allows it.
     """
     greedy = EGreedyModule(
         action_spec,
@@ -31,4 +39,81 @@ def epsilon_greedy(
         eps_end=epsilon if epsilon_end is None else epsilon_end,
         annealing_num_steps=annealing_steps,
     )
-    return TensorDictSequential(policy, greedy)
+    return EGreedyQPolicy(policy, greedy)
+
+
+class EGreedyQPolicy(TensorDictSequential):
+    """``TensorDictSequential(QValueActor, EGreedyModule)`` whose ``forward`` runs on tensors.
+
+    Same children, state dict, keys and numbers as the stock sequence; what it removes is the
+    per-call work around them. A collector calls the collect policy once per env step (DQN's
+    tutorial: one env step per update), and the stock sequence (the MLP through a
+    ``TensorDictModule``, ``QValueModule``'s dispatch and spec checks, ``EGreedyModule``'s spec
+    expansion) costs ~0.3 ms per call on this 2-core CPU for a few microseconds of arithmetic: 18% of
+    an iteration of the ``dqn`` preset (BENCHMARKS.md, "Where the time goes"). TorchRL has no
+    tensor-level epsilon-greedy policy, hence this class.
+
+    The tensor path is taken when the actor is a ``QValueActor`` over a TorchRL ``MLP`` with a
+    categorical (integer index) action and no action mask; anything else goes through
+    ``TensorDictSequential.forward`` unchanged. It writes what the stock sequence writes
+    (``action``, ``action_value``, ``chosen_action_value``) and draws its random numbers in the
+    same order (``torch.rand`` for the coin, then ``torch.randint`` for the random action, as
+    ``EGreedyModule`` and ``Categorical.rand`` do), so with the same generator state both give the
+    same actions (``tests/test_dqn.py`` checks it).
+    """
+
+    def _lean_parts(self):
+        """``(MLP layers as modules, observation key, number of actions, greedy)`` or None; cached.
+
+        The layers are the MLP's own modules, whose parameters are read at each call: a weight
+        sync that replaces them (rather than copying into them) is seen."""
+        cache = self.__dict__.setdefault("_cache_lean", {})
+        if "parts" not in cache:
+            cache["parts"] = self._find_lean_parts()
+        return cache["parts"]
+
+    def _find_lean_parts(self):
+        if len(self.module) != 2:
+            return None
+        actor, greedy = self.module
+        if type(greedy) is not EGreedyModule or greedy.action_mask_key is not None or greedy.action_key != "action":
+            return None
+        if not isinstance(actor, QValueActor) or len(actor.module) != 2:
+            return None
+        net, qvalue = actor.module
+        if not (is_plain_module(net) and type(qvalue) is QValueModule) or len(net.in_keys) != 1:
+            return None
+        if (qvalue.action_space != "categorical" or qvalue.action_mask_key is not None
+                or list(net.out_keys) != list(qvalue.in_keys)
+                or list(qvalue.out_keys) != ["action", "action_value", "chosen_action_value"]):
+            return None
+        layers = mlp_layers(net.module)
+        spec = greedy.spec
+        spec = spec["action"] if isinstance(spec, Composite) else spec
+        if layers is None or type(spec) is not Categorical or spec.mask is not None or spec.shape != torch.Size([]):
+            return None
+        if spec.dtype != torch.int64:
+            return None
+        modules = [(kind, net.module.get_submodule(layer) if kind == "linear" else layer) for kind, layer in layers]
+        return modules, net.in_keys[0], int(spec.space.n), greedy
+
+    def forward(self, tensordict: TensorDictBase, tensordict_out=None, **kwargs) -> TensorDictBase:
+        parts = self._lean_parts() if tensordict_out is None and not kwargs else None
+        if parts is None:
+            return super().forward(tensordict, tensordict_out, **kwargs)
+        layers, observation_key, num_actions, greedy = parts
+        values = tensordict.get(observation_key)
+        for kind, layer in layers:
+            values = F.linear(values, layer.weight, layer.bias) if kind == "linear" else layer(values)
+        action = values.argmax(-1)  # QValueModule's categorical action
+        # QValueModule's value of its (greedy) action, before EGreedyModule may replace the action
+        tensordict.set("chosen_action_value", values.gather(-1, action.unsqueeze(-1)))
+        if exploration_type() in (ExplorationType.RANDOM, None):
+            # EGreedyModule.forward: a coin per env, then a uniform action from the spec
+            eps = greedy.eps
+            explore = torch.rand(tensordict.shape, device=eps.device) < eps
+            random_action = torch.randint(0, num_actions, action.shape, device=action.device)
+            action = torch.where(explore, random_action, action)
+        tensordict.set("action", action)
+        tensordict.set("action_value", values)
+        return tensordict

@@ -171,10 +171,30 @@ def plain_pytorch_dqn_iterations_per_s(iterations: int, seed: int = 0) -> float:
     return iterations / (time.perf_counter() - t0)
 
 
+def plain_dqn_best_threads(iterations: int, seed: int = 0) -> tuple[float, dict[int, float]]:
+    """The plain loop on one torch thread and on torch's default count: ``(best rate, {threads: rate})``.
+
+    Each side of a comparison is timed on its best thread setting. For this loop's tiny matmuls
+    one thread is usually best: on torch's default two threads on this shared 2-core machine under
+    load (~12) it ran at 23 it/s against 237 on one, its OpenMP threads waiting for each other.
+    """
+    import torch
+
+    before = torch.get_num_threads()
+    rates = {}
+    try:
+        for threads in sorted({1, before}):
+            torch.set_num_threads(threads)
+            rates[threads] = plain_pytorch_dqn_iterations_per_s(iterations, seed=seed)
+    finally:
+        torch.set_num_threads(before)
+    return max(rates.values()), rates
+
+
 def bench_dqn(args, out: Path) -> dict:
     preset = args.preset or "dqn"
     threshold = 195.0 if preset == "dqn" else 475.0
-    peer = plain_pytorch_dqn_iterations_per_s(args.peer_iterations)
+    peer, peer_rates = plain_dqn_best_threads(args.peer_iterations)
     tf_agents = None
     if preset == "dqn":  # the TF-Agents DQN tutorial itself, in its own venv (scripts/peers/tfagents.py)
         from rlpipe.scripts.peers import tfagents
@@ -200,14 +220,16 @@ def bench_dqn(args, out: Path) -> dict:
         *rows,
         "",
         f"Mean training speed: {mean_speed:.0f} iterations/s. Peer in the same run, plain PyTorch DQN "
-        f"(1 step + 1 update, no framework): {peer:.0f} iterations/s; ratio rlpipe/peer = {mean_speed / peer:.2f}.",
+        f"(1 step + 1 update, no framework), its best thread setting: {peer:.0f} iterations/s "
+        f"({', '.join(f'{rate:.0f} on {t} thread(s)' for t, rate in peer_rates.items())}); "
+        f"ratio rlpipe/peer = {mean_speed / peer:.2f}.",
         f"Reached {threshold:g} on {sum(x is not None for x in reached)}/{len(reached)} seeds.",
         *([] if tf_agents is None else [
             f"TF-Agents' DQN tutorial (its own code, TF-Agents 0.19, same run, timed over 1000 and 4000 iterations): "
             f"{tf_agents['iterations_per_s']:.1f} iterations/s; ratio rlpipe/TF-Agents = "
             f"**{mean_speed / tf_agents['iterations_per_s']:.1f}**."]),
     ])
-    return {"preset": preset, "peer_iterations_per_s": peer, "tfagents": tf_agents, "iterations_per_s": speeds,
+    return {"preset": preset, "peer_iterations_per_s": peer, "peer_by_threads": peer_rates, "tfagents": tf_agents, "iterations_per_s": speeds,
             "first_iteration_reaching": reached, "summaries": [r.summary for r in results], "table": table}
 
 

@@ -2,7 +2,7 @@
 
     python -m rlpipe.scripts.bench_dqn_tries [--rounds 3] [--iterations 6000] [--variant NAME=OVERRIDES ...]
 
-Each round times the plain loop (``bench.plain_pytorch_dqn_iterations_per_s``) and then one
+Each round times the plain loop on its best thread setting (``bench.plain_dqn_best_threads``) and then one
 ``rlpipe train dqn`` per variant (in this process, evaluations off; the run's own ``updates_per_s``,
 training time only), so each ratio compares two figures taken seconds apart under the same load.
 Prints a Markdown table of the rounds' median ratios (issue 9's DQN target: ratio >= 1).
@@ -16,26 +16,12 @@ import sys
 import tempfile
 from pathlib import Path
 
-from rlpipe.scripts.bench import plain_pytorch_dqn_iterations_per_s
+from rlpipe.scripts.bench import plain_dqn_best_threads
 
 VARIANTS = {
     "preset": [],
     "collector process": ["collector.sync=false"],
 }
-
-
-def plain_one_thread(iterations: int, seed: int) -> float:
-    """The plain loop on one torch thread (restored after). On torch's default two threads, on this
-    shared 2-core machine under load (~12), it ran at 23 it/s, 10x slower: the OpenMP threads wait
-    for each other, which would flatter the ratio (rlpipe's learner picks its count, ``choose_threads``)."""
-    import torch
-
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        return plain_pytorch_dqn_iterations_per_s(iterations, seed=seed)
-    finally:
-        torch.set_num_threads(before)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     speeds: dict[str, list[float]] = {name: [] for name in variants}
     peers = []
     for r in range(args.rounds):
-        peer = plain_one_thread(args.peer_iterations, seed=r)
+        peer, _ = plain_dqn_best_threads(args.peer_iterations, seed=r)
         peers.append(peer)
         for name, overrides in variants.items():
             algo, cfg = resolve_preset(args.preset)

@@ -362,3 +362,44 @@ def test_the_target_network_moves_every_target_update_period_updates(tau):
     assert moved == [False, False, True] * 3
     if tau == 1.0:
         assert equal == [False, False, True] * 3
+
+
+@pytest.mark.parametrize("batch", [[], [16]])
+def test_the_collect_policy_on_tensors_gives_the_stock_sequences_actions_and_values(batch):
+    # The dqn collect policy runs its Q-network, argmax and epsilon draw on tensors
+    # (modules/exploration.py: EGreedyQPolicy); TorchRL's QValueActor + EGreedyModule sequence on the
+    # same generator state must write the same entries, exploring and greedy.
+    from tensordict.nn import TensorDictSequential
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from rlpipe.modules import EGreedyQPolicy
+
+    policy = DQN(preset("dqn")).collect_policy
+    assert isinstance(policy, EGreedyQPolicy) and policy._lean_parts() is not None
+    obs = torch.randn(*batch, 4)
+    for kind in (ExplorationType.RANDOM, ExplorationType.DETERMINISTIC):
+        outs = []
+        for forward in (policy, lambda td: TensorDictSequential.forward(policy, td)):
+            torch.manual_seed(3)
+            with set_exploration_type(kind):
+                outs.append(forward(TensorDict({"observation": obs.clone()}, batch)))
+            outs[-1] = outs[-1].to_dict()
+        lean, stock = outs
+        assert sorted(lean) == sorted(stock) == ["action", "action_value", "chosen_action_value", "observation"]
+        for key in stock:
+            assert torch.equal(lean[key], stock[key]), (kind, key)
+    assert policy(TensorDict({"observation": obs}, batch))["action"].dtype == torch.int64
+
+
+def test_a_collect_policy_with_an_action_mask_goes_through_torchrls_modules():
+    # Anything the tensor path does not cover (here a masked EGreedyModule) is TorchRL's own forward.
+    from torchrl.modules import EGreedyModule
+
+    from rlpipe.modules import EGreedyQPolicy
+
+    policy = DQN(preset("dqn")).collect_policy
+    masked = EGreedyQPolicy(policy[0], EGreedyModule(policy[1].spec, eps_init=1.0, eps_end=1.0,
+                                                     action_mask_key="action_mask"))
+    assert masked._lean_parts() is None
+    td = TensorDict({"observation": torch.randn(8, 4), "action_mask": torch.tensor([[False, True]] * 8)}, [8])
+    assert (masked(td)["action"] == 1).all()  # the mask is honoured: only action 1 is allowed
