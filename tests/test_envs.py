@@ -19,8 +19,9 @@ def test_cartpole_has_the_standard_transforms_float_observations_and_integer_act
     env = make_env("CartPole-v0", seed=0)
     assert isinstance(env, TransformedEnv)
     types = _transform_types(env)
-    for cls in (StepCounter, RewardSum, InitTracker, DoubleToFloat):
+    for cls in (StepCounter, RewardSum, InitTracker):
         assert cls in types, f"{cls.__name__} missing from {types}"
+    assert DoubleToFloat not in types  # nothing of CartPole's is float64: no per-step cost for nothing
     assert env.observation_spec["observation"].dtype == torch.float32
     assert env.observation_spec["observation"].shape == (4,)
     assert is_discrete(env)
@@ -36,6 +37,15 @@ def test_cartpole_has_the_standard_transforms_float_observations_and_integer_act
     assert steps.tolist() == list(range(1, rollout.shape[0] + 1))
     assert rollout["next", "episode_reward"][-1].item() == pytest.approx(rollout["next", "reward"].sum().item())
     assert rollout["is_init"][0].item() is True
+    env.close()
+
+
+def test_float64_observations_become_float32_through_double_to_float():
+    # MuJoCo's observations are float64; the networks read float32
+    env = make_env("HalfCheetah-v5", seed=0)
+    assert DoubleToFloat in _transform_types(env)
+    assert env.observation_spec["observation"].dtype == torch.float32
+    assert env.rollout(3)["next", "observation"].dtype == torch.float32
     env.close()
 
 
