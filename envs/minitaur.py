@@ -68,15 +68,48 @@ Deliberate differences from the reference
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import sys
 from typing import Any
 
 import gymnasium
 import numpy as np
-import pybullet
-import pybullet_data
 from gymnasium import spaces
-from pybullet_utils.bullet_client import BulletClient
+
+
+@contextlib.contextmanager
+def _c_output_silenced(*fds: int):
+    """File descriptors ``fds`` pointed at /dev/null for the block.
+
+    pybullet's C code prints "pybullet build time: ..." to stderr when imported and "argv[0]=" to
+    stdout at each connection, which interleaves with the run's live log (one per env: the
+    learner's, each collector's, the evaluator's). Python's ``redirect_stdout`` cannot reach C's
+    writes, so the descriptors themselves are swapped; Python's own streams are flushed first.
+    """
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = []
+    try:
+        with open(os.devnull, "wb") as null:
+            for fd in fds:
+                try:
+                    saved.append((fd, os.dup(fd)))
+                except OSError:  # a closed descriptor (a daemon's): nothing to quiet
+                    continue
+                os.dup2(null.fileno(), fd)
+        yield
+    finally:
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
+
+
+with _c_output_silenced(2):
+    import pybullet  # noqa: E402  (after the helper that quiets its import)
+import pybullet_data  # noqa: E402
+from pybullet_utils.bullet_client import BulletClient  # noqa: E402
 
 __all__ = [
     "MinitaurBulletEnv",
@@ -558,7 +591,8 @@ class MinitaurBulletEnv(gymnasium.Env):
         self._action_low = -1 - ACTION_EPS
         self._action_high = 1 + ACTION_EPS
 
-        self._client: BulletClient | None = BulletClient(connection_mode=pybullet.DIRECT)
+        with _c_output_silenced(1):
+            self._client: BulletClient | None = BulletClient(connection_mode=pybullet.DIRECT)
         self._cid = self._client._client
         self.minitaur: Minitaur | None = None
         self._env_step_counter = 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import subprocess
 import sys
 import warnings
 
@@ -419,3 +420,15 @@ def test_overheat_protection_can_be_disabled(make_env):
     for _ in range(160):
         env.step(np.array([1, 1, 1, 1, -1, -1, -1, -1], dtype=np.float32))
     assert env.minitaur.motor_enabled.all()
+
+
+def test_making_and_stepping_minitaur_prints_nothing():
+    # pybullet's C code prints "pybullet build time" at import and "argv[0]=" at each connection;
+    # they would interleave with a run's live log (one per env: learner, collectors, evaluator)
+    code = ("from rlpipe.envs import make_env\n"
+            "for _ in range(2):\n"
+            "    env = make_env('MinitaurBulletEnv-v0', seed=0); env.rollout(3); env.close()\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "argv[0]" not in done.stdout and "pybullet build time" not in done.stderr
+    assert done.stdout == ""
