@@ -10,7 +10,8 @@ The map of this package:
     loop         Loop: collect, update, triggers (TF-Agents' Learner.run)
     triggers     Trigger and the built-in ones (log, eval, export, save); add your own
     state        RunState: counters and the work an iteration still owes (saved in checkpoints)
-    evaluation   evaluate(), BackgroundEvaluator (TorchRL's Evaluator in a process)
+    evaluation   evaluate(), AsyncEvaluator (evaluations while training goes on), BackgroundEvaluator
+                 (TorchRL's Evaluator in a process; ray_eval: on a Ray actor)
     runtime      Ctrl-C at safe points, workers deaf to Ctrl-C, GC freeze
     meters       Clock, IntervalStats: speeds, mean losses, training returns
     config       typed configs, key=value overrides, validation (this machine's limits included)

@@ -1,6 +1,7 @@
 """Evaluation of the deterministic policy: TF-Agents' AverageReturn and AverageEpisodeLength, in the
-learner's process (``evaluate``) or in a process of its own while training goes on
-(``BackgroundEvaluator``, TorchRL's ``Evaluator`` with the one workaround it needs)."""
+learner's process (``evaluate``) or elsewhere while training goes on (``AsyncEvaluator``, the queue
+of requests; ``BackgroundEvaluator``, TorchRL's ``Evaluator`` in a process of its own, with the one
+workaround it needs; ``ray_eval.RayEvaluator``, on a Ray actor)."""
 
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from rlpipe.pipelines.supervision import (
     kill_processes,
 )
 
-__all__ = ["BackgroundEvaluator", "evaluate"]
+__all__ = ["AsyncEvaluator", "BackgroundEvaluator", "evaluate"]
 
 
 @torch.no_grad()
@@ -63,29 +64,111 @@ def evaluate(env: EnvBase, policy, num_episodes: int, max_steps: int = 100_000, 
     }
 
 
-class BackgroundEvaluator:
-    """Evaluations on snapshots of the policy's weights, in a child process, while training goes on.
+class AsyncEvaluator:
+    """Evaluations on snapshots of the policy's weights, away from the learner, while training goes on:
+    the request queue that the process evaluator (``BackgroundEvaluator``) and the Ray actor's
+    (``ray_eval.RayEvaluator``) share.
 
     ``pending`` is the queue of evaluations asked for and not back yet, oldest first, as
     ``(position, weights)``; it belongs to the run's state (checkpoints save it), and this object
-    works through it: ``ask`` appends, ``results`` hands back those finished. An evaluator that
-    fails (``results`` raises ``WorkerFailure``: its process died, or an evaluation was not back
+    works through it: ``ask`` appends, ``results`` hands back those finished. One evaluation is in
+    flight at a time, so ``timeout`` (``eval_timeout``) counts from when it was sent. An evaluator
+    that fails (``results`` raises ``WorkerFailure``: its worker died, or an evaluation was not back
     within ``timeout`` seconds) is closed and replaced by a new one on the same ``pending``, which
     asks again for the evaluation that was in flight.
 
-    TorchRL 0.14's ``Evaluator`` loses a request when a second one is queued while the first
-    finishes (its backend's poll clears the pending flag of the next request), and the run then
-    waits forever for that result: this class hands it one request at a time. Delete the
-    ``in_flight`` bookkeeping when TorchRL's queue holds.
+    A backend supplies ``_send`` (hand the worker the request in flight), ``_take`` (its result, if
+    back within a wait), ``check`` (with ``_overdue`` for the timeout) and ``close``.
     """
 
     role = "evaluator"
+    _check_when_not_feeding = False
+    """``results(feed=False)`` (the loop at a stop) leaves ``check`` out: a failure found there would
+    restart the evaluator on the run's way out"""
 
-    def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
-                 pending: deque[tuple[dict, TensorDictBase]], timeout: float = 600.0, ack_timeout: float = 60.0):
+    def __init__(self, pending: deque[tuple[dict, TensorDictBase]], timeout: float):
         self.pending, self.timeout = pending, float(timeout)
         self._in_flight: tuple[dict, TensorDictBase] | None = None
         self._asked_at = 0.0
+
+    @staticmethod
+    def snapshot(policy: nn.Module) -> TensorDictBase:
+        """The policy's weights now, to evaluate later."""
+        return Evaluator.extract_weights(policy)
+
+    def ask(self, at: dict, weights: TensorDictBase) -> None:
+        self.pending.append((at, weights))
+        self._feed()
+
+    def _feed(self) -> None:
+        if self.pending and self._in_flight is None:
+            at, weights = self._in_flight = self.pending[0]
+            self._asked_at = time.monotonic()
+            self._send(at, weights)
+
+    def results(self, block: bool = False, feed: bool = True, interrupt: Callable[[], None] | None = None):
+        """Yield ``(position, result)`` of the evaluations that are back, oldest first.
+
+        ``block``: wait for all of them (calling ``interrupt`` between polls); ``feed=False``: only
+        take the one in flight, if it is back, and hand out no new request. Raises ``WorkerFailure``
+        when the evaluator has failed (see the class).
+        """
+        while self.pending:
+            if feed:
+                self._feed()
+            elif self._in_flight is None:
+                return
+            result = self._take(timeout=0.2 if block else 0)
+            if result is None:
+                if feed or self._check_when_not_feeding:
+                    self.check()
+                if not block:
+                    return
+                if interrupt is not None:
+                    interrupt()
+                continue
+            at, _ = self._in_flight
+            self._in_flight = None
+            self.pending.popleft()
+            yield at, result
+
+    def _overdue(self) -> WorkerFailure | None:
+        """The failure of the evaluation in flight if it is past ``timeout``, else None."""
+        if self._in_flight is not None and time.monotonic() - self._asked_at > self.timeout:
+            return WorkerFailure(self.role, f"the evaluation at step {self._in_flight[0]['step']} was not back "
+                                            f"within eval_timeout={self.timeout:g} s")
+        return None
+
+    def _send(self, at: dict, weights: TensorDictBase) -> None:
+        """Hand the worker the evaluation of ``weights`` (taken at ``at``), now in flight."""
+        raise NotImplementedError
+
+    def _take(self, timeout: float) -> dict | None:
+        """The result of the evaluation in flight if it is back within ``timeout`` seconds, else None;
+        raises if the worker answered wrongly or failed on it."""
+        raise NotImplementedError
+
+    def check(self) -> None:
+        """Raise ``WorkerFailure`` if the evaluator cannot answer."""
+        raise NotImplementedError
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Stop the worker; an evaluation in flight is dropped (``pending`` still lists it)."""
+        raise NotImplementedError
+
+
+class BackgroundEvaluator(AsyncEvaluator):
+    """Evaluations in a child process: TorchRL's ``Evaluator`` (process backend) behind ``AsyncEvaluator``'s queue.
+
+    TorchRL 0.14's ``Evaluator`` loses a request when a second one is queued while the first
+    finishes (its backend's poll clears the pending flag of the next request), and the run then
+    waits forever for that result: ``AsyncEvaluator`` hands it one request at a time (which
+    ``eval_timeout`` needs too, so nothing is left to delete when TorchRL's queue holds).
+    """
+
+    def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
+                 pending: deque[tuple[dict, TensorDictBase]], timeout: float = 600.0, ack_timeout: float = 60.0):
+        super().__init__(pending, timeout)
         self._evaluator = Evaluator(
             env_fn,
             policy_factory=_PolicyCopy(policy),
@@ -103,56 +186,25 @@ class BackgroundEvaluator:
         with stop_signals_blocked():
             self._evaluator._backend._ensure_collector()
 
-    @staticmethod
-    def snapshot(policy: nn.Module) -> TensorDictBase:
-        """The policy's weights now, to evaluate later."""
-        return Evaluator.extract_weights(policy)
-
     @property
     def worker_pid(self) -> int | None:
         procs = self._procs()
         return procs[0].pid if procs else None
 
-    def ask(self, at: dict, weights: TensorDictBase) -> None:
-        self.pending.append((at, weights))
-        self._feed()
+    def _send(self, at: dict, weights: TensorDictBase) -> None:
+        with stop_signals_blocked():  # the evaluator starts its thread at the first request
+            self._evaluator.trigger_eval(weights, step=at["step"])
 
-    def _feed(self) -> None:
-        if self.pending and self._in_flight is None:
-            at, weights = self._in_flight = self.pending[0]
-            self._asked_at = time.monotonic()
-            with stop_signals_blocked():  # the evaluator starts its thread at the first request
-                self._evaluator.trigger_eval(weights, step=at["step"])
-
-    def results(self, block: bool = False, feed: bool = True, interrupt: Callable[[], None] | None = None):
-        """Yield ``(position, result)`` of the evaluations that are back, oldest first.
-
-        ``block``: wait for all of them (calling ``interrupt`` between polls); ``feed=False``: only
-        take the one in flight, if it is back, and hand out no new request. Raises ``WorkerFailure``
-        when the evaluator has failed (see the class).
-        """
-        while self.pending:
-            if feed:
-                self._feed()
-            elif self._in_flight is None:
-                return
-            reply = self._evaluator.poll(timeout=0.2 if block else 0)
-            if reply is None:
-                if feed:
-                    self.check()
-                if not block:
-                    return
-                if interrupt is not None:
-                    interrupt()
-                continue
-            at, _ = self._in_flight
-            if int(reply["eval/step"]) != at["step"]:
-                raise RuntimeError(f"the background evaluator answered for step {int(reply['eval/step'])}, "
-                                   f"expected step {at['step']}")
-            self._in_flight = None
-            self.pending.popleft()
-            yield at, {"average_return": float(reply["eval/reward"]),
-                       "average_episode_length": float(reply["eval/episode_length"]), "returns": None}
+    def _take(self, timeout: float) -> dict | None:
+        reply = self._evaluator.poll(timeout=timeout)
+        if reply is None:
+            return None
+        at, _ = self._in_flight
+        if int(reply["eval/step"]) != at["step"]:
+            raise RuntimeError(f"the background evaluator answered for step {int(reply['eval/step'])}, "
+                               f"expected step {at['step']}")
+        return {"average_return": float(reply["eval/reward"]),
+                "average_episode_length": float(reply["eval/episode_length"]), "returns": None}
 
     def check(self) -> None:
         """Raise ``WorkerFailure`` if the evaluator cannot answer: its process is gone, one of its
@@ -164,9 +216,8 @@ class BackgroundEvaluator:
         elif failure is None and error is not None:
             first = str(error).strip().splitlines()[0] if str(error).strip() else ""
             failure = WorkerFailure(self.role, f"the {self.role} stopped on {type(error).__name__}: {first}")
-        if failure is None and self._in_flight is not None and time.monotonic() - self._asked_at > self.timeout:
-            failure = WorkerFailure(self.role, f"the evaluation at step {self._in_flight[0]['step']} was not back "
-                                               f"within eval_timeout={self.timeout:g} s")
+        if failure is None:
+            failure = self._overdue()
         if failure is not None:
             raise failure
 

@@ -39,7 +39,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines.errors import InputError, TrainingDiverged
-from rlpipe.pipelines.evaluation import BackgroundEvaluator, evaluate
+from rlpipe.pipelines.evaluation import AsyncEvaluator, BackgroundEvaluator, evaluate
 from rlpipe.pipelines.export import export_policy
 from rlpipe.pipelines.files import write_json_atomic
 from rlpipe.pipelines.meters import Clock, IntervalStats
@@ -104,7 +104,7 @@ class Loop:
         self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
-        self.background: BackgroundEvaluator | None = None
+        self.background: AsyncEvaluator | None = None
         self.ray = None  # the run's hold on Ray while its evaluator is a Ray actor (ray_eval.hold_ray)
         self.exported_at = None
         self._counts_at_start = (self.state.frames, self.state.updates)  # this session's speeds
@@ -306,7 +306,7 @@ class Loop:
             except WorkerFailure as failure:
                 self._restart_evaluator(failure)
 
-    def _start_evaluator(self) -> BackgroundEvaluator:
+    def _start_evaluator(self) -> AsyncEvaluator:
         cfg = self.config
         if cfg.collector.backend == "ray":  # on a Ray actor, on the Ray the run holds until its end
             from rlpipe.pipelines.ray_eval import RayEvaluator, hold_ray

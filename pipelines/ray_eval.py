@@ -1,6 +1,6 @@
 """The background evaluation on a Ray actor (``collector.backend=ray`` with ``eval_in_background=true``).
 
-``RayEvaluator`` is what ``evaluation.BackgroundEvaluator`` is to the loop (``ask``, ``results``,
+``RayEvaluator`` is an ``evaluation.AsyncEvaluator``, as ``BackgroundEvaluator`` is (``ask``, ``results``,
 ``check``, ``close``, ``worker_pid``, ``snapshot``), with the evaluation in a Ray actor that Ray
 places on any node with ``ray.num_cpus_per_worker`` CPUs free: one actor, ``EvalActor``, that makes
 the eval env (seeded ``seed + 10_000``, as the learner's own eval env is) and a CPU copy of the
@@ -39,7 +39,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.evaluation import BackgroundEvaluator, _PolicyCopy, evaluate
+from rlpipe.pipelines.evaluation import AsyncEvaluator, _PolicyCopy, evaluate
 from rlpipe.pipelines.ray_backend import MIN_START_TIMEOUT_S, RayRuntime
 from rlpipe.pipelines.runtime import STOP_SIGNALS
 from rlpipe.pipelines.supervision import WorkerFailure
@@ -78,28 +78,26 @@ class EvalActor:
         return evaluate(self.env, self.policy, num_episodes)
 
 
-class RayEvaluator:
+class RayEvaluator(AsyncEvaluator):
     """Evaluations on snapshots of the policy's weights, on a Ray actor, while training goes on.
 
-    The interface and the ``pending`` queue are ``BackgroundEvaluator``'s (see there): ``ask``
-    appends, ``results`` hands back those finished, oldest first; one evaluation is in flight at a
-    time, so ``eval_timeout`` counts from when it was sent. ``Ray`` must be up (``hold_ray``).
+    The ``pending`` queue, one evaluation in flight at a time and ``eval_timeout`` counted from when
+    it was sent are ``AsyncEvaluator``'s (see there). ``Ray`` must be up (``hold_ray``).
     """
 
-    role = "evaluator"
-    snapshot = staticmethod(BackgroundEvaluator.snapshot)
     _CHECK_EVERY_S = 1.0
     """how often an idle actor is looked up in Ray's actor table (one call to Ray's GCS)"""
+    _check_when_not_feeding = True  # at a stop too, as this class always has (unlike the process evaluator)
 
     def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
                  pending: deque[tuple[dict, TensorDictBase]], *, config: TrainConfig, timeout: float = 600.0,
                  start_timeout: float = MIN_START_TIMEOUT_S):
         import ray
 
-        self.pending, self.timeout, self.num_episodes = pending, float(timeout), int(num_episodes)
-        self._in_flight: tuple[dict, TensorDictBase] | None = None
+        super().__init__(pending, timeout)
+        self.num_episodes = int(num_episodes)
         self._ref = None
-        self._asked_at = self._checked_at = 0.0
+        self._checked_at = 0.0
         self.worker_pid: int | None = None  # the actor's process on its node (the test hook kills it there)
         cpus = config.ray.num_cpus_per_worker
         start_timeout = max(start_timeout, MIN_START_TIMEOUT_S)  # as the collector actors' (ray_backend)
@@ -120,54 +118,33 @@ class RayEvaluator:
             self.close()
             raise
 
-    def ask(self, at: dict, weights: TensorDictBase) -> None:
-        self.pending.append((at, weights))
-        self._feed()
+    def _send(self, at: dict, weights: TensorDictBase) -> None:
+        self._ref = self._actor.evaluate.remote(weights, self.num_episodes)
 
-    def _feed(self) -> None:
-        if self.pending and self._in_flight is None:
-            at, weights = self._in_flight = self.pending[0]
-            self._asked_at = time.monotonic()
-            self._ref = self._actor.evaluate.remote(weights, self.num_episodes)
-
-    def results(self, block: bool = False, feed: bool = True, interrupt: Callable[[], None] | None = None):
-        """Yield ``(position, result)`` of the evaluations that are back, oldest first (the arguments
-        are ``BackgroundEvaluator.results``'s). Raises ``WorkerFailure`` when the evaluator has failed."""
+    def _take(self, timeout: float) -> dict | None:
         import ray
 
-        while self.pending:
-            if feed:
-                self._feed()
-            elif self._in_flight is None:
-                return
-            ready, _ = ray.wait([self._ref], timeout=0.2 if block else 0)
-            if not ready:
-                self.check()
-                if not block:
-                    return
-                if interrupt is not None:
-                    interrupt()
-                continue
-            at, _ = self._in_flight
-            try:
-                result = ray.get(self._ref)
-            except ray.exceptions.RayActorError as exc:  # its process or node is gone
-                raise WorkerFailure(self.role, f"the evaluator actor (pid {self.worker_pid}) died "
-                                               f"({_first_line(exc).rstrip('.')})") from exc
-            except ray.exceptions.RayError as exc:  # the evaluation raised: as the process evaluator's thread
-                cause = getattr(exc, "cause", None) or exc
-                raise WorkerFailure(self.role, f"the evaluator stopped on {type(cause).__name__}: "
-                                               f"{_first_line(cause)}") from exc
-            self._in_flight = self._ref = None
-            self.pending.popleft()
-            yield at, result
+        ready, _ = ray.wait([self._ref], timeout=timeout)
+        if not ready:
+            return None
+        try:
+            result = ray.get(self._ref)
+        except ray.exceptions.RayActorError as exc:  # its process or node is gone
+            raise WorkerFailure(self.role, f"the evaluator actor (pid {self.worker_pid}) died "
+                                           f"({_first_line(exc).rstrip('.')})") from exc
+        except ray.exceptions.RayError as exc:  # the evaluation raised: as the process evaluator's thread
+            cause = getattr(exc, "cause", None) or exc
+            raise WorkerFailure(self.role, f"the evaluator stopped on {type(cause).__name__}: "
+                                           f"{_first_line(cause)}") from exc
+        self._ref = None
+        return result
 
     def check(self) -> None:
         """Raise ``WorkerFailure`` if the evaluation in flight is past ``timeout``, or if Ray's actor
         table says the actor is dead (looked up at most once a second)."""
-        if self._in_flight is not None and time.monotonic() - self._asked_at > self.timeout:
-            raise WorkerFailure(self.role, f"the evaluation at step {self._in_flight[0]['step']} was not back "
-                                           f"within eval_timeout={self.timeout:g} s")
+        failure = self._overdue()
+        if failure is not None:
+            raise failure
         now = time.monotonic()
         if now - self._checked_at < self._CHECK_EVERY_S:
             return

@@ -372,28 +372,18 @@ TD3_LEARN = [
 ]
 
 
-def _learned(pipeline, preset: str, overrides, run_dir):
-    result = pipeline(apply_overrides(preset, overrides)).train(run_dir, progress=False)
+@pytest.mark.slow
+@pytest.mark.parametrize("pipeline, overrides, iterations, threshold", [
+    pytest.param(sac.SAC, SAC_LEARN, 3000, -700, id="sac"),
+    pytest.param(td3.TD3, TD3_LEARN, 8000, -400, id="td3"),
+])
+def test_learns_pendulum_with_ray_collectors(run_dir, pipeline, overrides, iterations, threshold):
+    result = pipeline(apply_overrides(pipeline.preset(pipeline.algo), overrides)).train(run_dir, progress=False)
     first, last = result.evaluations[0], result.evaluations[-1]
-    print(f"{overrides is SAC_LEARN and 'sac' or 'td3'}: {first['average_return']:.0f} -> {last['average_return']:.0f}")
-    return result, first, last
-
-
-@pytest.mark.slow
-def test_sac_learns_pendulum_with_ray_collectors(run_dir):
-    result, first, last = _learned(sac.SAC, sac.preset("sac"), SAC_LEARN, run_dir)
+    print(f"{pipeline.algo}: {first['average_return']:.0f} -> {last['average_return']:.0f}")
     assert first["step"] == 0 and first["average_return"] < -900, first
-    assert last["step"] == 3000
-    assert last["average_return"] > -700, f"SAC did not learn Pendulum-v1: {last['average_return']:.0f}"
-    logged = [r for r in result.metrics if r.get("workers_alive")]
-    assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
-
-
-@pytest.mark.slow
-def test_td3_learns_pendulum_with_ray_collectors(run_dir):
-    result, first, last = _learned(td3.TD3, td3.preset("td3"), TD3_LEARN, run_dir)
-    assert first["step"] == 0 and first["average_return"] < -900, first
-    assert last["step"] == 8000
-    assert last["average_return"] > -400, f"TD3 did not learn Pendulum-v1: {last['average_return']:.0f}"
+    assert last["step"] == iterations
+    assert last["average_return"] > threshold, \
+        f"{pipeline.algo.upper()} did not learn Pendulum-v1: {last['average_return']:.0f}"
     logged = [r for r in result.metrics if r.get("workers_alive")]
     assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
