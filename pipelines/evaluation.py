@@ -82,9 +82,6 @@ class AsyncEvaluator:
     """
 
     role = "evaluator"
-    _check_when_not_feeding = False
-    """``results(feed=False)`` (the loop at a stop) leaves ``check`` out: a failure found there would
-    restart the evaluator on the run's way out"""
 
     def __init__(self, pending: deque[tuple[dict, TensorDictBase]], timeout: float):
         self.pending, self.timeout = pending, float(timeout)
@@ -120,7 +117,9 @@ class AsyncEvaluator:
                 return
             result = self._take(timeout=0.2 if block else 0)
             if result is None:
-                if feed or self._check_when_not_feeding:
+                # results(feed=False) (the loop at a stop) leaves check out: a failure found there
+                # would restart the evaluator on the run's way out instead of stopping
+                if feed:
                     self.check()
                 if not block:
                     return

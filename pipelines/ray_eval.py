@@ -87,7 +87,6 @@ class RayEvaluator(AsyncEvaluator):
 
     _CHECK_EVERY_S = 1.0
     """how often an idle actor is looked up in Ray's actor table (one call to Ray's GCS)"""
-    _check_when_not_feeding = True  # at a stop too, as this class always has (unlike the process evaluator)
 
     def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
                  pending: deque[tuple[dict, TensorDictBase]], *, config: TrainConfig, timeout: float = 600.0,
