@@ -6,14 +6,13 @@ They are TorchRL's own modules; the factories only fix the tutorials' convention
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.data import Categorical, Composite
 from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import EGreedyModule, QValueActor, QValueModule
 
-from rlpipe.modules.tensor_nets import is_plain_module, mlp_layers
+from rlpipe.modules.tensor_nets import is_plain_module
 
 __all__ = ["EGreedyQPolicy", "epsilon_greedy"]
 
@@ -53,8 +52,8 @@ class EGreedyQPolicy(TensorDictSequential):
     an iteration of the ``dqn`` preset (BENCHMARKS.md, "Where the time goes"). TorchRL has no
     tensor-level epsilon-greedy policy, hence this class.
 
-    The tensor path is taken when the actor is a ``QValueActor`` over a TorchRL ``MLP`` with a
-    categorical (integer index) action and no action mask; anything else goes through
+    The tensor path is taken when the actor is a ``QValueActor`` over a plain module (the Q-network
+    on the observation tensor) with a categorical (integer index) action and no action mask; anything else goes through
     ``TensorDictSequential.forward`` unchanged. It writes what the stock sequence writes
     (``action``, ``action_value``, ``chosen_action_value``) and draws its random numbers in the
     same order (``torch.rand`` for the coin, then ``torch.randint`` for the random action, as
@@ -63,10 +62,7 @@ class EGreedyQPolicy(TensorDictSequential):
     """
 
     def _lean_parts(self):
-        """``(MLP layers as modules, observation key, number of actions, greedy)`` or None; cached.
-
-        The layers are the MLP's own modules, whose parameters are read at each call: a weight
-        sync that replaces them (rather than copying into them) is seen."""
+        """``(Q-network module, observation key, number of actions, greedy)`` or None; cached."""
         cache = self.__dict__.setdefault("_cache_lean", {})
         if "parts" not in cache:
             cache["parts"] = self._find_lean_parts()
@@ -87,24 +83,19 @@ class EGreedyQPolicy(TensorDictSequential):
                 or list(net.out_keys) != list(qvalue.in_keys)
                 or list(qvalue.out_keys) != ["action", "action_value", "chosen_action_value"]):
             return None
-        layers = mlp_layers(net.module)
         spec = greedy.spec
         spec = spec["action"] if isinstance(spec, Composite) else spec
-        if layers is None or type(spec) is not Categorical or spec.mask is not None or spec.shape != torch.Size([]):
+        if (type(spec) is not Categorical or spec.mask is not None or spec.shape != torch.Size([])
+                or spec.dtype != torch.int64):
             return None
-        if spec.dtype != torch.int64:
-            return None
-        modules = [(kind, net.module.get_submodule(layer) if kind == "linear" else layer) for kind, layer in layers]
-        return modules, net.in_keys[0], int(spec.space.n), greedy
+        return net.module, net.in_keys[0], int(spec.space.n), greedy
 
     def forward(self, tensordict: TensorDictBase, tensordict_out=None, **kwargs) -> TensorDictBase:
         parts = self._lean_parts() if tensordict_out is None and not kwargs else None
         if parts is None:
             return super().forward(tensordict, tensordict_out, **kwargs)
-        layers, observation_key, num_actions, greedy = parts
-        values = tensordict.get(observation_key)
-        for kind, layer in layers:
-            values = F.linear(values, layer.weight, layer.bias) if kind == "linear" else layer(values)
+        qnet, observation_key, num_actions, greedy = parts
+        values = qnet(tensordict.get(observation_key))
         action = values.argmax(-1)  # QValueModule's categorical action
         # QValueModule's value of its (greedy) action, before EGreedyModule may replace the action
         tensordict.set("chosen_action_value", values.gather(-1, action.unsqueeze(-1)))
