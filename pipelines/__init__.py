@@ -27,7 +27,10 @@ from __future__ import annotations
 import difflib
 import importlib
 
+from rlpipe.pipelines import _moved
 from rlpipe.pipelines.errors import InputError
+
+_moved.install()  # the module paths from before the rooms (``rlpipe.pipelines.loop``, ...), with a DeprecationWarning
 
 __all__ = ["ALGOS", "InputError", "pipeline_class", "presets", "resolve_preset"]
 

@@ -40,19 +40,19 @@ from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger, TensorboardLogger
 
 from rlpipe.envs import EnvError, describe_action_space, env_label, is_discrete, make_env, with_episode_return
-from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
+from rlpipe.pipelines.artifacts.files import STORAGE_ERRNOS, FileWriteError
+from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_dir, notice
 from rlpipe.pipelines.config import TrainConfig, config_to_dict, validate
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.files import STORAGE_ERRNOS, FileWriteError
-from rlpipe.pipelines.loop import Loop, TrainResult
-from rlpipe.pipelines.memory import check_memory
-from rlpipe.pipelines.meters import Clock
-from rlpipe.pipelines.rundir import MetricsCSV, RunDir, default_run_dir, notice
-from rlpipe.pipelines.runtime import start_resource_tracker
-from rlpipe.pipelines.state import RunState
-from rlpipe.pipelines.supervision import TimedSharedMemScheme
-from rlpipe.pipelines.triggers import Trigger, default_triggers
-from rlpipe.pipelines.update_graph import GraphedUpdate
+from rlpipe.pipelines.system.memory import check_memory
+from rlpipe.pipelines.system.runtime import start_resource_tracker
+from rlpipe.pipelines.training.loop import Loop, TrainResult
+from rlpipe.pipelines.training.meters import Clock
+from rlpipe.pipelines.training.state import RunState
+from rlpipe.pipelines.training.triggers import Trigger, default_triggers
+from rlpipe.pipelines.training.update_graph import GraphedUpdate
+from rlpipe.pipelines.workers.supervision import TimedSharedMemScheme
 
 __all__ = ["Agent", "OffPolicyPipeline", "seed_everything"]
 
@@ -194,7 +194,7 @@ class OffPolicyPipeline:
 
     def update_periods(self) -> list[int]:
         """The index periods ``update`` branches on (``update_index % p == 0``), each dividing the
-        next: CUDA graphs record one graph per branch pattern (``pipelines/update_graph.py``)."""
+        next: CUDA graphs record one graph per branch pattern (``pipelines/training/update_graph.py``)."""
         return [self.config.target_update_period]
 
     def make_update_step(self) -> Callable[[TensorDictBase, int], dict[str, torch.Tensor]]:
@@ -249,7 +249,7 @@ class OffPolicyPipeline:
         return cls([self.env_fn] * c.workers, self.collect_policy, weight_sync_schemes={"policy": scheme}, **common)
 
     def _make_ray_collector(self, total_frames: int, init_random_frames: int):
-        from rlpipe.pipelines.ray_backend import RayCollectors
+        from rlpipe.pipelines.workers.ray import RayCollectors
 
         if self.env_fn is None:
             raise InputError("collector.backend=ray: pass env as a function that makes the env (Ray actors make their own)")
@@ -259,7 +259,7 @@ class OffPolicyPipeline:
     def metrics_columns(self) -> list[str]:
         """metrics.csv's columns past the losses and speeds: what the collector backend reports."""
         if self.config.collector.backend == "ray":
-            from rlpipe.pipelines.ray_backend import METRIC_COLUMNS
+            from rlpipe.pipelines.workers.ray import METRIC_COLUMNS
 
             return list(METRIC_COLUMNS)
         return []
@@ -324,7 +324,7 @@ class OffPolicyPipeline:
         if self.config.num_threads == -1:  # chosen once, before the run directory records the config
             self.config = dataclasses.replace(self.config, num_threads=self.choose_threads())
         if self.config.collector.backend == "ray":  # no Ray at ray.address: one line, and nothing written
-            from rlpipe.pipelines.ray_backend import check_address
+            from rlpipe.pipelines.workers.ray import check_address
 
             check_address(self.config.ray.address)
         run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)

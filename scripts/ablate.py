@@ -161,9 +161,9 @@ def run(args) -> int:
     from tqdm.auto import tqdm
 
     from rlpipe.pipelines.analysis import collect_runs, write_ablation_report
+    from rlpipe.pipelines.artifacts.files import write_json_atomic
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.pipelines.files import write_json_atomic
-    from rlpipe.pipelines.runtime import DeferredInterrupt
+    from rlpipe.pipelines.system.runtime import DeferredInterrupt
     from rlpipe.scripts.cli import check_output_dir
 
     jobs = plan(args)

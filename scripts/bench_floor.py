@@ -123,7 +123,7 @@ def update_seconds(pipeline, chunks: int = 12, per_chunk: int = 20) -> float:
 def bench_floor(args, out) -> dict:
     from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides
-    from rlpipe.pipelines.runtime import keep_freed_memory
+    from rlpipe.pipelines.system.runtime import keep_freed_memory
 
     before = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -4,7 +4,7 @@ Two tables, both on the machine's first GPU, each row in the same run:
 
 1. The update alone (``pipeline.update_step`` on a fixed batch already on the device, the median
    over chunks, synchronised at chunk ends): eager; replayed as CUDA graphs (``cudagraph=true``,
-   ``pipelines/update_graph.py``); compiled and replayed (``compile=true``). CleanRL's settings:
+   ``pipelines/training/update_graph.py``); compiled and replayed (``compile=true``). CleanRL's settings:
    SAC and TD3 with 256x256 networks at batch 256 on HalfCheetah-v5, DQN 120-84 at batch 128.
 2. Whole training runs as a user starts them (``rlpipe train ... device=cuda``, a fresh process
    per run, two lengths so start-up and compilation cancel): env steps/s with one update per env

@@ -57,7 +57,7 @@ def update_ceiling(preset: str, overrides: list[str]) -> dict:
 
     from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides
-    from rlpipe.pipelines.runtime import keep_freed_memory
+    from rlpipe.pipelines.system.runtime import keep_freed_memory
     from rlpipe.scripts.bench_floor import update_seconds
 
     algo, cfg = resolve_preset(preset)

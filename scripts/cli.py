@@ -152,10 +152,10 @@ def _positive(name: str, value: int) -> None:
 
 def cmd_train(args) -> int:
     from rlpipe.pipelines import pipeline_class, resolve_preset
+    from rlpipe.pipelines.artifacts.rundir import RunDir, default_run_dir
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.pipelines.rundir import RunDir, default_run_dir
-    from rlpipe.pipelines.supervision import WorkersLost
+    from rlpipe.pipelines.workers.supervision import WorkersLost
 
     algo, cfg = resolve_preset(args.preset)
     Pipeline = pipeline_class(algo)
@@ -224,8 +224,8 @@ def _show_live_log() -> None:
 
 def _run_config(run_dir: Path):
     from rlpipe.pipelines import pipeline_class
+    from rlpipe.pipelines.artifacts.rundir import RunDir
     from rlpipe.pipelines.config import config_from_dict
-    from rlpipe.pipelines.rundir import RunDir
 
     run = RunDir.open(run_dir)
     algo, saved = run.read_config()
@@ -236,9 +236,9 @@ def cmd_eval(args) -> int:
     from tensordict.nn import TensorDictModule
 
     from rlpipe.envs import make_env
+    from rlpipe.pipelines.artifacts.export import load_policy
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.pipelines.evaluation import evaluate
-    from rlpipe.pipelines.export import load_policy
+    from rlpipe.pipelines.workers.evaluation import evaluate
 
     _positive("--episodes", args.episodes)
     if args.run_dir is None and args.env is None:
@@ -297,8 +297,8 @@ def _check_random_without_step(args) -> None:
 
 def cmd_video(args) -> int:
     from rlpipe.pipelines.analysis.pages import VIDEO_FILE, write_run_report
-    from rlpipe.pipelines.export import load_policy
-    from rlpipe.pipelines.video import record_video
+    from rlpipe.pipelines.artifacts.export import load_policy
+    from rlpipe.pipelines.artifacts.video import record_video
 
     _positive("--episodes", args.episodes)
     _check_random_without_step(args)
@@ -316,7 +316,7 @@ def cmd_video(args) -> int:
 
 def cmd_plot(args) -> int:
     from rlpipe.pipelines.analysis import plot_return_curves
-    from rlpipe.pipelines.rundir import RunDir
+    from rlpipe.pipelines.artifacts.rundir import RunDir
 
     for run_dir in args.run_dirs:
         RunDir.open(run_dir)
@@ -327,8 +327,8 @@ def cmd_plot(args) -> int:
 
 def cmd_report(args) -> int:
     from rlpipe.pipelines.analysis.pages import write_comparison_report, write_run_report
+    from rlpipe.pipelines.artifacts.rundir import RunDir
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.pipelines.rundir import RunDir
 
     for run_dir in args.run_dirs:
         RunDir.open(run_dir)

@@ -24,7 +24,7 @@ import pytest
 import torch
 
 from rlpipe.pipelines import InputError
-from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.dqn import DQN, preset
 
@@ -640,8 +640,8 @@ def test_without_an_atomic_exchange_a_checkpoint_set_aside_comes_back(tmp_path, 
 
 @pytest.mark.unit
 def test_a_full_disk_inside_a_save_is_one_error_and_keeps_the_previous(tmp_path, monkeypatch):
-    from rlpipe.pipelines import runtime
-    from rlpipe.pipelines.files import FileWriteError
+    from rlpipe.pipelines.artifacts.files import FileWriteError
+    from rlpipe.pipelines.system import runtime
 
     folder = tmp_path / "checkpoints"
     ckpt.save_checkpoint(folder, 5, _small_state(1.0))

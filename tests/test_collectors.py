@@ -25,8 +25,8 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines import td3
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import apply_overrides, config_from_dict
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")

@@ -21,7 +21,7 @@ from rlpipe.envs import make_env
 from rlpipe.pipelines import InputError
 from rlpipe.pipelines.config import apply_overrides, config_from_dict, config_to_dict
 from rlpipe.pipelines.dqn import DQN, DQNConfig, preset
-from rlpipe.pipelines.loop import TrainResult
+from rlpipe.pipelines.training.loop import TrainResult
 
 METRICS_COLUMNS = ["step", "frames", "updates", "average_return", "average_episode_length", "loss_loss",
                    "train_episode_return", "train_episode_length", "episodes", "steps_per_s", "updates_per_s",

@@ -188,7 +188,7 @@ def test_atari_ids_name_the_extra_they_need():
 
 
 def test_transition_bytes_come_from_the_specs():
-    from rlpipe.pipelines.memory import transition_bytes
+    from rlpipe.pipelines.system.memory import transition_bytes
 
     env = make_env("Pendulum-v1")
     stored = ["observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
@@ -201,7 +201,7 @@ def test_transition_bytes_come_from_the_specs():
 
 def test_a_replay_that_does_not_fit_is_refused_before_anything_is_built(tmp_path):
     from rlpipe.pipelines import InputError, td3
-    from rlpipe.pipelines.memory import available_bytes
+    from rlpipe.pipelines.system.memory import available_bytes
 
     available = available_bytes("cpu")
     assert available is not None and available > 0

@@ -30,9 +30,9 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from rlpipe.envs import make_env
 from rlpipe.pipelines import dqn, sac, td3
+from rlpipe.pipelines.artifacts.export import OnnxExportWarning, available_steps, export_policy, load_policy
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.export import OnnxExportWarning, available_steps, export_policy, load_policy
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 RLPIPE = [sys.executable, "-m", "rlpipe.scripts.cli"]

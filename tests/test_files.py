@@ -1,4 +1,4 @@
-"""Tests of rlpipe.pipelines.files on real files in tmp_path."""
+"""Tests of rlpipe.pipelines.artifacts.files on real files in tmp_path."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import stat
 
 import pytest
 
-from rlpipe.pipelines.files import (
+from rlpipe.pipelines.artifacts.files import (
     FileWriteError,
     atomic_path,
     remove_temporaries,

@@ -30,7 +30,7 @@ from rlpipe.modules import make_qvalue_actor
 from rlpipe.pipelines import dqn, sac, td3
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.triggers import IntervalTrigger
+from rlpipe.pipelines.training.triggers import IntervalTrigger
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 

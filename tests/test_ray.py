@@ -27,7 +27,7 @@ import torch
 from rlpipe.pipelines import td3
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.evaluation import evaluate
+from rlpipe.pipelines.workers.evaluation import evaluate
 
 ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'` (scripts/setup.sh does)")
 
@@ -322,7 +322,7 @@ def test_an_address_where_no_ray_listens_is_one_clear_error(tmp_path):
 @pytest.fixture(scope="module")
 def local_ray():
     """A local Ray instance in this process, as a run holds one (``ray_eval.hold_ray``)."""
-    from rlpipe.pipelines.ray_backend import RayRuntime
+    from rlpipe.pipelines.workers.ray import RayRuntime
 
     runtime = RayRuntime("", 2)
     try:
@@ -332,7 +332,7 @@ def local_ray():
 
 
 def _ray_eval_setup():
-    from rlpipe.pipelines.ray_eval import RayEvaluator
+    from rlpipe.pipelines.workers.ray_eval import RayEvaluator
 
     cfg = apply_overrides(td3.preset("td3"), ["actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]",
                                               "collector.backend=ray", "collector.workers=1"])
@@ -372,7 +372,7 @@ def test_a_dead_or_late_evaluator_actor_is_a_worker_failure(local_ray):
     an evaluation not back within eval_timeout: a WorkerFailure; close() leaves no actor process."""
     import psutil
 
-    from rlpipe.pipelines.supervision import WorkerFailure
+    from rlpipe.pipelines.workers.supervision import WorkerFailure
 
     cfg, pipeline, RayEvaluator = _ray_eval_setup()
     pending = deque()

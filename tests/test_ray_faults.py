@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines import sac, td3
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import apply_overrides
 
 ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'` (scripts/setup.sh does)")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from rlpipe.pipelines.triggers import eval_line, log_line
+from rlpipe.pipelines.training.triggers import eval_line, log_line
 
 MODULE = [sys.executable, "-m", "rlpipe.scripts.cli"]
 TINY = ["num_iterations=300", "initial_collect_steps=100", "eval_interval=100", "num_eval_episodes=2",

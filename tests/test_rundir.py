@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
 
 RLPIPE = [sys.executable, "-m", "rlpipe.scripts.cli"]
 N = 200

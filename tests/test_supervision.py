@@ -3,7 +3,7 @@ or frozen (SIGSTOP) at an exact iteration is replaced and the run goes on; past
 ``collector.max_restarts`` the run saves a checkpoint and stops with one line (exit 75); SIGTERM and
 SIGHUP, to the learner alone or to its process group, save a checkpoint like Ctrl-C (exit 128 + the
 signal). Every run is a real ``rlpipe train`` process; faults come from the test hook
-(``RLPIPE_FAULT``, ``pipelines/runtime.py``) at exact points, and what outlives a run is read with psutil.
+(``RLPIPE_FAULT``, ``pipelines/system/runtime.py``) at exact points, and what outlives a run is read with psutil.
 """
 
 from __future__ import annotations
@@ -26,11 +26,11 @@ import pytest
 import torch
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-from rlpipe.pipelines import checkpoint as ckpt
 from rlpipe.pipelines import td3
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import apply_overrides
-from rlpipe.pipelines.evaluation import BackgroundEvaluator
-from rlpipe.pipelines.supervision import Supervisor, Watchdog, WorkerFailure, WorkersLost
+from rlpipe.pipelines.workers.evaluation import BackgroundEvaluator
+from rlpipe.pipelines.workers.supervision import Supervisor, Watchdog, WorkerFailure, WorkersLost
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 

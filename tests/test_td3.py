@@ -179,7 +179,7 @@ def test_deterministic_policy_off_samples_in_collection_and_evaluates_determinis
     assert torch.equal(d1, d2) and torch.equal(d1[0], d1[1])
     torch.testing.assert_close(pipeline.export_module()(obs), d1)
     # a full evaluation is reproducible: same return twice from the same start
-    from rlpipe.pipelines.evaluation import evaluate
+    from rlpipe.pipelines.workers.evaluation import evaluate
 
     pipeline.eval_env.set_seed(7)
     r1 = evaluate(pipeline.eval_env, pipeline.policy, 1)["average_return"]

@@ -13,9 +13,9 @@ import torch
 from tensordict import TensorDict
 
 from rlpipe.pipelines.config import TrainConfig
-from rlpipe.pipelines.rate_limiter import SampleToInsertRatio
-from rlpipe.pipelines.state import RunState
-from rlpipe.pipelines.triggers import IntervalTrigger, Trigger, crossed, default_triggers
+from rlpipe.pipelines.training.rate_limiter import SampleToInsertRatio
+from rlpipe.pipelines.training.state import RunState
+from rlpipe.pipelines.training.triggers import IntervalTrigger, Trigger, crossed, default_triggers
 
 pytestmark = pytest.mark.unit
 

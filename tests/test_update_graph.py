@@ -1,4 +1,4 @@
-"""The update as CUDA graphs (pipelines/update_graph.py): one graph per branch pattern, same numbers.
+"""The update as CUDA graphs (pipelines/training/update_graph.py): one graph per branch pattern, same numbers.
 
 TorchRL warns that CUDA graphs can give silently wrong results. The GPU tests check that SAC, TD3
 (delayed actor, so several graphs) and DQN, graphed (and compiled and graphed), leave the same
@@ -14,7 +14,7 @@ import torch
 
 from rlpipe.pipelines import dqn, sac, td3
 from rlpipe.pipelines.config import apply_overrides
-from rlpipe.pipelines.update_graph import GraphedUpdate, canonical_index
+from rlpipe.pipelines.training.update_graph import GraphedUpdate, canonical_index
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 

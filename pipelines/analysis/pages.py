@@ -13,7 +13,7 @@ Each page is one file that opens from disk with no network: the figures are SVG 
 page's style is in the template. The video is the one exception: it stays a file beside the page
 (``trained-agent.mp4``, by relative path), because the page is rewritten at every evaluation and a
 base64 copy of a video would rewrite megabytes each time and double the run's disk use; the run
-directory is the self-contained unit. The mp4 is H.264 (``pipelines/video.py``), which Chrome, Edge,
+directory is the self-contained unit. The mp4 is H.264 (``pipelines/artifacts/video.py``), which Chrome, Edge,
 Safari, Firefox and Debian's ``chromium`` play (checked by ``tests/test_report.py``); builds without
 the proprietary codecs (Playwright's own Chromium) show the player without the picture. The pages are rendered by Jinja2 from
 ``templates/*.html.j2``, with autoescaping; no HTML is built in Python.
@@ -48,7 +48,7 @@ from rlpipe.pipelines.analysis.plots import (
 )
 from rlpipe.pipelines.analysis.runs import RECORD_COLUMNS, collect_runs, read_metrics
 from rlpipe.pipelines.analysis.stats import aggregate_curves, summarise_runs
-from rlpipe.pipelines.files import write_text_atomic
+from rlpipe.pipelines.artifacts.files import write_text_atomic
 
 __all__ = ["BASELINE_FILE", "REPORT_FILE", "VIDEO_FILE", "read_baseline", "run_labels",
            "write_baseline", "write_comparison_page", "write_comparison_report", "write_run_report"]

@@ -8,7 +8,7 @@
 Figures are drawn on :class:`matplotlib.figure.Figure` objects with the Agg canvas, never through
 ``pyplot``: no display is needed, the global backend is left alone, and no figure is kept in
 pyplot's registry, so hundreds of calls leak nothing. Every PNG is written through
-:func:`rlpipe.pipelines.files.atomic_path`, so a reader never sees a half-written image.
+:func:`rlpipe.pipelines.artifacts.files.atomic_path`, so a reader never sees a half-written image.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from rlpipe.pipelines.analysis.runs import (
     read_metrics,
     read_run_info,
 )
-from rlpipe.pipelines.files import atomic_path
+from rlpipe.pipelines.artifacts.files import atomic_path
 
 __all__ = [
     "figure_svg", "plot_ecdf", "plot_return_curves", "plot_training_returns", "run_returns_figure",

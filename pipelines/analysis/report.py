@@ -31,7 +31,7 @@ from rlpipe.pipelines.analysis.stats import (
     aggregate_curves,
     summarise_runs,
 )
-from rlpipe.pipelines.files import write_text_atomic
+from rlpipe.pipelines.artifacts.files import write_text_atomic
 
 __all__ = ["safe_filename", "write_ablation_report"]
 

@@ -14,7 +14,7 @@ from typing import Any
 from tensordict import TensorDict, TensorDictBase
 
 from rlpipe.pipelines.config import TrainConfig
-from rlpipe.pipelines.rate_limiter import SampleToInsertRatio
+from rlpipe.pipelines.training.rate_limiter import SampleToInsertRatio
 
 __all__ = ["RunState"]
 

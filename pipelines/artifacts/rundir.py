@@ -25,9 +25,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
+from rlpipe.pipelines.artifacts.files import (
+    FileWriteError,
+    atomic_path,
+    fsync_path,
+    remove_temporaries,
+    write_json_atomic,
+)
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.files import FileWriteError, atomic_path, fsync_path, remove_temporaries, write_json_atomic
 
 __all__ = ["MetricsCSV", "RunDir", "default_run_dir"]
 

@@ -39,10 +39,10 @@ from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.evaluation import AsyncEvaluator, _PolicyCopy, evaluate
-from rlpipe.pipelines.ray_backend import MIN_START_TIMEOUT_S, RayRuntime
-from rlpipe.pipelines.runtime import STOP_SIGNALS
-from rlpipe.pipelines.supervision import WorkerFailure
+from rlpipe.pipelines.system.runtime import STOP_SIGNALS
+from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, _PolicyCopy, evaluate
+from rlpipe.pipelines.workers.ray import MIN_START_TIMEOUT_S, RayRuntime
+from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 __all__ = ["EvalActor", "RayEvaluator", "hold_ray"]
 

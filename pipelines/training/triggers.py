@@ -5,7 +5,7 @@ iteration resumes with those it still owes) and an ``interval`` in iterations, a
 the running ``Loop``. The built-in ones log, evaluate, export the policy and checkpoint; add your
 own by passing them to ``train(triggers=[...])``::
 
-    from rlpipe.pipelines.triggers import IntervalTrigger
+    from rlpipe.pipelines.training.triggers import IntervalTrigger
 
     def print_return(loop):
         print(loop.state.iteration, loop.last_return)
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 from rlpipe.pipelines.config import TrainConfig
 
 if TYPE_CHECKING:
-    from rlpipe.pipelines.loop import Loop
+    from rlpipe.pipelines.training.loop import Loop
 
 __all__ = [
     "CheckpointTrigger", "EvalTrigger", "ExportTrigger", "IntervalTrigger", "LogTrigger", "Trigger",

@@ -19,8 +19,8 @@ from torchrl.collectors import Evaluator
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from rlpipe.pipelines.runtime import stop_signals_blocked
-from rlpipe.pipelines.supervision import (
+from rlpipe.pipelines.system.runtime import stop_signals_blocked
+from rlpipe.pipelines.workers.supervision import (
     TimedMultiProcessScheme,
     WorkerFailure,
     close_weight_sync_queues,

@@ -34,9 +34,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from rlpipe.pipelines.artifacts.files import FileWriteError, fsync_path, remove_temporaries, write_text_atomic
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.files import FileWriteError, fsync_path, remove_temporaries, write_text_atomic
-from rlpipe.pipelines.runtime import fault_point
+from rlpipe.pipelines.system.runtime import fault_point
 
 __all__ = [
     "save_checkpoint", "load_checkpoint", "latest_checkpoint", "newest_whole", "remove_leftovers",

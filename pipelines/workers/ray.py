@@ -39,8 +39,8 @@ from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.runtime import STOP_SIGNALS
-from rlpipe.pipelines.supervision import WorkerFailure
+from rlpipe.pipelines.system.runtime import STOP_SIGNALS
+from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 __all__ = ["METRIC_COLUMNS", "RayCollectors", "RayRuntime", "WorkerLost", "check_address"]
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from rlpipe.envs import MINITAUR_ID, resolve_env_id
-from rlpipe.pipelines.files import atomic_path
+from rlpipe.pipelines.artifacts.files import atomic_path
 
 __all__ = ["record_video"]
 

@@ -37,14 +37,12 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from rlpipe.pipelines import checkpoint as ckpt
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
+from rlpipe.pipelines.artifacts.export import export_policy
+from rlpipe.pipelines.artifacts.files import write_json_atomic
+from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir
 from rlpipe.pipelines.errors import InputError, TrainingDiverged
-from rlpipe.pipelines.evaluation import AsyncEvaluator, BackgroundEvaluator, evaluate
-from rlpipe.pipelines.export import export_policy
-from rlpipe.pipelines.files import write_json_atomic
-from rlpipe.pipelines.meters import Clock, IntervalStats
-from rlpipe.pipelines.rundir import MetricsCSV, RunDir
-from rlpipe.pipelines.runtime import (
+from rlpipe.pipelines.system.runtime import (
     DeferredInterrupt,
     Interrupted,
     Stopped,
@@ -53,7 +51,10 @@ from rlpipe.pipelines.runtime import (
     keep_freed_memory,
     stop_signals_blocked,
 )
-from rlpipe.pipelines.supervision import (
+from rlpipe.pipelines.training.meters import Clock, IntervalStats
+from rlpipe.pipelines.training.triggers import Trigger, eval_line
+from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, BackgroundEvaluator, evaluate
+from rlpipe.pipelines.workers.supervision import (
     SupervisedCollector,
     Supervisor,
     Watchdog,
@@ -61,7 +62,6 @@ from rlpipe.pipelines.supervision import (
     WorkersLost,
     kill_new_children,
 )
-from rlpipe.pipelines.triggers import Trigger, eval_line
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.base import OffPolicyPipeline
@@ -309,7 +309,7 @@ class Loop:
     def _start_evaluator(self) -> AsyncEvaluator:
         cfg = self.config
         if cfg.collector.backend == "ray":  # on a Ray actor, on the Ray the run holds until its end
-            from rlpipe.pipelines.ray_eval import RayEvaluator, hold_ray
+            from rlpipe.pipelines.workers.ray_eval import RayEvaluator, hold_ray
 
             # a local Ray's processes start deaf to the stop signals, as Ray collectors start it (_make_collector)
             with self.clock.paused(), stop_signals_blocked():
@@ -401,8 +401,8 @@ class Loop:
     def make_video(self) -> None:
         """``video=true``: the trained policy filmed to RUN/trained-agent.mp4, as ``rlpipe video RUN`` does."""
         from rlpipe.pipelines.analysis.pages import VIDEO_FILE
-        from rlpipe.pipelines.export import load_policy
-        from rlpipe.pipelines.video import record_video
+        from rlpipe.pipelines.artifacts.export import load_policy
+        from rlpipe.pipelines.artifacts.video import record_video
 
         # the policy this run exported a moment ago: its own file, so a .pt2-only export (a plug-in
         # actor ONNX cannot express) is trusted here, as it would not be from someone else's run

@@ -44,8 +44,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlpipe.pipelines.artifacts.files import write_bytes_atomic, write_json_atomic
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.files import write_bytes_atomic, write_json_atomic
 
 __all__ = ["ExportedPolicy", "OnnxExportWarning", "OnnxPolicy", "TorchExportPolicy", "available_steps", "export_policy",
            "load_policy"]
