@@ -106,7 +106,7 @@ def make_reference_env(**kwargs):
 def bench_reference_raw(steps: int, seed: int = 0, max_episode_steps: int = 1000) -> dict:
     """Steps/s of the reference with uniform random actions, resets (hard, its default) included.
 
-    Same loop as ``rlpipe.scripts.bench_minitaur.bench_minitaur_raw``: the clock covers the
+    Same loop as ``rlpipe.scripts.bench.minitaur.bench_minitaur_raw``: the clock covers the
     first reset, every step and every reset after termination or ``max_episode_steps``
     (construction is not timed).
     """

@@ -2,8 +2,8 @@
 
 import pytest
 
-from rlpipe.scripts.bench_collect import collect_table, frames_per_batch, target_cell
-from rlpipe.scripts.bench_ray import saturation
+from rlpipe.scripts.bench.collect import collect_table, frames_per_batch, target_cell
+from rlpipe.scripts.bench.ray import saturation
 
 
 def test_blocks_are_the_presets_rounded_up_to_whole_vector_steps():
@@ -52,9 +52,42 @@ def test_bad_options_are_refused_before_anything_runs(options, message):
     from argparse import Namespace
 
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.scripts.bench_collect import check_args
+    from rlpipe.scripts.bench.collect import check_args
 
     args = Namespace(**{"target": "ray", "frames": None, "workers": None, "envs_per_worker": None, "envs": None,
                         "lengths": None, "steps": None, **options})
     with pytest.raises(InputError, match=message.replace("(", r"\(")):
         check_args(args)
+
+
+def test_the_old_benchmark_import_paths_give_the_new_modules_with_a_deprecation_warning():
+    # a fresh interpreter: the old paths must warn on their first import, which this session may have done
+    import subprocess
+    import sys
+
+    code = """
+import importlib, warnings
+pairs = [("rlpipe.scripts.bench_collect", "rlpipe.scripts.bench.collect"),
+         ("rlpipe.scripts.bench_profile", "rlpipe.scripts.bench.profile"),
+         ("rlpipe.scripts.peers", "rlpipe.scripts.bench.peers"),
+         ("rlpipe.scripts.peers.tfagents", "rlpipe.scripts.bench.peers.tfagents")]
+for old, new in pairs:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert importlib.import_module(old) is importlib.import_module(new), old
+    assert [str(w.message) for w in caught if w.category is DeprecationWarning and new in str(w.message)], old
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    from rlpipe.scripts.bench import plain_dqn_best_threads
+from rlpipe.scripts.bench.dqn import plain_dqn_best_threads as now
+assert plain_dqn_best_threads is now and caught and caught[0].category is DeprecationWarning
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+def test_the_tfagents_peer_finds_its_tutorial_scripts_in_a_checkout():
+    from rlpipe.scripts.bench.peers import tfagents
+
+    assert tfagents.SCRIPT.is_file() and tfagents.DQN_SCRIPT.is_file()
+    assert "tf_agents" in tfagents.DQN_SCRIPT.read_text()

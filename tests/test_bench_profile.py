@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rlpipe.scripts import bench_profile as bp
+from rlpipe.scripts.bench import profile as bp
 
 pytestmark = pytest.mark.unit
 

@@ -33,7 +33,7 @@ WORKERS = (1, 2, 4)
 
 def collect_run(preset: str, overrides: list[str], backend: str, workers: int, frames: int) -> dict:
     """Collect-only env steps/s of ``workers`` async collectors on ``backend``, and their start-up seconds."""
-    from rlpipe.scripts.bench_collect import pipeline_for_collection, timed_blocks
+    from rlpipe.scripts.bench.collect import pipeline_for_collection, timed_blocks
 
     pipeline = pipeline_for_collection(preset, [*overrides, f"collector.backend={backend}",
                                                 f"collector.workers={workers}", "collector.sync=false"])
@@ -58,7 +58,7 @@ def update_ceiling(preset: str, overrides: list[str]) -> dict:
     from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides
     from rlpipe.pipelines.system.runtime import keep_freed_memory
-    from rlpipe.scripts.bench_floor import update_seconds
+    from rlpipe.scripts.bench.floor import update_seconds
 
     algo, cfg = resolve_preset(preset)
     pipeline = pipeline_class(algo)(apply_overrides(cfg, ["eval_in_background=false", *overrides]))
@@ -124,8 +124,8 @@ def arithmetic_text(ceiling: dict, steps_per_actor_s: float, measured_it_s: floa
 
 
 def bench_ray(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_collect import check_args
-    from rlpipe.scripts.bench_sac import rlpipe_iterations_per_s
+    from rlpipe.scripts.bench.collect import check_args
+    from rlpipe.scripts.bench.sac import rlpipe_iterations_per_s
 
     check_args(args)
     workers = args.workers or list(WORKERS)

@@ -1,6 +1,6 @@
 """Does a replay buffer as a Ray actor (TorchRL's ``service_backend="ray"``) pay against shipping blocks?
 
-    .venv/bin/python -m rlpipe.scripts.bench_ray_replay
+    .venv/bin/python -m rlpipe.scripts.bench.ray_replay
 
 A measurement, not a test. Two ways for collector actors' frames to reach the learner's updates:
 

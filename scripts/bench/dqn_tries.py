@@ -1,8 +1,8 @@
 """The ``dqn`` preset's training speed under config variants, each against the plain-PyTorch loop in the same process.
 
-    python -m rlpipe.scripts.bench_dqn_tries [--rounds 3] [--iterations 6000] [--variant NAME=OVERRIDES ...]
+    python -m rlpipe.scripts.bench.dqn_tries [--rounds 3] [--iterations 6000] [--variant NAME=OVERRIDES ...]
 
-Each round times the plain loop on its best thread setting (``bench.plain_dqn_best_threads``) and then one
+Each round times the plain loop on its best thread setting (``dqn.plain_dqn_best_threads``) and then one
 ``rlpipe train dqn`` per variant (in this process, evaluations off; the run's own ``updates_per_s``,
 training time only), so each ratio compares two figures taken seconds apart under the same load.
 Prints a Markdown table of the rounds' median ratios (issue 9's DQN target: ratio >= 1).
@@ -16,7 +16,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from rlpipe.scripts.bench import plain_dqn_best_threads
+from rlpipe.scripts.bench.dqn import plain_dqn_best_threads
 
 VARIANTS = {
     "preset": [],

@@ -1,6 +1,6 @@
 """TF-Agents' "Train a Deep Q Network with TF-Agents" tutorial (DQN on CartPole-v0) as a timed, standalone script.
 
-Runs only inside the peer venv that ``scripts/peers/tfagents.py`` builds (TensorFlow, TF-Agents and the
+Runs only inside the peer venv that ``scripts/bench/peers/tfagents.py`` builds (TensorFlow, TF-Agents and the
 old ``gym``); rlpipe never imports it. It follows the tutorial's text (1_dqn_tutorial.ipynb, the version
 with hand-written ``collect_step``/``collect_data`` instead of a driver) cell for cell: the same
 hyperparameters, ``QNetwork(fc_layer_params=(100,))``, ``tf.compat.v1.train.AdamOptimizer(1e-3)``,

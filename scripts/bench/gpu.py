@@ -44,8 +44,8 @@ def bench_gpu(args, out: Path) -> dict:
     from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.scripts.bench_cleanrl import rlpipe_speed
-    from rlpipe.scripts.bench_floor import update_seconds
+    from rlpipe.scripts.bench.cleanrl import rlpipe_speed
+    from rlpipe.scripts.bench.floor import update_seconds
 
     if not torch.cuda.is_available():
         raise InputError("rlpipe bench gpu: torch sees no CUDA device on this machine; expected a GPU machine")

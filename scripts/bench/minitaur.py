@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m rlpipe.scripts.bench_minitaur --steps 2000 --seed 0
+    python -m rlpipe.scripts.bench.minitaur --steps 2000 --seed 0
 
 Uniform random actions; the episode is reset (a hard reset, the default) on termination
 or after 1000 steps, like ``rlpipe/MinitaurBullet-v0``'s time limit.  The clock covers the
@@ -43,6 +43,20 @@ def bench_minitaur_raw(steps: int, seed: int = 0, max_episode_steps: int = 1000,
     finally:
         env.close()
     return {"steps_per_s": steps / elapsed, "steps": steps, "resets": resets, "seconds": elapsed}
+
+
+def bench_minitaur(args, out) -> dict:
+    """``rlpipe bench minitaur``: the raw env's speed over ``--steps`` random steps (default 3000)."""
+    steps = args.steps or 3000
+    ours = bench_minitaur_raw(steps, seed=0)
+    table = "\n".join([
+        f"Minitaur raw env speed ({steps} random steps, resets included)",
+        "",
+        "| env | steps/s |",
+        "|---|---|",
+        f"| rlpipe/MinitaurBullet-v0 | {ours['steps_per_s']:.0f} |",
+    ])
+    return {"ours": ours, "table": table}
 
 
 def main(argv=None) -> None:

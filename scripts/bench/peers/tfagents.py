@@ -2,8 +2,8 @@
 
 ``rlpipe bench sac`` and ``rlpipe bench dqn`` compare our pipelines with the tutorials they are built
 from, and a figure quoted from someone else's run says little about this machine on this day. So this
-module runs the tutorials themselves (``tfagents_sac_minitaur.py`` and ``tfagents_dqn_cartpole.py``
-beside it, each notebook as a script) in the same command.
+module runs the tutorials themselves (``tfagents_tutorials/tfagents_sac_minitaur.py`` and
+``tfagents_dqn_cartpole.py`` beside it, each notebook as a script) in the same command.
 
 The tutorials need TensorFlow 2.15, TF-Agents 0.19, Reverb 0.14 and, through ``suite_pybullet`` ->
 ``pybullet_envs`` and ``suite_gym``, the old ``gym`` (TF-Agents 0.19 requires ``gym<=0.23.0``) with
@@ -26,7 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from rlpipe.scripts.peers import _venv
+from rlpipe.scripts.bench.peers import _venv
 
 # Every distribution in the venv, exactly (``pip freeze --all`` of a working install, pip aside).
 # Installed first: the tools that build gym 0.23.0 (an sdist only on PyPI; built without build isolation
@@ -93,8 +93,11 @@ PINS: tuple[str, ...] = (
 )
 # The distributions whose versions a benchmark report names.
 REPORTED: tuple[str, ...] = ("tf-agents", "tensorflow-cpu", "dm-reverb", "tensorflow-probability", "gym", "pybullet", "numpy")
-SCRIPT = Path(__file__).with_name("tfagents_sac_minitaur.py")
-DQN_SCRIPT = Path(__file__).with_name("tfagents_dqn_cartpole.py")
+# The tutorials as scripts run by the peer venv's python, never imported by rlpipe: they stay in the repository
+# and out of the wheel (tfagents_tutorials/ is no package), so this peer runs from a checkout.
+TUTORIALS = Path(__file__).with_name("tfagents_tutorials")
+SCRIPT = TUTORIALS / "tfagents_sac_minitaur.py"
+DQN_SCRIPT = TUTORIALS / "tfagents_dqn_cartpole.py"
 # TensorFlow on the CPU, quiet C++ logs; thread pools stay at TensorFlow's defaults.
 RUN_ENV = {"CUDA_VISIBLE_DEVICES": "", "TF_CPP_MIN_LOG_LEVEL": "2"}
 
@@ -143,6 +146,9 @@ def _iterations_per_s(script: Path, iterations: tuple[int, int], seed: int, time
     n1, n2 = iterations
     if not 0 < n1 < n2:
         raise ValueError(f"iterations must be two increasing positive counts, got {iterations}")
+    if not script.exists():
+        raise RuntimeError(f"TF-Agents peer: {script} is missing; the tutorial scripts are not in the wheel, "
+                           "run this benchmark from a checkout of the rlpipe repository (pip install -e .)")
     python = ensure_venv()
     deadline = time.monotonic() + timeout_s
     runs, commands = [], []

@@ -47,7 +47,7 @@ from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 
-from rlpipe.scripts.peers import _venv
+from rlpipe.scripts.bench.peers import _venv
 
 ALGOS = {"sac": "sac_continuous_action.py", "td3": "td3_continuous_action.py", "dqn": "dqn.py"}
 CLEANRL = "cleanrl==1.2.0"  # installed with --no-deps: its metadata pins stable-baselines3==1.2.0, wandb, ...
@@ -118,11 +118,11 @@ PATCH: tuple[tuple[str, str], ...] = (
 )
 _PATCH_HEADER = """\
 # Copy of {script} from cleanrl 1.2.0 (PyPI), MIT License, Copyright (c) 2019 CleanRL developers.
-# Patched by rlpipe (scripts/peers/cleanrl.py) to run with stable-baselines3 2.0.0a1: the lines marked
+# Patched by rlpipe (scripts/bench/peers/cleanrl.py) to run with stable-baselines3 2.0.0a1: the lines marked
 # "rlpipe patch" hand ReplayBuffer gymnasium boxes equal to the env's gym boxes. Nothing else differs.
 """
 ENV_SHIM = '''\
-"""gym 0.23 ids for gymnasium 0.28's MuJoCo v4 envs, written by rlpipe's scripts/peers/cleanrl.py.
+"""gym 0.23 ids for gymnasium 0.28's MuJoCo v4 envs, written by rlpipe's scripts/bench/peers/cleanrl.py.
 
 CleanRL 1.2.0's SAC/TD3 scripts use gym 0.23.1, whose MuJoCo envs need mujoco-py. ``register`` is a gym
 env plugin (entry point ``gym.envs: __root__``, run by ``import gym``): it registers each gymnasium MuJoCo

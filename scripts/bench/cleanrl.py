@@ -1,6 +1,6 @@
 """``rlpipe bench cleanrl``: SAC, TD3 and DQN against CleanRL's single-file scripts, in one run.
 
-Each case runs CleanRL's script (``scripts/peers/cleanrl.py``: cleanrl 1.2.0 in a venv of its own)
+Each case runs CleanRL's script (``scripts/bench/peers/cleanrl.py``: cleanrl 1.2.0 in a venv of its own)
 with its defaults, with torch's default threads and with one thread, and rlpipe with the same
 hyperparameters (taken from the script's own defaults). Both sides are timed over two lengths,
 ``learning_starts + n1`` and ``learning_starts + n2`` env steps, so start-up (imports, the random
@@ -94,7 +94,7 @@ def _fmt(x: float | None) -> str:
 def bench_cleanrl(args, out: Path) -> dict:
     import gymnasium
 
-    from rlpipe.scripts.peers import cleanrl
+    from rlpipe.scripts.bench.peers import cleanrl
 
     algos = args.algos or list(CASES)
     rows, figures = [], {"cases": []}

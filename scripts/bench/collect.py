@@ -1,7 +1,7 @@
 """``rlpipe bench collect``: collection against the env's own speed (issue 9).
 
 For each env: the raw env's steps/s (the gymnasium env stepped with random actions in a plain loop,
-resets included; Minitaur: our own env, ``bench_minitaur.bench_minitaur_raw``), then collect-only
+resets included; Minitaur: our own env, ``minitaur.bench_minitaur_raw``), then collect-only
 env steps/s of the collectors rlpipe builds for training: the pipeline of the env's preset (its
 collection policy: DQN's epsilon-greedy, TD3's noisy actor, SAC's stochastic actor) with
 ``collector.envs_per_worker=N`` (one TorchRL env of batch [N] over gymnasium's ``SyncVectorEnv``,
@@ -84,7 +84,7 @@ def raw_env_steps_per_s(env_id: str, steps: int, seed: int = 0) -> float:
 
     gym_id = resolve_env_id(env_id)
     if gym_id == MINITAUR_ID:
-        from rlpipe.scripts.bench_minitaur import bench_minitaur_raw
+        from rlpipe.scripts.bench.minitaur import bench_minitaur_raw
 
         return bench_minitaur_raw(steps, seed=seed)["steps_per_s"]
     env = gymnasium.make(gym_id)

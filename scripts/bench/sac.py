@@ -3,7 +3,7 @@
 An iteration is the tutorial's: one env step and one update (batch 256, (256, 256) networks).
 Both sides are timed over two lengths after the 10,000 random steps (``--steps N``: N and N + 2000
 iterations, each run a fresh process), so start-up cancels: iterations/s = (n2 - n1) / (t2 - t1). TF-Agents runs its own
-tutorial (``scripts/peers/tfagents.py``: TF-Agents 0.19, TensorFlow 2.15, Reverb 0.14 in a venv of
+tutorial (``scripts/bench/peers/tfagents.py``: TF-Agents 0.19, TensorFlow 2.15, Reverb 0.14 in a venv of
 their own, made on first use), rlpipe its ``sac`` preset (the env in a collector process beside the
 learner). Also reported: the raw env's speed, and collect-only env steps/s of TorchRL's collectors
 (random policy, no learning) with 1 and 2 workers.
@@ -49,7 +49,7 @@ def collect_only_steps_per_s(workers: int, sync: bool, frames: int) -> float:
 def rlpipe_iterations_per_s(iterations: tuple[int, int], out: Path, overrides: list[str]) -> dict:
     """The ``sac`` preset's iterations/s from two runs (fresh processes) of ``iterations`` after its
     10k random steps."""
-    from rlpipe.scripts.bench_cleanrl import timed_train
+    from rlpipe.scripts.bench.cleanrl import timed_train
 
     runs = [timed_train("sac", [f"num_iterations={n}", "eval_interval=0", "num_eval_episodes=1",
                                 f"log_interval={max(100, n // 5)}", f"checkpoint_interval={n}",
@@ -59,8 +59,8 @@ def rlpipe_iterations_per_s(iterations: tuple[int, int], out: Path, overrides: l
 
 
 def bench_sac(args, out: Path) -> dict:
-    from rlpipe.scripts.bench_minitaur import bench_minitaur_raw
-    from rlpipe.scripts.peers import tfagents
+    from rlpipe.scripts.bench.minitaur import bench_minitaur_raw
+    from rlpipe.scripts.bench.peers import tfagents
 
     n = args.steps or 500
     iterations = (n, n + 2000)

@@ -1,6 +1,6 @@
 """TF-Agents' "SAC on Minitaur with the Actor-Learner API" tutorial as a timed, standalone script.
 
-Runs only inside the peer venv that ``scripts/peers/tfagents.py`` builds (TensorFlow, TF-Agents, Reverb,
+Runs only inside the peer venv that ``scripts/bench/peers/tfagents.py`` builds (TensorFlow, TF-Agents, Reverb,
 pybullet and the old ``gym``); rlpipe never imports it. It is the tutorial's code cell for cell, with
 the same hyperparameters and the same training loop (per iteration: ``collect_actor.run()``, one env
 step, then ``agent_learner.run(iterations=1)``, one update on a batch of 256 from Reverb), so that

@@ -147,7 +147,9 @@ def _after_startup_updates_per_s(metrics: list[dict]) -> float:
     return statistics.mean(rows)
 
 
-def bench_td3(args, out: Path, train_seeds) -> dict:
+def bench_td3(args, out: Path) -> dict:
+    from rlpipe.scripts.bench.runs import train_seeds
+
     steps = args.steps or 30_000
     startup = 10_000 if steps > 20_000 else steps // 3
     budget = [f"initial_collect_steps={startup}", f"num_iterations={steps - startup}", "eval_interval=0",

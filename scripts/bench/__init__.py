@@ -1,0 +1,114 @@
+"""``rlpipe bench``: speed and learning benchmarks (not tests), each against a named peer in one run.
+
+    rlpipe bench dqn [--seeds 3] [--preset dqn] [key=value ...]
+    rlpipe bench td3 [--seeds 3] [--steps 30000]
+    rlpipe bench sac [--iterations 2000]
+    rlpipe bench minitaur [--steps 3000]
+    rlpipe bench floor [key=value ...]
+    rlpipe bench cleanrl [--algos sac td3 dqn] [--envs Pendulum-v1 ...] [--lengths N1 N2] [--seed 0]
+    rlpipe bench profile PRESET [key=value ...] [--steps N] [--duration 20] [--rate 100]
+    rlpipe bench collect [--envs CartPole-v1 ...] [--envs-per-worker 1 8 32] [--frames 3000]
+    rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
+
+``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
+started and prints the share of each part (replay sample, update forward/backward, optimiser,
+target update, weight push, waiting, env step, ...) per process (``scripts/bench/profile.py``).
+``collect``: collect-only env steps/s of the collectors rlpipe builds (each env's preset, its
+collection policy, ``collector.envs_per_worker`` envs as one batch), in-process and in one
+collector process, against the raw gymnasium env (issue 9's target: at least half of it).
+``ray``: Ray actors against local collector processes, collect-only and training the ``sac``
+preset, with the arithmetic of how many actors the learner can use (issue 10).
+
+Each prints a Markdown table (paste it into BENCHMARKS.md with the command) and, with ``--json``,
+writes the raw figures. These machines are shared and noisy: compare the ratios within one run.
+
+One module per target here (``dqn.py`` ... ``ray.py``, each with its ``bench_TARGET(args, out)``),
+``runs.py`` for the rlpipe runs they share, ``peers/`` for the peers run in venvs of their own;
+``dqn_tries.py`` and ``ray_replay.py`` are measurements run with ``python -m``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import tempfile
+from pathlib import Path
+
+
+def add_parser(sub) -> None:
+    bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
+    bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu", "profile",
+                                          "collect", "ray"])
+    bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs (profile: PRESET first)")
+    bench.add_argument("--seeds", type=int, default=3)
+    bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
+    bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac, profile: default 100000; "
+                       "ray: the shorter timed run)")
+    bench.add_argument("--duration", type=int, default=20, help="profile: seconds sampled after learning starts")
+    bench.add_argument("--rate", type=int, default=100, help="profile: py-spy samples per second")
+    bench.add_argument("--out", type=Path, help="keep the runs here (default: a temporary folder)")
+    bench.add_argument("--json", type=Path, help="also write the figures as JSON here")
+    bench.add_argument("--peer-iterations", type=int, default=3000, help="iterations timed for the plain-PyTorch peer")
+    bench.add_argument("--algos", nargs="+", choices=["sac", "td3", "dqn"], help="cleanrl: algorithms to compare (default: all)")
+    bench.add_argument("--envs", nargs="+", help="cleanrl: env ids (default: Pendulum-v1 and HalfCheetah-v5; CartPole-v1 for "
+                       "dqn); collect: default CartPole-v1 Pendulum-v1 HalfCheetah-v5 MinitaurBulletEnv-v0; ray: "
+                       "the one env (default MinitaurBulletEnv-v0)")
+    bench.add_argument("--envs-per-worker", nargs="+", type=int, help="collect: collector.envs_per_worker values (default: 1 8 32)")
+    bench.add_argument("--workers", nargs="+", type=int, help="ray: collector workers (default: 1 2 4)")
+    bench.add_argument("--frames", type=int, help="collect, ray: collect-only frames timed per measurement "
+                       "(default 3000; ray 1000)")
+    bench.add_argument("--lengths", nargs=2, type=int, metavar=("N1", "N2"),
+                       help="cleanrl: env steps after learning_starts of the two timed runs; ray: iterations of the "
+                       "two timed training runs (default: --steps and 2000 more)")
+    bench.add_argument("--parts", nargs="+", choices=["updates", "training"], default=["updates", "training"],
+                       help="gpu: which tables to measure (default: both)")
+    bench.add_argument("--seed", type=int, default=0, help="cleanrl: seed of both sides")
+    bench.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from rlpipe.pipelines.errors import InputError
+
+    if args.seeds <= 0:
+        raise InputError(f"--seeds={args.seeds}: expected a positive integer")
+    if args.target == "profile":  # its preset and overrides, refused before any folder is made
+        from rlpipe.scripts.bench.profile import check_args
+
+        check_args(args)
+    if args.target in ("collect", "ray"):  # refused before anything is written
+        from rlpipe.scripts.bench.collect import check_args as check_collect_args
+
+        check_collect_args(args)
+    out = args.out or Path(tempfile.mkdtemp(prefix=f"rlpipe-bench-{args.target}-"))
+    if args.out is not None and args.out.exists() and any(args.out.iterdir()):
+        raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
+    # each target is scripts/bench/TARGET.py's bench_TARGET, imported when asked for
+    figures = getattr(importlib.import_module(f"{__name__}.{args.target}"), f"bench_{args.target}")(args, out)
+    print(figures.pop("table"))
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    return 0
+
+
+# names this module held before the benchmarks became one module each -> their module now (for one release)
+_MOVED = {
+    "plain_pytorch_dqn_iterations_per_s": "dqn",
+    "plain_dqn_best_threads": "dqn",
+    "bench_dqn": "dqn",
+    "bench_td3": "td3",
+    "bench_minitaur": "minitaur",
+    "_train_seeds": "runs",
+    "_first_reaching": "runs",
+}
+
+
+def __getattr__(name: str):
+    if name not in _MOVED:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import warnings
+
+    module = f"{__name__}.{_MOVED[name]}"
+    new = {"_train_seeds": "train_seeds", "_first_reaching": "first_reaching"}.get(name, name)
+    warnings.warn(f"{__name__}.{name} moved to {module}.{new}; the old name goes in the next release",
+                  DeprecationWarning, stacklevel=2)
+    return getattr(importlib.import_module(module), new)
