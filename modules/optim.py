@@ -86,7 +86,8 @@ class LeanAdam(torch.optim.Adam):
             return _ADAM_STEP(self, closure)
         with torch.no_grad():
             for group, params, grads, exp_avgs, exp_avg_sqs, steps in groups:
-                # what torch.optim.adam._fused_adam does for one device and dtype
+                # what torch.optim.adam._fused_adam does for one device and dtype; torch 2.13's private
+                # kernel and arguments (check at each torch upgrade: tests/test_optim.py compares bitwise)
                 torch._foreach_add_(steps, 1)
                 beta1, beta2 = group["betas"]
                 torch._fused_adam_(

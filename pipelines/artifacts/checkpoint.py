@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from rlpipe.pipelines.artifacts.files import FileWriteError, fsync_path, remove_temporaries, write_text_atomic
+from rlpipe.pipelines.compat.torchrl import write_cursor
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import fault_point
 
@@ -80,8 +81,7 @@ def replay_buffer_state(replay_buffer) -> dict[str, Any]:
     storage = replay_buffer.storage
     index = torch.arange(n)
     if n == storage.max_size:
-        # TorchRL's round-robin writer has no public getter for its next write position.
-        index = (index + int(replay_buffer._writer._cursor)) % n
+        index = (index + write_cursor(replay_buffer)) % n
     data = storage.get(index)
     return {"len": n, "data": {key: value for key, value in data.flatten_keys("/").items()}}
 

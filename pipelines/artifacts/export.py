@@ -27,16 +27,12 @@ exported as ``policy.pt2`` only, with a warning; ``load_policy`` then needs ``tr
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import io
 import json
 import logging
-import os
 import re
-import tempfile
 import warnings
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +41,7 @@ import torch
 from torch import nn
 
 from rlpipe.pipelines.artifacts.files import write_bytes_atomic, write_json_atomic
+from rlpipe.pipelines.compat.torch import stderr_kept_on_success
 from rlpipe.pipelines.errors import InputError
 
 __all__ = ["ExportedPolicy", "OnnxExportWarning", "OnnxPolicy", "TorchExportPolicy", "available_steps", "export_policy",
@@ -154,7 +151,7 @@ def _onnx_model(module: nn.Module, observation_dim: int) -> bytes | None:
 
     buffer = io.BytesIO()
     try:
-        with warnings.catch_warnings(), _stderr_kept_on_success():
+        with warnings.catch_warnings(), stderr_kept_on_success():  # compat: torch 2.13 logs the graph
             warnings.simplefilter("ignore")  # its DeprecationWarning, and tracer notes on TensorDict code
             torch.onnx.export(module, (torch.zeros(2, observation_dim),), buffer, dynamo=False,
                               opset_version=ONNX_OPSET, input_names=["observation"], output_names=["action"],
@@ -169,35 +166,6 @@ def _onnx_model(module: nn.Module, observation_dim: int) -> bytes | None:
                       OnnxExportWarning, stacklevel=3)
         return None
     return data
-
-
-@contextlib.contextmanager
-def _stderr_kept_on_success() -> Iterator[None]:
-    """Hold back what is written to fd 2 in the block; pass it on unless the block raises.
-
-    torch 2.13's TorchScript ONNX exporter turns its C++ log on for every export
-    (``setup_onnx_logging`` tests the function ``_jit_is_onnx_log_enabled`` instead of calling it)
-    and so prints the whole graph to stderr when an export fails; the warning says why instead.
-    Delete this when torch's check calls the function.
-    """
-    import sys
-
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as held:
-        os.dup2(held.fileno(), 2)
-        ok = False
-        try:
-            yield
-            ok = True
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-            if ok:
-                held.seek(0)
-                if text := held.read():
-                    os.write(2, text)
 
 
 def _check_same_actions(module: nn.Module, onnx_model: bytes, observation_dim: int) -> None:

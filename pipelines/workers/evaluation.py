@@ -19,14 +19,16 @@ from torchrl.collectors import Evaluator
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from rlpipe.pipelines.system.runtime import stop_signals_blocked
-from rlpipe.pipelines.workers.supervision import (
-    TimedMultiProcessScheme,
-    WorkerFailure,
+from rlpipe.pipelines.compat.torchrl import (
+    EVALUATOR_COLLECTOR_KWARGS,
     close_weight_sync_queues,
-    dead_worker,
-    kill_processes,
+    evaluator_collector,
+    evaluator_threads,
+    start_evaluator_worker,
+    stop_evaluator_threads,
 )
+from rlpipe.pipelines.system.runtime import stop_signals_blocked
+from rlpipe.pipelines.workers.supervision import TimedMultiProcessScheme, WorkerFailure, dead_worker, kill_processes
 
 __all__ = ["AsyncEvaluator", "BackgroundEvaluator", "evaluate"]
 
@@ -175,15 +177,13 @@ class BackgroundEvaluator(AsyncEvaluator):
             max_steps=None,  # our envs end episodes themselves (time limits)
             backend="process",
             busy_policy="queue",
-            collector_kwargs={"traj_format": "padded"},  # what 0.14 does by default, without its FutureWarning
+            collector_kwargs=EVALUATOR_COLLECTOR_KWARGS,
             # TorchRL's default for the process backend, with a deadline on its acknowledgements
             weight_sync_schemes={"policy": TimedMultiProcessScheme(ack_timeout, role=self.role)},
         )
         self._thread_errors = _ThreadErrors(self._threads)
-        # TorchRL 0.14 starts the worker process at the first request, from the evaluator's thread,
-        # where its seconds of start-up can be neither waited for briefly nor stopped: start it here.
         with stop_signals_blocked():
-            self._evaluator._backend._ensure_collector()
+            start_evaluator_worker(self._evaluator)
 
     @property
     def worker_pid(self) -> int | None:
@@ -230,34 +230,31 @@ class BackgroundEvaluator(AsyncEvaluator):
         closed. A thread left running when Python exits is stopped mid-call by the interpreter
         (``pthread_exit`` at its next take of the GIL), which aborts the process when that call is in
         torch's C++ ("terminate called without an active exception", "Fatal Python error: Aborted"):
-        TorchRL 0.14's ``Evaluator.shutdown`` joins them for a few seconds only, and a loaded machine
-        left them running past that.
+        TorchRL 0.14's ``Evaluator.shutdown`` joins them for a few seconds only (``compat.torchrl``).
         """
         deadline = time.monotonic() + timeout
-        evaluator, backend = self._evaluator, self._evaluator._backend
+        evaluator = self._evaluator
         with self._thread_errors:  # an error that ends a thread now is the shutdown itself: not printed
-            evaluator._async_shutdown = backend._shutdown_flag = True
-            evaluator._async_trigger.set()
-            backend._eval_ready.set()
+            stop_evaluator_threads(evaluator)
             kill_processes(self._procs(), timeout=max(0.0, deadline - time.monotonic()))
             for thread in self._threads():
                 thread.join(timeout=max(0.0, deadline - time.monotonic()))
-            if backend._collector is not None:
-                backend._collector.shutdown(timeout=2.0, raise_on_error=False)
+            collector = evaluator_collector(evaluator)
+            if collector is not None:
+                collector.shutdown(timeout=2.0, raise_on_error=False)
             evaluator.shutdown(timeout=max(0.0, deadline - time.monotonic()))
-            close_weight_sync_queues(backend._collector)
+            close_weight_sync_queues(collector)
         left = [t.name for t in self._threads() if t.is_alive()]
         if left:
             print(f"rlpipe: warning: the evaluator's threads {', '.join(left)} did not stop within {timeout:g} s",
                   file=sys.stderr, flush=True)
 
     def _procs(self) -> list:
-        collector = self._evaluator._backend._collector
-        return list(getattr(collector, "procs", None) or [])
+        return list(getattr(evaluator_collector(self._evaluator), "procs", None) or [])
 
     def _threads(self) -> list[threading.Thread]:
         """TorchRL's evaluator threads: the one feeding requests, the one running them."""
-        return [t for t in (self._evaluator._async_thread, self._evaluator._backend._thread) if t is not None]
+        return evaluator_threads(self._evaluator)
 
 
 class _ThreadErrors:

@@ -21,12 +21,8 @@ Restarting lost workers is the supervisor's job (issue 10, "Surviving failures")
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
-import signal
-import socket
-import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -37,6 +33,8 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
+from rlpipe.pipelines.compat.ray import check_reachable, stop_signals_kept
+from rlpipe.pipelines.compat.torchrl import set_model_version
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import STOP_SIGNALS
@@ -91,9 +89,9 @@ class RayRuntime:
         # actor's failure still reaches the learner, as the exception of the block it owed.
         common = dict(include_dashboard=False, logging_level="error", configure_logging=True, log_to_driver=False)
         try:
-            with _stop_signals_kept():
+            with stop_signals_kept(STOP_SIGNALS):
                 if address:
-                    _check_reachable(address)
+                    check_reachable(address)
                     ray.init(address=address, **common)
                 else:
                     # "local" rather than None: None would join whichever cluster was started last on this
@@ -134,9 +132,8 @@ class RayCollectors:
         try:
             _check_cpus(ray, c.workers, r.num_cpus_per_worker, r.address)
             self.scheme = RayWeightSyncScheme()
-            # The version the first weights carry (a resumed run's policy is already trained). TorchRL
-            # 0.14 has no public setter; its own Ray trainer (trainers/_ray_execution.py) stamps so.
-            self.scheme._set_model_version(learner_version())
+            # The version the first weights carry (a resumed run's policy is already trained).
+            set_model_version(self.scheme, learner_version())
             self.collector = _ray_collector(env_fn, policy, config, total_frames, init_random_frames, self.scheme)
             self._actors = list(self.collector.remote_collectors)
             self._wait_placed(ray, max(c.timeout, MIN_START_TIMEOUT_S))
@@ -174,7 +171,7 @@ class RayCollectors:
         blocks = iter(self.collector)
         while True:
             # The weights the collector sends with its next request are the learner's as of now.
-            self.scheme._set_model_version(self._learner_version())
+            set_model_version(self.scheme, self._learner_version())
             try:
                 batch = next(blocks)
             except StopIteration:
@@ -285,26 +282,6 @@ def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_
         )
 
 
-@contextlib.contextmanager
-def _stop_signals_kept():
-    """The process's handlers of the stop signals as they were, whatever ``ray.init`` does to them.
-
-    Ray 2.60's ``ray.init`` sets a SIGTERM handler of its own (``sys.exit``), and the driver's core
-    worker then installs a C++ one over it that prints a stack and aborts (exit -6): a run's SIGTERM
-    would no longer save a checkpoint (``runtime.DeferredInterrupt``). Setting the Python handlers
-    again puts them back in front (main thread only, where Python handles signals at all)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    before = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for signum, handler in before.items():
-            if handler is not None:  # None: not set from Python; nothing of ours to put back
-                signal.signal(signum, handler)
-
-
 def _check_cpus(ray, workers: int, per_worker: float, address: str) -> None:
     total = ray.cluster_resources().get("CPU", 0.0)
     if total < workers * per_worker:
@@ -320,7 +297,7 @@ def check_address(address: str) -> None:
     if not address:
         return
     try:
-        _check_reachable(address)
+        check_reachable(address)
     except ConnectionError as exc:
         raise _address_error(address, exc) from exc
 
@@ -329,26 +306,6 @@ def _address_error(address: str, exc: BaseException) -> InputError:
     return InputError(f"ray.address={address!r}: no Ray cluster answers there ({_first_line(exc)}); "
                       "expected the address `ray start --head` printed, 'auto' on one of its nodes, "
                       "or empty to start a local Ray instance")
-
-
-def _check_reachable(address: str) -> None:
-    """Raise ``ConnectionError`` at once if nothing listens at ``address``: ``ray.init`` would retry
-    its connection to the cluster's GCS for minutes (Ray 2.60), with no message a user can act on."""
-    if address.startswith("ray://"):  # Ray Client: its own handshake, with its own timeout
-        return
-    from ray._private.services import canonicalize_bootstrap_address
-
-    try:
-        host_port = canonicalize_bootstrap_address(address)  # "auto": the cluster this machine last started
-    except ValueError as exc:
-        raise ConnectionError(str(exc)) from exc
-    if host_port is None:
-        return
-    host, _, port = host_port.rpartition(":")
-    try:
-        socket.create_connection((host, int(port)), timeout=5.0).close()
-    except (OSError, ValueError) as exc:
-        raise ConnectionError(f"nothing listens at {host_port}: {exc}") from exc
 
 
 def _first_line(exc: BaseException) -> str:

@@ -10,16 +10,16 @@ iterator, where they terminate the others and then ``close()`` them 0.1 s later 
 weight push waits for each worker's acknowledgement with no timeout (``_wait_for_ack``), so a push
 to a dead worker blocks for good; and a worker that hangs is waited for forever (``MAX_IDLE_COUNT``
 is unbounded by default). Nothing there restarts a worker. So: the weight-sync schemes below wait
-with a deadline and a liveness check, a ``Watchdog`` puts a deadline on every other wait by killing
-the workers waited on (TorchRL then sees them dead within its 1 s poll), and ``SupervisedCollector``
-tears a failed collector down and starts another. A Ray collector reports into the same
-``Supervisor`` (``report``, ``failed``): it names its workers and how many are alive.
+with a deadline and a liveness check (the patched wait is ``compat.torchrl.AckDeadline``), a
+``Watchdog`` puts a deadline on every other wait by killing the workers waited on (TorchRL then sees
+them dead within its 1 s poll), and ``SupervisedCollector`` tears a failed collector down and starts
+another. A Ray collector reports into the same ``Supervisor`` (``report``, ``failed``): it names its
+workers and how many are alive.
 """
 
 from __future__ import annotations
 
 import contextlib
-import queue
 import signal
 import sys
 import threading
@@ -31,6 +31,8 @@ from typing import Any
 import psutil
 from tensordict import TensorDictBase
 from torchrl.weight_update import MultiProcessWeightSyncScheme, SharedMemWeightSyncScheme
+
+from rlpipe.pipelines.compat.torchrl import AckDeadline, close_weight_sync_queues
 
 __all__ = [
     "Supervisor", "SupervisedCollector", "close_weight_sync_queues", "TimedMultiProcessScheme", "TimedSharedMemScheme", "Watchdog",
@@ -117,48 +119,23 @@ def kill_processes(procs, timeout: float = 5.0) -> None:
 # --- a deadline on TorchRL's waits -------------------------------------------------------------------------
 
 
-class _AckDeadline:
-    """TorchRL 0.14's ``SharedMemWeightSyncScheme._wait_for_ack`` reads each worker's acknowledgement with
-    no timeout (and ``send`` passes none): a worker that died holds the learner in that read for good.
-    This reads with a deadline, checking between reads that the worker (``context.procs[i]``, the
-    collector the scheme serves) still runs; either failing is a ``WorkerFailure``. Delete when
-    TorchRL's ``send`` takes a timeout and notices a dead worker."""
+class _SupervisedAcks(AckDeadline):
+    """The acknowledgement deadline (``compat.torchrl.AckDeadline``) with this module's failures: a worker
+    found dead between reads (``context.procs[i]``, the collector the scheme serves) or a missed deadline
+    is a ``WorkerFailure``."""
 
     role = "collector"
-    ack_timeout = 60.0
-    _POLL_S = 0.2
 
-    def __del__(self):
-        # TorchRL's __del__ shuts the scheme down, which starts a queue thread: at the interpreter's
-        # exit that start waits forever (Python 3.11). The process's end frees what it would.
-        if not sys.is_finalizing():
-            super().__del__()
-
-    def _wait_for_ack(self, worker_ids=None, timeout=None) -> None:
-        if not self._ack_queues:
-            return
-        if worker_ids is None:
-            targets = list(self._ack_queues)
-        else:
-            targets = [worker_ids] if isinstance(worker_ids, int) else list(worker_ids)
+    def worker_failure(self, worker: int) -> WorkerFailure | None:
         procs = getattr(self.context, "procs", None) or []
-        deadline = time.monotonic() + (self.ack_timeout if timeout is None else timeout)
-        for i in targets:
-            while True:
-                try:
-                    self._ack_queues[i].get(timeout=self._POLL_S)
-                    break
-                except queue.Empty:
-                    pass
-                failure = dead_worker(self.role, procs[i:i + 1]) if i < len(procs) else None
-                if failure is not None:
-                    raise failure
-                if time.monotonic() > deadline:
-                    raise WorkerFailure(self.role, f"{self.role} worker {i} did not take new weights within "
-                                                   f"{self.ack_timeout:g} s")
+        return dead_worker(self.role, procs[worker:worker + 1]) if worker < len(procs) else None
+
+    def ack_timed_out(self, worker: int) -> WorkerFailure:
+        return WorkerFailure(self.role, f"{self.role} worker {worker} did not take new weights within "
+                                        f"{self.ack_timeout:g} s")
 
 
-class TimedSharedMemScheme(_AckDeadline, SharedMemWeightSyncScheme):
+class TimedSharedMemScheme(_SupervisedAcks, SharedMemWeightSyncScheme):
     """TorchRL's weight sync for multi-process collectors (shared memory), with a deadline on its acks."""
 
     def __init__(self, ack_timeout: float, role: str = "collector", **kwargs):
@@ -166,7 +143,7 @@ class TimedSharedMemScheme(_AckDeadline, SharedMemWeightSyncScheme):
         self.ack_timeout, self.role = float(ack_timeout), role
 
 
-class TimedMultiProcessScheme(_AckDeadline, MultiProcessWeightSyncScheme):
+class TimedMultiProcessScheme(_SupervisedAcks, MultiProcessWeightSyncScheme):
     """TorchRL's weight sync through queues (the evaluator's), with a deadline on its acks."""
 
     def __init__(self, ack_timeout: float, role: str = "evaluator", **kwargs):
@@ -421,15 +398,3 @@ def _cmdline(proc) -> list[str]:
         return proc.cmdline()
     except psutil.Error:
         return []
-
-
-def close_weight_sync_queues(collector) -> None:
-    """Shut a collector's weight-sync schemes down (TorchRL 0.14's collector shutdown leaves them, and
-    their ``__del__`` would do it later, perhaps at the interpreter's exit, where starting the queue
-    thread it needs hangs). Their queues may have a dead reader: never wait for them to drain."""
-    for scheme in (getattr(collector, "_weight_sync_schemes", None) or {}).values():
-        with contextlib.suppress(Exception):
-            for name in ("_weight_init_queues", "_instruction_queues", "_ack_queues"):
-                for q in (getattr(scheme, name, None) or {}).values():
-                    q.cancel_join_thread()
-            scheme.shutdown()

@@ -1,0 +1,131 @@
+"""Workarounds for TorchRL 0.14 (the floor and the ceiling today: ``torchrl>=0.14,<0.15``).
+
+Each says what 0.14 does, and when it can go. Most reach into TorchRL's private attributes, which is
+why they live here, together: an upgrade breaks them here first, and here is where to look.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import sys
+import threading
+import time
+
+__all__ = ["EVALUATOR_COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "evaluator_collector",
+           "evaluator_threads", "set_model_version", "start_evaluator_worker", "stop_evaluator_threads",
+           "write_cursor"]
+
+
+class AckDeadline:
+    """A mixin for TorchRL's weight-sync schemes (``SharedMemWeightSyncScheme``,
+    ``MultiProcessWeightSyncScheme``): their acknowledgements read with a deadline.
+
+    TorchRL 0.14's ``_wait_for_ack`` reads each worker's acknowledgement with no timeout (and ``send``
+    passes none): a worker that died holds the learner in that read for good. This reads with a
+    deadline, asking ``worker_failure(i)`` between reads whether worker ``i`` is gone; what a dead worker
+    or a missed deadline means (an exception to raise) is the subclass's: ``worker_failure`` and
+    ``ack_timed_out``. Delete when TorchRL's ``send`` takes a timeout and notices a dead worker
+    (not in 0.14; check at each TorchRL upgrade).
+    """
+
+    ack_timeout = 60.0
+    _POLL_S = 0.2
+
+    def worker_failure(self, worker: int) -> BaseException | None:
+        """The exception for worker ``worker`` if it is gone, else None."""
+        return None
+
+    def ack_timed_out(self, worker: int) -> BaseException:
+        return TimeoutError(f"worker {worker} did not take new weights within {self.ack_timeout:g} s")
+
+    def __del__(self):
+        # TorchRL 0.14's __del__ shuts the scheme down, which starts a queue thread: at the interpreter's
+        # exit that start waits forever (Python 3.11). The process's end frees what it would.
+        if not sys.is_finalizing():
+            super().__del__()
+
+    def _wait_for_ack(self, worker_ids=None, timeout=None) -> None:
+        if not self._ack_queues:
+            return
+        if worker_ids is None:
+            targets = list(self._ack_queues)
+        else:
+            targets = [worker_ids] if isinstance(worker_ids, int) else list(worker_ids)
+        deadline = time.monotonic() + (self.ack_timeout if timeout is None else timeout)
+        for i in targets:
+            while True:
+                try:
+                    self._ack_queues[i].get(timeout=self._POLL_S)
+                    break
+                except queue.Empty:
+                    pass
+                failure = self.worker_failure(i)
+                if failure is not None:
+                    raise failure
+                if time.monotonic() > deadline:
+                    raise self.ack_timed_out(i)
+
+
+def close_weight_sync_queues(collector) -> None:
+    """Shut a collector's weight-sync schemes down (TorchRL 0.14's collector shutdown leaves them, and
+    their ``__del__`` would do it later, perhaps at the interpreter's exit, where starting the queue
+    thread it needs hangs). Their queues may have a dead reader: never wait for them to drain.
+    Delete when ``collector.shutdown()`` shuts its schemes down (not in 0.14)."""
+    for scheme in (getattr(collector, "_weight_sync_schemes", None) or {}).values():
+        with contextlib.suppress(Exception):
+            for name in ("_weight_init_queues", "_instruction_queues", "_ack_queues"):
+                for q in (getattr(scheme, name, None) or {}).values():
+                    q.cancel_join_thread()
+            scheme.shutdown()
+
+
+def set_model_version(scheme, version: int) -> None:
+    """Stamp the weights a ``RayWeightSyncScheme`` sends next with ``version``. TorchRL 0.14 has no public
+    setter; its own Ray trainer (``trainers/_ray_execution.py``) stamps so. Delete when one exists."""
+    scheme._set_model_version(version)
+
+
+def write_cursor(replay_buffer) -> int:
+    """Where a full round-robin replay buffer writes next (its oldest item). TorchRL 0.14's
+    ``RoundRobinWriter`` has no public getter for it. Delete when it has one."""
+    return int(replay_buffer._writer._cursor)
+
+
+# --- torchrl.collectors.Evaluator (process backend) --------------------------------------------------
+
+
+def start_evaluator_worker(evaluator) -> None:
+    """Start an ``Evaluator``'s worker process now. TorchRL 0.14 starts it at the first request, from the
+    evaluator's thread, where its seconds of start-up can be neither waited for briefly nor stopped.
+    Delete when the evaluator starts its worker in its constructor or has a public ``start()``."""
+    evaluator._backend._ensure_collector()
+
+
+def evaluator_collector(evaluator):
+    """The collector running an ``Evaluator``'s episodes (None before its worker started); 0.14 has no
+    public accessor for it or its processes."""
+    return evaluator._backend._collector
+
+
+def evaluator_threads(evaluator) -> list[threading.Thread]:
+    """An ``Evaluator``'s threads: the one feeding requests, the one running them (0.14: private)."""
+    return [t for t in (evaluator._async_thread, evaluator._backend._thread) if t is not None]
+
+
+def stop_evaluator_threads(evaluator) -> None:
+    """Tell both of an ``Evaluator``'s threads to end at their next wake-up, and wake them.
+
+    TorchRL 0.14's ``Evaluator.shutdown`` joins them for a few seconds only, and a loaded machine left
+    them running past that; the caller joins them for as long as it needs instead. Delete when
+    ``shutdown`` takes a timeout it honours."""
+    backend = evaluator._backend
+    evaluator._async_shutdown = backend._shutdown_flag = True
+    evaluator._async_trigger.set()
+    backend._eval_ready.set()
+
+
+# TorchRL 0.14's Evaluator pads trajectories by default and warns (FutureWarning) that the default will
+# change; asking for "padded" keeps 0.14's behaviour without the warning. Delete at the upgrade that
+# changes the default (check which format the evaluator's reply then needs).
+EVALUATOR_COLLECTOR_KWARGS = {"traj_format": "padded"}
