@@ -164,7 +164,7 @@ def run(args) -> int:
     from rlpipe.pipelines.artifacts.files import write_json_atomic
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.system.runtime import DeferredInterrupt
-    from rlpipe.scripts.cli import check_output_dir
+    from rlpipe.scripts.output_paths import check_output_dir
 
     jobs = plan(args)
     check_output_dir(args.out)

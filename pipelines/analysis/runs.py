@@ -25,6 +25,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from rlpipe.pipelines.analysis.columns import CURVE_COLUMNS, RECORD_COLUMNS, RETURN_COL, STEP_COL
+from rlpipe.pipelines.analysis.stats import area_under_curve
+
 __all__ = [
     "METRICS_FILE",
     "RECORD_COLUMNS",
@@ -38,14 +41,6 @@ __all__ = [
 METRICS_FILE = "metrics.csv"
 SUMMARY_FILE = "summary.json"
 CONFIG_FILE = "config.json"
-RETURN_COL = "average_return"
-STEP_COL = "step"
-
-#: Columns of the per-run table (``records``) and of ``ablation.csv``.
-RECORD_COLUMNS = ["env", "variant", "seed", "final_return", "auc"]
-#: Columns of the long learning-curve table (``curves``).
-CURVE_COLUMNS = ["env", "variant", "seed", "step", "average_return"]
-
 _NUMERIC_COLUMNS = ("step", "frames", "average_return", "average_episode_length")
 
 
@@ -176,9 +171,6 @@ def collect_runs(
         :data:`CURVE_COLUMNS` plus ``frames``. A run whose env is unknown gets ``"unknown"``;
         a missing seed is NaN.
     """
-    # Imported here, not above: stats takes this module's table columns.
-    from rlpipe.pipelines.analysis.stats import area_under_curve
-
     records, curves = [], []
     for raw in run_dirs:
         run_dir = _run_dir(raw)

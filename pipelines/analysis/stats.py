@@ -22,12 +22,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from rlpipe.pipelines.analysis.runs import (
-    CURVE_COLUMNS,
-    RECORD_COLUMNS,
-    RETURN_COL,
-    STEP_COL,
-)
+from rlpipe.pipelines.analysis.columns import CURVE_COLUMNS, RECORD_COLUMNS, RETURN_COL, STEP_COL
 
 __all__ = [
     "area_under_curve",
