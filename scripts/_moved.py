@@ -36,9 +36,11 @@ class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
     """Finds ``rlpipe.scripts.<old>[.sub]`` and hands back the module at its new place."""
 
     def find_spec(self, fullname, path=None, target=None):
-        if _new_name(fullname) is None:
+        new = _new_name(fullname)
+        if new is None:
             return None
-        return importlib.util.spec_from_loader(fullname, self)
+        # the new file as origin: ``python -m`` of an old path gives it to the module as sys.argv[0]
+        return importlib.util.spec_from_loader(fullname, self, origin=importlib.util.find_spec(new).origin)
 
     def create_module(self, spec):
         new = _new_name(spec.name)
@@ -48,6 +50,13 @@ class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
     def exec_module(self, module):  # the module is the new one, already executed
         pass
+
+    def get_code(self, fullname):
+        """The new module's code, for ``python -m rlpipe.scripts.bench_minitaur`` (runpy asks for it)."""
+        new = _new_name(fullname)
+        warnings.warn(f"{fullname} moved to {new}: run python -m {new}; the old path goes in the next release",
+                      FutureWarning, stacklevel=2)  # FutureWarning: shown to a command-line user
+        return importlib.util.find_spec(new).loader.get_code(new)
 
 
 def install() -> None:

@@ -91,3 +91,14 @@ def test_the_tfagents_peer_finds_its_tutorial_scripts_in_a_checkout():
 
     assert tfagents.SCRIPT.is_file() and tfagents.DQN_SCRIPT.is_file()
     assert "tf_agents" in tfagents.DQN_SCRIPT.read_text()
+
+
+def test_python_dash_m_of_an_old_benchmark_path_still_runs_it_with_a_warning():
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "rlpipe.scripts.bench_dqn_tries", "--help"], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "--rounds" in proc.stdout
+    assert "moved to rlpipe.scripts.bench.dqn_tries" in proc.stderr
