@@ -26,6 +26,7 @@ from rlpipe.modules.optim import LeanAdam, clip_gradient_norms
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.sac_loss import LeanSACLoss
 from rlpipe.modules.target_updates import make_target_updater
+from rlpipe.modules.tensor_nets import importance_weights
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import (
     GRADIENT_CLIPPING,
@@ -186,7 +187,8 @@ class SAC(OffPolicyPipeline):
             obs, action, next_obs, reward, terminated = loss_module.tensors_from(batch)
             if self.config.reward_scale_factor != 1.0:
                 reward = reward * self.config.reward_scale_factor
-            out = loss_module.losses(obs, action, next_obs, reward, terminated)
+            out = loss_module.losses(obs, action, next_obs, reward, terminated,
+                                     weights=importance_weights(loss_module, batch))
         else:
             if self.config.reward_scale_factor != 1.0:
                 batch.set(("next", "reward"), batch.get(("next", "reward")) * self.config.reward_scale_factor)
