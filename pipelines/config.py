@@ -218,6 +218,9 @@ class TrainConfig:
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     ray: RayConfig = field(default_factory=RayConfig)
 
+    def validate_extra(self) -> None:
+        """Rules between an algorithm's own keys, if it has any (``validate`` calls this after the shared ones)."""
+
     @property
     def total_frames(self) -> int:
         return self.initial_collect_steps + self.num_iterations * self.collect_steps_per_iteration
@@ -277,9 +280,7 @@ def validate(cfg, *, machine: bool = True) -> None:
             f"batch_size={cfg.batch_size} is larger than replay_buffer_capacity={cfg.replay_buffer_capacity}: "
             "expected batch_size <= replay_buffer_capacity"
         )
-    extra = getattr(cfg, "validate_extra", None)
-    if extra is not None:
-        extra()
+    cfg.validate_extra()
     if machine:
         check_machine(cfg)
 
