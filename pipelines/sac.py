@@ -13,6 +13,7 @@ with a soft target update; its Learner and triggers are the shared loop.
 from __future__ import annotations
 
 import copy
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -20,9 +21,10 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.objectives import SACLoss
 
+from rlpipe.modules import optim
 from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
 from rlpipe.modules.critics import INITIALIZERS, make_qvalue_critic
-from rlpipe.modules.optim import LeanAdam, clip_gradient_norms
+from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.sac_loss import LeanSACLoss
 from rlpipe.modules.target_updates import make_target_updater
@@ -199,7 +201,7 @@ class SAC(OffPolicyPipeline):
             for name, opt in self.optimizers.items():
                 params = [p for group in opt.param_groups for p in group["params"]]
                 # the twin critics' parameters are stacked [2, ...]: each critic's tensor on its own
-                clip_gradient_norms(params, self.config.gradient_clipping, stacked=name == "qvalue")
+                optim.clip_gradient_norms(params, self.config.gradient_clipping, stacked=name == "qvalue")
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -218,3 +220,13 @@ class SAC(OffPolicyPipeline):
 
 
 preset = SAC.preset
+
+
+def __getattr__(name: str):
+    # clip_gradient_norms moved to rlpipe.modules.optim (DQN clips with it too); the old name goes
+    # in the release after 0.2.
+    if name == "clip_gradient_norms":
+        warnings.warn("rlpipe.pipelines.sac.clip_gradient_norms moved to rlpipe.modules.optim.clip_gradient_norms; "
+                      "the old name goes in the next release", DeprecationWarning, stacklevel=2)
+        return optim.clip_gradient_norms
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
