@@ -48,6 +48,7 @@ __all__ = ["DQNConfig", "DQN", "PRESETS", "preset"]
 class DQNConfig(TrainConfig):
     """DQN's keys; defaults are the tutorial's (``DqnAgent`` defaults included)."""
 
+    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
     env: str = "CartPole-v0"
     num_iterations: int = 20_000
     batch_size: int = 64
@@ -58,6 +59,7 @@ class DQNConfig(TrainConfig):
     eval_interval: int = 1000
     log_interval: int = 200
     checkpoint_interval: int = 5000
+    # DQN's own keys
     learning_rate: float = checked(1e-3, LEARNING_RATE)
     """Adam learning rate"""
     fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [100])

@@ -49,6 +49,7 @@ __all__ = ["SACConfig", "SAC", "PRESETS", "preset"]
 class SACConfig(TrainConfig):
     """SAC's keys; defaults are the actor-learner tutorial's (``SacAgent`` defaults included)."""
 
+    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
     env: str = "MinitaurBulletEnv-v0"
     """gymnasium env id with a continuous (Box) action space"""
     initial_collect_steps: int = 10_000
@@ -57,6 +58,7 @@ class SACConfig(TrainConfig):
     num_eval_episodes: int = 20
     baseline_episodes: int = 5
     """episodes of the random agent played once before training for its baseline return (RUN/baseline.json); 5 rather than num_eval_episodes: 20 random Minitaur episodes are ~70 s before the first update, for a baseline the SAC tutorial does not have; -1: num_eval_episodes; 0: none"""
+    # SAC's own keys
     actor_learning_rate: float = checked(3e-4, LEARNING_RATE)
     """Adam learning rate of the actor"""
     critic_learning_rate: float = checked(3e-4, LEARNING_RATE)

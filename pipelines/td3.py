@@ -76,6 +76,7 @@ INGREDIENTS = (
 class TD3Config(TrainConfig):
     """TD3's keys; defaults are the tutorial's (Pendulum-v1)."""
 
+    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
     env: str = "Pendulum-v1"
     """gymnasium env id with a continuous (Box) action space"""
     num_iterations: int = 90_000
@@ -88,6 +89,7 @@ class TD3Config(TrainConfig):
     """actor updates between target network updates (tutorial: 1, the targets move with every actor update)"""
     eval_interval: int = 5000
     checkpoint_interval: int = 5000
+    # TD3's own keys
     learning_rate: float = checked(3e-4, LEARNING_RATE)
     """Adam learning rate of actor and critics (tutorial: lr)"""
     actor_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256])
