@@ -5,7 +5,8 @@ This package never imports ``rlpipe.pipelines``: everything here is a plain Torc
     actors, critics, qnetworks, exploration   policies and value networks (TensorDict modules)
     td3_loss          TorchRL's TD3Loss with TD3's six ingredients as switches, and one TD3 step
     target_updates    SoftUpdate with a one-kernel step, for any loss with target networks
-    optim             LeanAdam: fused Adam without Optimizer.step's per-call Python
+    optim             LeanAdam: fused Adam without Optimizer.step's per-call Python;
+                      clip_gradient_norms: TF-Agents' per-tensor gradient clipping
     tensor_nets       TorchRL MLPs run on plain tensors (one copy, or stacked twin critics at once)
 """
 
@@ -19,7 +20,7 @@ from rlpipe.modules.actors import (
 )
 from rlpipe.modules.critics import make_qvalue_critic
 from rlpipe.modules.exploration import EGreedyQPolicy, epsilon_greedy
-from rlpipe.modules.optim import LeanAdam
+from rlpipe.modules.optim import LeanAdam, clip_gradient_norms
 from rlpipe.modules.qnetworks import make_qvalue_actor
 from rlpipe.modules.target_updates import ForeachSoftUpdate, make_target_updater
 from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
@@ -31,6 +32,7 @@ __all__ = [
     "TD3AblationLoss",
     "TanhBoundedMLP",
     "TanhNormalMode",
+    "clip_gradient_norms",
     "epsilon_greedy",
     "make_deterministic_actor",
     "make_exploration_policy",

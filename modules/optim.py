@@ -1,4 +1,5 @@
-"""``LeanAdam``: ``torch.optim.Adam(fused=True)`` without the per-call Python of ``Optimizer.step``.
+"""``LeanAdam``: ``torch.optim.Adam(fused=True)`` without the per-call Python of ``Optimizer.step``;
+``clip_gradient_norms``: TF-Agents' gradient clipping, one tensor at a time.
 
 Why this exists (TorchRL has no optimisers of its own; torch's is used everywhere else): for the
 small networks of the tutorials (TD3 on Pendulum: ~3,600 critic and ~1,300 actor parameters),
@@ -21,7 +22,7 @@ from __future__ import annotations
 import torch
 from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimizer_pre_hooks
 
-__all__ = ["LeanAdam"]
+__all__ = ["LeanAdam", "clip_gradient_norms"]
 
 
 def _adam_step_with_hooks():
@@ -109,3 +110,19 @@ class LeanAdam(torch.optim.Adam):
         for group in self.param_groups:
             for p in group["params"]:
                 p.grad = None
+
+
+def clip_gradient_norms(params, max_norm: float, stacked: bool = False) -> None:
+    """Scale each parameter's gradient to a norm of at most ``max_norm``, one tensor at a time
+    (``stacked``: each slice along the first dim, one per stacked network).
+
+    TF-Agents' ``eager_utils.clip_gradient_norms`` (``tf.clip_by_norm`` per variable), which
+    ``SacAgent``'s and ``DqnAgent``'s ``gradient_clipping`` apply; torch's ``clip_grad_norm_``
+    clips the norm of all gradients together instead, a different rule.
+    """
+    grads = [p.grad for p in params if p.grad is not None]
+    if stacked:
+        grads = [g for grad in grads for g in grad.unbind(0)]
+    if grads:
+        norms = torch._foreach_norm(grads)
+        torch._foreach_mul_(grads, [torch.clamp(max_norm / (n + 1e-6), max=1.0) for n in norms])

@@ -44,6 +44,7 @@ from torchrl.objectives.utils import distance_loss
 from rlpipe.modules.actors import TanhBoundedMLP
 from rlpipe.modules.tensor_nets import (
     cached_flat_params,
+    importance_weights,
     is_plain_module,
     mlp_layers,
     run_mlp,
@@ -289,16 +290,19 @@ class TD3AblationLoss(TD3Loss):
         the sum over critics of each one's mean loss: the critics share no parameters, so the
         gradients are the tutorial's two separate ``mse_loss`` backward passes.
         ``weights`` (importance weights of a prioritized buffer, shape of ``reward`` without its
-        last dim) multiply the per-sample losses.
+        last dim) make each critic's mean a weighted one, as TD3Loss's.
         """
         target, next_q = self.value_target(next_observation, reward, terminated)
         predictions = self._qvalues("qvalue_network_params", observation, action)
         per_sample = distance_loss(
             predictions, target.expand_as(predictions), loss_function=self.loss_function
         )
-        if weights is not None:
-            per_sample = per_sample * weights.unsqueeze(-1)
-        loss = per_sample.mean(dim=tuple(range(1, per_sample.ndim))).sum()
+        per_critic = tuple(range(1, per_sample.ndim))
+        if weights is None:
+            loss = per_sample.mean(dim=per_critic).sum()
+        else:  # TorchRL's weighted mean (LossModule._reduce_loss): sum(w * loss) / sum(w)
+            w = weights.unsqueeze(-1)
+            loss = ((per_sample * w).sum(dim=per_critic) / w.sum()).sum()
         return loss, predictions, target, next_q
 
     def actor_loss_from_tensors(
@@ -311,8 +315,10 @@ class TD3AblationLoss(TD3Loss):
         """
         action = self._actor("actor_network_params", observation)
         q1 = self._qvalues("qvalue_network_params", observation, action, index=0)
-        objective = q1 if weights is None else q1 * weights.unsqueeze(-1)
-        return -objective.mean(), q1
+        if weights is None:
+            return -q1.mean(), q1
+        w = weights.unsqueeze(-1)
+        return -(q1 * w).sum() / w.sum(), q1  # TD3Loss's weighted mean
 
     def tensors_from(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, ...]:
         """(observation, action, next observation, next reward, next terminated) of a batch."""
@@ -362,7 +368,8 @@ def td3_update(
     Args:
         loss: a ``TD3AblationLoss`` (fast, on tensors) or any TorchRL ``TD3Loss`` (through its
             own ``value_loss``/``actor_loss``).
-        batch: a replay-buffer sample with the loss's keys (observation, action, ("next", ...)).
+        batch: a replay-buffer sample with the loss's keys (observation, action, ("next", ...));
+            a prioritized buffer's importance weights in it weigh the losses, as in ``TD3Loss``.
         critic_optimizer: optimiser over ``loss.qvalue_network_params.parameters()`` (the
             tutorial: ``torch.optim.Adam(..., lr=3e-4)``; ``rlpipe.modules.optim.LeanAdam``,
             the same fused Adam with less Python per step, is what the TD3 pipeline uses).
@@ -386,7 +393,9 @@ def td3_update(
     fast = isinstance(loss, TD3AblationLoss)
     if fast:
         observation, action, next_observation, reward, terminated = loss.tensors_from(batch)
-        critic_loss = loss.qvalue_loss_from_tensors(observation, action, next_observation, reward, terminated)[0]
+        weights = importance_weights(loss, batch)
+        critic_loss = loss.qvalue_loss_from_tensors(observation, action, next_observation, reward, terminated,
+                                                    weights)[0]
     else:
         critic_loss = loss.value_loss(batch)[0]
     critic_optimizer.zero_grad(set_to_none=True)
@@ -396,7 +405,7 @@ def td3_update(
 
     actor_every = policy_delay if delayed_policy_updates else 1
     if update_index % actor_every == 0:
-        actor_loss = loss.actor_loss_from_tensors(observation)[0] if fast else loss.actor_loss(batch)[0]
+        actor_loss = loss.actor_loss_from_tensors(observation, weights)[0] if fast else loss.actor_loss(batch)[0]
         actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()
         actor_optimizer.step()

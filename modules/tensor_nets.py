@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torchrl.modules import MLP
 
-__all__ = ["is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
+__all__ = ["importance_weights", "is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
            "transition_tensors"]
 
 Layers = list[tuple[str, object]]
@@ -100,6 +100,14 @@ def transition_tensors(tensordict, observation_key, tensor_keys) -> tuple[torch.
         tensordict.get(("next", tensor_keys.reward)),
         tensordict.get(("next", tensor_keys.terminated)),
     )
+
+
+def importance_weights(loss, tensordict) -> torch.Tensor | None:
+    """A prioritized buffer's importance weights in a replay batch (``[*batch]``), or None: read as
+    TorchRL's own losses read them (``loss.tensor_keys.priority_weight``, in TorchRL 0.14
+    "priority_weight", the key ``PrioritizedSampler`` writes; none when ``use_prioritized_weights``
+    is off), so a loss computed on tensors weighs samples as the TensorDict one does."""
+    return loss._maybe_get_priority_weight(tensordict)
 
 
 def run_mlp(layers: Layers, params: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:

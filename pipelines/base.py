@@ -43,7 +43,7 @@ from rlpipe.envs import EnvError, describe_action_space, env_label, is_discrete,
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.files import STORAGE_ERRNOS, FileWriteError
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_dir, notice
-from rlpipe.pipelines.config import TrainConfig, config_to_dict, validate
+from rlpipe.pipelines.config import TrainConfig, config_to_dict, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.memory import check_memory
 from rlpipe.pipelines.system.runtime import start_resource_tracker
@@ -123,7 +123,8 @@ class OffPolicyPipeline:
         self.observation_key = self._observation_key(observation_key)
         self.observation_dim = int(self.env.observation_spec[self.observation_key].shape[-1])
         action_dim = int(self.action_spec.space.n) if is_discrete(self.action_spec) else int(self.action_spec.shape[-1])
-        check_memory(cfg, self.env, self.observation_key, action_dim, self.device)  # before a network is built
+        check_memory(cfg, self.env, self.observation_key, action_dim, self.device,  # before a network is built
+                     stored=self._replay_keys(), networks=layer_sizes(cfg))
         self.state = RunState.fresh(cfg)
 
     def _space_phrase(self) -> str:
@@ -187,10 +188,19 @@ class OffPolicyPipeline:
         self.optimizers = self.make_optimizers()
         self.target_updater = self.make_target_updater()
         self.replay_buffer = self.make_replay_buffer()
-        # What the loop stores of each transition (None: everything the collector returns). The
-        # loss's in_keys are 6 of the collector's 16: sampling them costs about a third less.
-        self.replay_keys: list | None = None if self.config.replay_all_keys else list(self.loss_module.in_keys)
+        self.replay_keys = self._replay_keys()
         self.update_step = self.make_update_step()
+
+    def _replay_keys(self) -> list | None:
+        """What the loop stores of each transition (None: everything the collector returns): the keys
+        the loss reads, 6 of the collector's 16 (sampling them costs about a third less). Before the
+        loss is built (the memory check), the transition's keys, which every built-in loss reads."""
+        if self.config.replay_all_keys:
+            return None
+        if hasattr(self, "loss_module"):
+            return list(self.loss_module.in_keys)
+        obs = self.observation_key
+        return [obs, "action", ("next", obs), ("next", "reward"), ("next", "done"), ("next", "terminated")]
 
     def update_periods(self) -> list[int]:
         """The index periods ``update`` branches on (``update_index % p == 0``), each dividing the

@@ -4,8 +4,13 @@ Keys keep the TF-Agents tutorials' names where they mean the same thing (``num_i
 ``initial_collect_steps``, ``collect_steps_per_iteration``, ``replay_buffer_capacity``, ...), so a
 reader of the tutorials finds them. Each field's docstring is its help text (``rlpipe train X --help``).
 
-Overrides are parsed and type-checked by OmegaConf's structured configs; what OmegaConf cannot know
-(positive sizes, ranges, choices) is checked in ``validate``.
+``TrainConfig`` holds the keys every algorithm shares, with neutral defaults; each algorithm's config
+(``DQN.Config``, ``TD3.Config``, ``SAC.Config``) adds its own keys and sets the defaults of its tutorial.
+
+Overrides are parsed and type-checked by OmegaConf's structured configs. What OmegaConf cannot know
+is checked in ``validate``: a rule on one key's value (positive, a choice, a range) is declared with
+its field (``checked(default, POSITIVE)``) and a subclass that only changes the default keeps it;
+rules between keys are written out in ``validate`` (an algorithm's own in its ``validate_extra``).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import inspect
 import math
 import os
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,39 +33,114 @@ from omegaconf.errors import OmegaConfBaseException
 from rlpipe.pipelines.errors import InputError
 
 __all__ = [
+    "GRADIENT_CLIPPING",
+    "LAYER_SIZES",
+    "LEARNING_RATE",
+    "NON_NEGATIVE",
+    "POSITIVE",
+    "PROBABILITY",
+    "Check",
     "CollectorConfig",
     "RayConfig",
     "TrainConfig",
     "apply_overrides",
     "available_devices",
     "check_machine",
+    "checked",
     "config_to_dict",
     "config_from_dict",
     "field_docs",
     "flat_keys",
+    "layer_sizes",
+    "one_of",
     "validate",
 ]
+
+
+# --- rules on one key's value, declared with its field --------------------------------------------
+
+
+@dataclass(frozen=True)
+class Check:
+    """What one key's value must be: ``validate`` raises ``InputError("key=value: expected ...")``
+    when ``ok(value)`` is false. Declared as the field's metadata by ``checked``; null values pass."""
+
+    ok: Callable[[Any], bool]
+    expected: str | Callable[[Any], str]
+
+    def describe(self, value) -> str:
+        return self.expected(value) if callable(self.expected) else self.expected
+
+
+def _number(value) -> str:
+    return "number" if isinstance(value, float) else "integer"
+
+
+POSITIVE = Check(lambda v: v > 0, lambda v: f"a positive {_number(v)}")
+NON_NEGATIVE = Check(lambda v: v >= 0, lambda v: f"zero or a positive {_number(v)}")
+PROBABILITY = Check(lambda v: 0.0 <= v <= 1.0, "a probability in [0, 1]")
+LEARNING_RATE = Check(lambda v: v > 0, "a positive learning rate")
+GRADIENT_CLIPPING = Check(lambda v: v > 0, "a positive norm, or null for none")
+LAYER_SIZES = Check(lambda v: bool(v) and all(n > 0 for n in v),
+                    "a non-empty list of positive layer sizes, e.g. [256,256]")
+"""hidden layer sizes of a network (the memory check counts the parameters of every such key)"""
+
+
+def one_of(*choices: str, expected: str | None = None) -> Check:
+    return Check(lambda v: v in choices, expected or f"one of {', '.join(repr(c) for c in choices)}")
+
+
+def checked(default: Any = dataclasses.MISSING, check: Check | None = None, *, factory: Callable[[], Any] | None = None):
+    """A dataclass field whose value ``validate`` checks with ``check`` (``factory``: a mutable default)."""
+    kwargs = {"default_factory": factory} if factory is not None else {"default": default}
+    return field(metadata={"check": check}, **kwargs)
+
+
+def _checks(cls: type, prefix: str = "") -> dict[str, Check]:
+    """Every key's declared rule. A subclass that redeclares a field only for its default has no
+    metadata of its own there; the rule of the nearest class that declares one holds."""
+    rules: dict[str, Check] = {}
+    for klass in reversed(cls.__mro__):
+        for name, f in getattr(klass, "__dataclass_fields__", {}).items():
+            if f.metadata.get("check") is not None:
+                rules[prefix + name] = f.metadata["check"]
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]):
+            rules.update(_checks(hints[f.name], prefix + f.name + "."))
+    return rules
+
+
+def layer_sizes(cfg) -> dict[str, list[int]]:
+    """The keys of ``cfg`` that give a network's hidden layer sizes (declared ``LAYER_SIZES``), with their values."""
+    return {key: _get(cfg, key) for key, check in _checks(type(cfg)).items() if check is LAYER_SIZES}
+
+
+MAX_SEED = 2**31 - 1
+"""seeds go to torch, NumPy (below 2**32) and gymnasium, offset per worker and eval env: this keeps them all in range"""
+WORKERS_PER_CPU = 8
+"""collector processes per CPU beyond which a run only thrashes (each is a whole Python process with torch)"""
 
 
 @dataclass
 class CollectorConfig:
     """How env steps are gathered: TorchRL collectors in place of TF-Agents' actor processes."""
 
-    workers: int = 1
+    workers: int = checked(1, POSITIVE)
     """collector processes; 1 with sync=true steps the env in the learner's process (TorchRL `Collector`)"""
     sync: bool = True
     """true: `MultiSyncCollector` (workers step in lock-step); false: `MultiAsyncCollector` (collection overlaps learning)"""
-    envs_per_worker: int = 1
+    envs_per_worker: int = checked(1, POSITIVE)
     """env copies each worker steps as one batch (gymnasium's SyncVectorEnv): the policy and TorchRL's per-step work run once per batch; made from `env` (evaluation keeps one copy)"""
-    frames_per_batch: int = 50
+    frames_per_batch: int = checked(50, POSITIVE)
     """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
-    weight_sync_interval: int = 1
+    weight_sync_interval: int = checked(1, POSITIVE)
     """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container); with backend=ray a worker gets the learner's weights each time it is asked for a block"""
-    backend: str = "local"
+    backend: str = checked("local", one_of("local", "ray", expected="'local' (collector processes) or 'ray' (Ray actors)"))
     """'local': collector processes on this machine; 'ray': collectors as Ray actors placed by Ray (TorchRL's `RayCollector`; see the `ray` keys)"""
-    max_restarts: int = 3
+    max_restarts: int = checked(3, NON_NEGATIVE)
     """restarts allowed (each of the collector and of the background evaluator, per session) when a worker process dies or stops answering; one more failure saves a checkpoint and stops the run (exit status 75)"""
-    timeout: float = 120.0
+    timeout: float = checked(120.0, POSITIVE)
     """seconds any wait on collector processes may take (a block of env steps, a weight push; their start-up: at least 300) before the wait counts as a failed worker"""
 
 
@@ -69,72 +150,76 @@ class RayConfig:
 
     address: str = ""
     """the Ray cluster to use: empty starts a local Ray instance for this run (shut down at its end); HOST:PORT, or 'auto' (RAY_ADDRESS if set, else the cluster `ray start` began on this machine), joins a running cluster, which the run leaves up"""
-    num_cpus_per_worker: float = 1.0
+    num_cpus_per_worker: float = checked(1.0, Check(lambda v: v > 0, "a positive number of CPUs"))
     """CPUs Ray reserves for each collector actor (a fraction packs several actors on one core)"""
 
 
 @dataclass
 class TrainConfig:
-    """What every off-policy pipeline shares. Intervals count iterations (train steps)."""
+    """The keys every off-policy pipeline shares, with neutral defaults: each algorithm's config
+    (``DQN.Config``, ``TD3.Config``, ``SAC.Config``) sets its tutorial's. Intervals count iterations (train steps)."""
 
-    env: str = "CartPole-v0"
+    env: str = ""
     """gymnasium env id (the tutorials' ids work too, e.g. MinitaurBulletEnv-v0)"""
-    seed: int = 0
+    seed: int = checked(0, Check(lambda v: 0 <= v <= MAX_SEED, f"an integer from 0 to {MAX_SEED}"))
     """seed for networks, replay sampling, exploration and envs; worker seeds derive from it"""
-    num_iterations: int = 20_000
+    num_iterations: int = checked(100_000, POSITIVE)
     """training iterations after the initial collect; each collects `collect_steps_per_iteration` env steps and makes one update"""
-    initial_collect_steps: int = 1000
+    initial_collect_steps: int = checked(1000, NON_NEGATIVE)
     """env steps taken with a uniformly random policy before the collect policy takes over"""
-    collect_steps_per_iteration: int = 1
+    collect_steps_per_iteration: int = checked(1, POSITIVE)
     """env steps per iteration (per update): the inverse of the update-to-data ratio"""
-    learning_starts: int | None = None
+    learning_starts: int | None = checked(None, NON_NEGATIVE)
     """env steps collected before updates begin; each later step pays for 1/`collect_steps_per_iteration` updates (null: `initial_collect_steps`, as TF-Agents does)"""
-    replay_buffer_capacity: int = 100_000
+    replay_buffer_capacity: int = checked(100_000, POSITIVE)
     """transitions kept; the oldest are evicted first"""
-    batch_size: int = 64
+    batch_size: int = checked(256, POSITIVE)
     """transitions per update, sampled uniformly"""
     replay_all_keys: bool = False
     """store every key the collector returns (true: e.g. to inspect ("collector", "traj_ids") or step counts in the buffer); false stores only the keys the loss reads (`loss_module.in_keys`): less memory, faster sampling"""
-    gamma: float = 0.99
+    gamma: float = checked(0.99, Check(lambda v: 0.0 < v <= 1.0, "a discount in (0, 1]"))
     """discount factor"""
-    target_update_tau: float = 1.0
+    target_update_tau: float = checked(0.005, Check(lambda v: 0.0 < v <= 1.0, "a value in (0, 1]"))
     """target network soft-update factor (1.0 copies the online network)"""
-    target_update_period: int = 1
+    target_update_period: int = checked(1, POSITIVE)
     """updates between target network updates"""
-    eval_interval: int = 1000
+    eval_interval: int = checked(10_000, NON_NEGATIVE)
     """iterations between evaluations of the deterministic policy (0: only before and after training)"""
-    num_eval_episodes: int = 10
+    num_eval_episodes: int = checked(10, POSITIVE)
     """episodes per evaluation; their mean return is AverageReturn"""
-    baseline_episodes: int = -1
+    baseline_episodes: int = checked(-1, Check(lambda v: v >= -1, "-1 (num_eval_episodes), 0 (no baseline) or a positive count"))
     """episodes of the random agent played once before training for its baseline return (RUN/baseline.json, the DQN tutorial's); -1: num_eval_episodes; 0: no baseline"""
     eval_in_background: bool = False
     """evaluate in a separate process on a snapshot of the policy while training goes on (TorchRL's `Evaluator`); results land at the iteration they were taken"""
-    eval_timeout: float = 600.0
+    eval_timeout: float = checked(600.0, POSITIVE)
     """seconds a background evaluation may take before its process counts as failed (it is restarted and asked again, as for `collector.max_restarts`)"""
-    log_interval: int = 200
+    log_interval: int = checked(1000, POSITIVE)
     """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
-    policy_save_interval: int = 5000
+    policy_save_interval: int = checked(5000, POSITIVE)
     """iterations between exports of the deterministic policy (the tutorials' saved policy)"""
-    policy_keep: int = 0
+    policy_keep: int = checked(0, NON_NEGATIVE)
     """exports kept in policy/ as step_NNNNNNN.onnx/.pt2 (the newest; 0: all, as the tutorials keep every saved policy); policy.onnx/.pt2 is always the latest"""
-    checkpoint_interval: int = 5000
+    checkpoint_interval: int = checked(10_000, POSITIVE)
     """iterations between checkpoints that `--resume` continues from"""
     video: bool = False
     """at the end of training, film the trained policy to RUN/trained-agent.mp4 (as `rlpipe video RUN`) and show it on RUN/report.html"""
-    checkpoint_keep: int = 2
+    checkpoint_keep: int = checked(2, NON_NEGATIVE)
     """checkpoints kept, newest first (the oldest goes once a new one is whole; `--resume` falls back on an older one if the newest is damaged); 0 keeps every one"""
     compile: bool = False
     """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU); on device=cuda also replays it as CUDA graphs (see `cudagraph`)"""
     cudagraph: bool | None = None
     """on device=cuda, replay the update as CUDA graphs (tensordict's CudaGraphModule: one launch instead of hundreds of small kernels); null: when `compile` is true"""
-    num_threads: int = -1
+    num_threads: int = checked(-1, Check(lambda v: v >= -1, "-1 (chosen at start), 0 (torch's default) or a positive count"))
     """torch threads of the learner; -1: chosen at the start of training (the cores collector processes leave free, then the fastest count there by a short timing of the loss), recorded in config.json; 0: torch's default"""
     device: str = "cpu"
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
-    initial_collect_policy: str = "random"
+    initial_collect_policy: str = checked("random", one_of("random", "collect"))
     """policy of the `initial_collect_steps`: 'random' (uniform actions, the DQN and actor-learner SAC tutorials) or 'collect' (the exploring policy of the untrained networks, the older SAC tutorial's driver)"""
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     ray: RayConfig = field(default_factory=RayConfig)
+
+    def validate_extra(self) -> None:
+        """Rules between an algorithm's own keys, if it has any (``validate`` calls this after the shared ones)."""
 
     @property
     def total_frames(self) -> int:
@@ -146,21 +231,6 @@ class TrainConfig:
 
 
 # --- the one place that validates ---------------------------------------------------------------
-
-_POSITIVE = {
-    "num_iterations", "collect_steps_per_iteration", "replay_buffer_capacity", "batch_size",
-    "target_update_period", "num_eval_episodes", "log_interval", "policy_save_interval",
-    "checkpoint_interval", "collector.workers", "collector.frames_per_batch",
-    "collector.weight_sync_interval", "collector.envs_per_worker", "collector.timeout", "eval_timeout",
-}
-_NON_NEGATIVE = {"initial_collect_steps", "learning_starts", "eval_interval", "policy_keep", "checkpoint_keep",
-                 "collector.max_restarts"}
-_CHOICES = {"initial_collect_policy": ("random", "collect")}
-
-MAX_SEED = 2**31 - 1
-"""seeds go to torch, NumPy (below 2**32) and gymnasium, offset per worker and eval env: this keeps them all in range"""
-WORKERS_PER_CPU = 8
-"""collector processes per CPU beyond which a run only thrashes (each is a whole Python process with torch)"""
 
 
 def _get(cfg, dotted: str):
@@ -176,38 +246,22 @@ def validate(cfg, *, machine: bool = True) -> None:
     process counts within its CPUs); a saved config (``config_from_dict``) skips those, so a run
     moved to another machine can be resumed with the keys changed there.
     """
+    rules = _checks(type(cfg))
     for key in flat_keys(type(cfg)):
         value = _get(cfg, key)
-        leaf = key.rsplit(".", 1)[-1]
         if value is None:
             continue
         if isinstance(value, float) and not math.isfinite(value):
             raise InputError(f"{key}={value}: expected a finite number")
-        if (key in _POSITIVE or leaf in _POSITIVE or leaf.endswith("_interval") and leaf not in _NON_NEGATIVE) and value <= 0:
-            raise InputError(f"{key}={value}: expected a positive {'number' if isinstance(value, float) else 'integer'}")
-        if (key in _NON_NEGATIVE or leaf in _NON_NEGATIVE) and value < 0:
-            raise InputError(f"{key}={value}: expected zero or a positive integer")
-        if leaf.endswith("learning_rate") and not value > 0:
-            raise InputError(f"{key}={value}: expected a positive learning rate")
-        if leaf.endswith("layer_params") and (not value or any(v <= 0 for v in value)):
-            raise InputError(f"{key}={value}: expected a non-empty list of positive layer sizes, e.g. [256,256]")
-        if key in _CHOICES and value not in _CHOICES[key]:
-            raise InputError(f"{key}={value!r}: expected one of {', '.join(repr(c) for c in _CHOICES[key])}")
-    if not 0 <= cfg.seed <= MAX_SEED:
-        raise InputError(f"seed={cfg.seed}: expected an integer from 0 to {MAX_SEED}")
-    if cfg.baseline_episodes < -1:
-        raise InputError(f"baseline_episodes={cfg.baseline_episodes}: expected -1 (num_eval_episodes), 0 (no baseline) "
-                         "or a positive count")
-    if cfg.num_threads < -1:
-        raise InputError(f"num_threads={cfg.num_threads}: expected -1 (chosen at start), 0 (torch's default) or a positive count")
+        check = rules.get(key)
+        if check is not None and not check.ok(value):
+            shown = repr(value) if isinstance(value, str) else value
+            raise InputError(f"{key}={shown}: expected {check.describe(value)}")
+    # Rules between keys: here, or in an algorithm config's ``validate_extra`` for its own keys.
     if cfg.cudagraph and str(cfg.device).split(":")[0] != "cuda":
         raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
                          "cudagraph=false or null on this device")
     c = cfg.collector
-    if c.backend not in ("local", "ray"):
-        raise InputError(f"collector.backend={c.backend!r}: expected 'local' (collector processes) or 'ray' (Ray actors)")
-    if not cfg.ray.num_cpus_per_worker > 0:
-        raise InputError(f"ray.num_cpus_per_worker={cfg.ray.num_cpus_per_worker}: expected a positive number of CPUs")
     if c.backend == "ray" and importlib.util.find_spec("ray") is None:
         raise InputError("collector.backend=ray: Ray is not installed; expected `pip install 'rlpipe[ray]'` "
                          "(or collector.backend=local)")
@@ -221,18 +275,12 @@ def validate(cfg, *, machine: bool = True) -> None:
     if c.backend == "ray" and c.sync and c.frames_per_batch % c.workers:
         raise InputError(f"collector.frames_per_batch={c.frames_per_batch} does not split evenly over "
                          f"collector.workers={c.workers} Ray actors (collector.sync=true): expected a multiple of {c.workers}")
-    if not 0.0 < cfg.gamma <= 1.0:
-        raise InputError(f"gamma={cfg.gamma}: expected a discount in (0, 1]")
-    if not 0.0 < cfg.target_update_tau <= 1.0:
-        raise InputError(f"target_update_tau={cfg.target_update_tau}: expected a value in (0, 1]")
     if cfg.batch_size > cfg.replay_buffer_capacity:
         raise InputError(
             f"batch_size={cfg.batch_size} is larger than replay_buffer_capacity={cfg.replay_buffer_capacity}: "
             "expected batch_size <= replay_buffer_capacity"
         )
-    extra = getattr(cfg, "validate_extra", None)
-    if extra is not None:
-        extra()
+    cfg.validate_extra()
     if machine:
         check_machine(cfg)
 

@@ -14,7 +14,7 @@ them instead (``DQN(config, env=..., actor=..., loss_module=...)``).
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -24,11 +24,21 @@ from torchrl.objectives import DQNLoss
 
 from rlpipe.modules import epsilon_greedy, make_qvalue_actor
 from rlpipe.modules.dqn_loss import LeanDQNLoss
-from rlpipe.modules.optim import LeanAdam
+from rlpipe.modules.optim import LeanAdam, clip_gradient_norms
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.target_updates import make_target_updater
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
-from rlpipe.pipelines.config import CollectorConfig, TrainConfig
+from rlpipe.pipelines.config import (
+    GRADIENT_CLIPPING,
+    LAYER_SIZES,
+    LEARNING_RATE,
+    POSITIVE,
+    PROBABILITY,
+    CollectorConfig,
+    TrainConfig,
+    checked,
+    one_of,
+)
 from rlpipe.pipelines.errors import InputError
 
 __all__ = ["DQNConfig", "DQN", "PRESETS", "preset"]
@@ -38,34 +48,34 @@ __all__ = ["DQNConfig", "DQN", "PRESETS", "preset"]
 class DQNConfig(TrainConfig):
     """DQN's keys; defaults are the tutorial's (``DqnAgent`` defaults included)."""
 
+    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
+    env: str = "CartPole-v0"
+    num_iterations: int = 20_000
+    batch_size: int = 64
     gamma: float = 1.0
     """discount factor (DqnAgent's default of 1.0, which the tutorial relies on)"""
-    learning_rate: float = 1e-3
+    target_update_tau: float = 1.0
+    """target network soft-update factor (1.0, DqnAgent's default: a copy of the online network)"""
+    eval_interval: int = 1000
+    log_interval: int = 200
+    checkpoint_interval: int = 5000
+    # DQN's own keys
+    learning_rate: float = checked(1e-3, LEARNING_RATE)
     """Adam learning rate"""
-    fc_layer_params: list[int] = field(default_factory=lambda: [100])
+    fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [100])
     """hidden layer sizes of the Q-network"""
-    epsilon_greedy: float = 0.1
+    epsilon_greedy: float = checked(0.1, PROBABILITY)
     """probability of a random action in the collect policy"""
-    epsilon_greedy_end: float | None = None
+    epsilon_greedy_end: float | None = checked(None, PROBABILITY)
     """if set, epsilon decays linearly from `epsilon_greedy` to this value over `epsilon_decay_steps` env steps"""
-    epsilon_decay_steps: int = 1
+    epsilon_decay_steps: int = checked(1, POSITIVE)
     """env steps over which epsilon decays (with `epsilon_greedy_end`)"""
-    td_errors_loss: str = "l2"
+    td_errors_loss: str = checked("l2", one_of("l2", "smooth_l1"))
     """TD error loss: 'l2' (element-wise squared, the tutorial's) or 'smooth_l1' (Huber)"""
     double_dqn: bool = False
     """use the online network to pick the next action (Double DQN)"""
-    gradient_clipping: float | None = None
-    """clip the gradient norm to this value (null: no clipping)"""
-
-    def validate_extra(self) -> None:
-        if self.td_errors_loss not in ("l2", "smooth_l1"):
-            raise InputError(f"td_errors_loss={self.td_errors_loss!r}: expected 'l2' or 'smooth_l1'")
-        for key in ("epsilon_greedy", "epsilon_greedy_end"):
-            value = getattr(self, key)
-            if value is not None and not 0.0 <= value <= 1.0:
-                raise InputError(f"{key}={value}: expected a probability in [0, 1]")
-        if self.epsilon_decay_steps <= 0:
-            raise InputError(f"epsilon_decay_steps={self.epsilon_decay_steps}: expected a positive integer")
+    gradient_clipping: float | None = checked(None, GRADIENT_CLIPPING)
+    """clip each gradient tensor's norm to this value before the optimiser steps, as DqnAgent's gradient_clipping does (TF-Agents' clip_gradient_norms, per variable; not one norm over all gradients); null: no clipping"""
 
 
 def _tutorial() -> DQNConfig:
@@ -212,7 +222,7 @@ class DQN(OffPolicyPipeline):
         loss = self.loss_module(batch)["loss"]
         loss.backward()
         if self.config.gradient_clipping is not None:
-            torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), self.config.gradient_clipping)
+            clip_gradient_norms(self.loss_module.parameters(), self.config.gradient_clipping)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         if self.target_updater is not None and update_index % self.config.target_update_period == 0:

@@ -13,21 +13,33 @@ with a soft target update; its Learner and triggers are the shared loop.
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.objectives import SACLoss
 
+from rlpipe.modules import optim
 from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
 from rlpipe.modules.critics import INITIALIZERS, make_qvalue_critic
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.sac_loss import LeanSACLoss
 from rlpipe.modules.target_updates import make_target_updater
+from rlpipe.modules.tensor_nets import importance_weights
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
-from rlpipe.pipelines.config import CollectorConfig, TrainConfig
+from rlpipe.pipelines.config import (
+    GRADIENT_CLIPPING,
+    LAYER_SIZES,
+    LEARNING_RATE,
+    Check,
+    CollectorConfig,
+    TrainConfig,
+    checked,
+    one_of,
+)
 from rlpipe.pipelines.errors import InputError
 
 __all__ = ["SACConfig", "SAC", "PRESETS", "preset"]
@@ -37,65 +49,36 @@ __all__ = ["SACConfig", "SAC", "PRESETS", "preset"]
 class SACConfig(TrainConfig):
     """SAC's keys; defaults are the actor-learner tutorial's (``SacAgent`` defaults included)."""
 
+    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
     env: str = "MinitaurBulletEnv-v0"
     """gymnasium env id with a continuous (Box) action space"""
-    num_iterations: int = 100_000
-    """training iterations after the initial collect (one env step and one update each)"""
     initial_collect_steps: int = 10_000
-    """env steps taken with a uniformly random policy before the collect policy takes over"""
     replay_buffer_capacity: int = 10_000
     """transitions kept; the oldest are evicted first (the tutorial's Reverb table size)"""
-    batch_size: int = 256
-    """transitions per update, sampled uniformly"""
-    actor_learning_rate: float = 3e-4
+    num_eval_episodes: int = 20
+    baseline_episodes: int = 5
+    """episodes of the random agent played once before training for its baseline return (RUN/baseline.json); 5 rather than num_eval_episodes: 20 random Minitaur episodes are ~70 s before the first update, for a baseline the SAC tutorial does not have; -1: num_eval_episodes; 0: none"""
+    # SAC's own keys
+    actor_learning_rate: float = checked(3e-4, LEARNING_RATE)
     """Adam learning rate of the actor"""
-    critic_learning_rate: float = 3e-4
+    critic_learning_rate: float = checked(3e-4, LEARNING_RATE)
     """Adam learning rate of the twin critics"""
-    alpha_learning_rate: float = 3e-4
+    alpha_learning_rate: float = checked(3e-4, LEARNING_RATE)
     """Adam learning rate of the entropy temperature"""
-    target_update_tau: float = 0.005
-    """target critics' soft-update factor"""
-    target_update_period: int = 1
-    """updates between target critic updates"""
-    gamma: float = 0.99
-    """discount factor"""
-    reward_scale_factor: float = 1.0
+    reward_scale_factor: float = checked(1.0, Check(lambda v: v != 0, "a non-zero scale"))
     """rewards are multiplied by this in the critic's target"""
-    actor_fc_layer_params: list[int] = field(default_factory=lambda: [256, 256])
+    actor_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256, 256])
     """hidden layer sizes of the actor"""
-    critic_joint_fc_layer_params: list[int] = field(default_factory=lambda: [256, 256])
+    critic_joint_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256, 256])
     """hidden layer sizes of each critic (over observation and action joined)"""
-    initial_alpha: float = 1.0
+    initial_alpha: float = checked(1.0, Check(lambda v: v > 0, "a positive temperature"))
     """initial entropy temperature (SacAgent's initial_log_alpha=0)"""
     target_entropy: float | None = None
     """entropy target of the temperature (null: -|A|/2, SacAgent's default)"""
-    gradient_clipping: float | None = None
+    gradient_clipping: float | None = checked(None, GRADIENT_CLIPPING)
     """clip each gradient tensor's norm to this value before the optimisers step, as SacAgent's gradient_clipping does (TF-Agents' clip_gradient_norms); null: no clipping"""
-    critic_kernel_initializer: str = "torch"
+    critic_kernel_initializer: str = checked("torch", one_of(*INITIALIZERS))
     """critic weights: 'torch' (nn.Linear's default) or 'glorot_uniform' with zero biases (the actor-learner tutorial's CriticNetwork)"""
-    eval_interval: int = 10_000
-    """iterations between evaluations of the deterministic policy"""
-    num_eval_episodes: int = 20
-    """episodes per evaluation; their mean return is AverageReturn"""
-    baseline_episodes: int = 5
-    """episodes of the random agent played once before training for its baseline return (RUN/baseline.json); 5 rather than num_eval_episodes: 20 random Minitaur episodes are ~70 s before the first update, for a baseline the SAC tutorial does not have; -1: num_eval_episodes; 0: none"""
-    log_interval: int = 1000
-    """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
-    policy_save_interval: int = 5000
-    """iterations between exports of the deterministic policy (the tutorial's PolicySavedModelTrigger)"""
-    checkpoint_interval: int = 10_000
-    """iterations between checkpoints that `--resume` continues from"""
-
-    def validate_extra(self) -> None:
-        if self.initial_alpha <= 0:
-            raise InputError(f"initial_alpha={self.initial_alpha}: expected a positive temperature")
-        if self.reward_scale_factor == 0:
-            raise InputError("reward_scale_factor=0: expected a non-zero scale")
-        if self.gradient_clipping is not None and self.gradient_clipping <= 0:
-            raise InputError(f"gradient_clipping={self.gradient_clipping}: expected a positive norm, or null for none")
-        if self.critic_kernel_initializer not in INITIALIZERS:
-            raise InputError(f"critic_kernel_initializer={self.critic_kernel_initializer!r}: expected one of "
-                             f"{', '.join(repr(i) for i in INITIALIZERS)}")
 
 
 def _minitaur() -> SACConfig:
@@ -208,7 +191,8 @@ class SAC(OffPolicyPipeline):
             obs, action, next_obs, reward, terminated = loss_module.tensors_from(batch)
             if self.config.reward_scale_factor != 1.0:
                 reward = reward * self.config.reward_scale_factor
-            out = loss_module.losses(obs, action, next_obs, reward, terminated)
+            out = loss_module.losses(obs, action, next_obs, reward, terminated,
+                                     weights=importance_weights(loss_module, batch))
         else:
             if self.config.reward_scale_factor != 1.0:
                 batch.set(("next", "reward"), batch.get(("next", "reward")) * self.config.reward_scale_factor)
@@ -219,7 +203,7 @@ class SAC(OffPolicyPipeline):
             for name, opt in self.optimizers.items():
                 params = [p for group in opt.param_groups for p in group["params"]]
                 # the twin critics' parameters are stacked [2, ...]: each critic's tensor on its own
-                clip_gradient_norms(params, self.config.gradient_clipping, stacked=name == "qvalue")
+                optim.clip_gradient_norms(params, self.config.gradient_clipping, stacked=name == "qvalue")
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -237,20 +221,14 @@ class SAC(OffPolicyPipeline):
         return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
 
 
-def clip_gradient_norms(params, max_norm: float, stacked: bool = False) -> None:
-    """Scale each parameter's gradient to a norm of at most ``max_norm``, one tensor at a time
-    (``stacked``: each slice along the first dim, one per stacked network).
-
-    TF-Agents' ``eager_utils.clip_gradient_norms`` (``tf.clip_by_norm`` per variable), which
-    SacAgent's ``gradient_clipping`` applies; torch's ``clip_grad_norm_`` clips the norm of all
-    gradients together instead, a different rule.
-    """
-    grads = [p.grad for p in params if p.grad is not None]
-    if stacked:
-        grads = [g for grad in grads for g in grad.unbind(0)]
-    if grads:
-        norms = torch._foreach_norm(grads)
-        torch._foreach_mul_(grads, [torch.clamp(max_norm / (n + 1e-6), max=1.0) for n in norms])
-
-
 preset = SAC.preset
+
+
+def __getattr__(name: str):
+    # clip_gradient_norms moved to rlpipe.modules.optim (DQN clips with it too); the old name goes
+    # in the release after 0.2.
+    if name == "clip_gradient_norms":
+        warnings.warn("rlpipe.pipelines.sac.clip_gradient_norms moved to rlpipe.modules.optim.clip_gradient_norms; "
+                      "the old name goes in the next release", DeprecationWarning, stacklevel=2)
+        return optim.clip_gradient_norms
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -21,12 +21,13 @@ The tutorial's names map onto the keys like this (``startup_time`` -> ``initial_
     MAX_STEPS       initial_collect_steps + num_iterations
     hidden1_dim     actor_fc_layer_params / critic_fc_layer_params
     LOG_INTERVAL    policy_save_interval
+    NEVALS          num_eval_episodes
 """
 
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -48,7 +49,15 @@ from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.target_updates import make_target_updater
 from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
-from rlpipe.pipelines.config import CollectorConfig, TrainConfig
+from rlpipe.pipelines.config import (
+    LAYER_SIZES,
+    LEARNING_RATE,
+    NON_NEGATIVE,
+    POSITIVE,
+    CollectorConfig,
+    TrainConfig,
+    checked,
+)
 from rlpipe.pipelines.errors import InputError
 
 __all__ = ["TD3Config", "TD3", "INGREDIENTS", "PRESETS", "preset"]
@@ -67,6 +76,7 @@ INGREDIENTS = (
 class TD3Config(TrainConfig):
     """TD3's keys; defaults are the tutorial's (Pendulum-v1)."""
 
+    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
     env: str = "Pendulum-v1"
     """gymnasium env id with a continuous (Box) action space"""
     num_iterations: int = 90_000
@@ -75,40 +85,25 @@ class TD3Config(TrainConfig):
     """uniformly random actions for the first env steps (tutorial: startup_time)"""
     learning_starts: int = 256
     """env steps collected before updates begin (tutorial: as soon as the buffer holds one batch)"""
-    replay_buffer_capacity: int = 100_000
-    """transitions kept, oldest evicted first (tutorial: buffer_size)"""
-    batch_size: int = 256
-    """transitions per update (tutorial: batch_size)"""
-    gamma: float = 0.99
-    """discount factor (tutorial: discount)"""
-    learning_rate: float = 3e-4
-    """Adam learning rate of actor and critics (tutorial: lr)"""
-    actor_fc_layer_params: list[int] = field(default_factory=lambda: [256])
-    """hidden layer sizes of the actor (tutorial: hidden1_dim=256, hidden2_dim=0)"""
-    critic_fc_layer_params: list[int] = field(default_factory=lambda: [256])
-    """hidden layer sizes of each critic"""
-    exploration_noise: float = 0.1
-    """std of the Gaussian exploration noise as a fraction of the half action range (tutorial: expl_noise)"""
-    target_update_tau: float = 0.005
-    """target networks' soft-update factor (tutorial: tau)"""
     target_update_period: int = 1
     """actor updates between target network updates (tutorial: 1, the targets move with every actor update)"""
-    policy_noise: float = 0.2
-    """std of the target policy smoothing noise, in half action ranges (tutorial: policy_noise)"""
-    noise_clip: float = 0.5
-    """the smoothing noise is clipped to +-noise_clip half action ranges (tutorial: noise_clip)"""
-    policy_delay: int = 2
-    """critic updates per actor and target update (tutorial: policy_freq)"""
     eval_interval: int = 5000
-    """iterations between evaluations of the deterministic policy"""
-    num_eval_episodes: int = 10
-    """episodes per evaluation (tutorial: NEVALS)"""
-    log_interval: int = 1000
-    """iterations between rows of losses and speed in metrics.csv and TensorBoard"""
-    policy_save_interval: int = 5000
-    """iterations between exports of the policy (tutorial: LOG_INTERVAL, models saved every 5,000 steps)"""
     checkpoint_interval: int = 5000
-    """iterations between checkpoints that `--resume` continues from"""
+    # TD3's own keys
+    learning_rate: float = checked(3e-4, LEARNING_RATE)
+    """Adam learning rate of actor and critics (tutorial: lr)"""
+    actor_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256])
+    """hidden layer sizes of the actor (tutorial: hidden1_dim=256, hidden2_dim=0)"""
+    critic_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256])
+    """hidden layer sizes of each critic"""
+    exploration_noise: float = checked(0.1, NON_NEGATIVE)
+    """std of the Gaussian exploration noise as a fraction of the half action range (tutorial: expl_noise)"""
+    policy_noise: float = checked(0.2, NON_NEGATIVE)
+    """std of the target policy smoothing noise, in half action ranges (tutorial: policy_noise)"""
+    noise_clip: float = checked(0.5, NON_NEGATIVE)
+    """the smoothing noise is clipped to +-noise_clip half action ranges (tutorial: noise_clip)"""
+    policy_delay: int = checked(2, POSITIVE)
+    """critic updates per actor and target update (tutorial: policy_freq)"""
     deterministic_policy: bool = True
     """ingredient 1; off: a stochastic Gaussian (TanhNormal) policy that explores by sampling instead of added noise"""
     experience_replay: bool = True
@@ -121,13 +116,6 @@ class TD3Config(TrainConfig):
     """ingredient 5; off: update the actor and targets on every critic update"""
     clipped_double_q: bool = True
     """ingredient 6; off: the target uses the first critic alone (both critics still trained)"""
-
-    def validate_extra(self) -> None:
-        for key in ("exploration_noise", "policy_noise", "noise_clip"):
-            if getattr(self, key) < 0:
-                raise InputError(f"{key}={getattr(self, key)}: expected zero or a positive number")
-        if self.policy_delay <= 0:
-            raise InputError(f"policy_delay={self.policy_delay}: expected a positive integer")
 
 
 def _collect_beside_learning() -> CollectorConfig:

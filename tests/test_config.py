@@ -438,8 +438,11 @@ def test_glorot_uniform_critics_as_tf_agents_initialises_them():
 def test_gradient_clipping_clips_each_tensor_as_tf_agents_does():
     import torch
 
-    from rlpipe.pipelines.sac import clip_gradient_norms
+    from rlpipe.modules.optim import clip_gradient_norms
 
+    with pytest.warns(DeprecationWarning, match="rlpipe.modules.optim.clip_gradient_norms"):
+        from rlpipe.pipelines.sac import clip_gradient_norms as old_name
+    assert old_name is clip_gradient_norms
     a, b = torch.nn.Parameter(torch.zeros(2, 3)), torch.nn.Parameter(torch.zeros(4))
     a.grad, b.grad = torch.tensor([[3.0, 4.0, 0.0], [0.0, 0.0, 0.1]]), torch.full((4,), 10.0)
     clip_gradient_norms([a], 1.0, stacked=True)  # each stacked network's tensor on its own
@@ -465,3 +468,34 @@ def test_sac_trains_with_clipping_glorot_critics_and_the_collect_policy_first(tm
     random_first.shutdown()
     result = pipeline.train(tmp_path / "run", progress=False)
     assert result.summary["updates"] == 60 and result.summary["final_average_return"] is not None
+
+
+# --- issue 20: one base, each algorithm its own keys and defaults ---------------------------------------
+
+
+def test_each_algorithm_config_holds_only_its_own_keys_beside_the_shared_ones():
+    from rlpipe.pipelines import pipeline_class
+
+    shared = set(flat_keys(TrainConfig))
+    keys = {algo: set(flat_keys(pipeline_class(algo).Config)) for algo in ("dqn", "td3", "sac")}
+    own = {algo: k - shared for algo, k in keys.items()}
+    assert all(shared < k for k in keys.values())
+    assert {"epsilon_greedy", "td_errors_loss", "double_dqn", "fc_layer_params"} <= own["dqn"]
+    assert {"initial_alpha", "reward_scale_factor", "alpha_learning_rate", "target_entropy"} <= own["sac"]
+    assert {"policy_delay", "policy_noise", "clipped_double_q", "exploration_noise"} <= own["td3"]
+    sac_only, dqn_only = own["sac"] - own["dqn"] - own["td3"], own["dqn"] - own["sac"] - own["td3"]
+    assert not sac_only & keys["dqn"] and not sac_only & keys["td3"]
+    assert not dqn_only & keys["sac"] and not dqn_only & keys["td3"]
+    # what one algorithm's tutorial needs is not the base's: DqnAgent's gamma and tau, SAC's temperature
+    base = TrainConfig()
+    assert (base.gamma, base.target_update_tau) != (1.0, 1.0) and not hasattr(base, "initial_alpha")
+    assert (DQNConfig().gamma, DQNConfig().target_update_tau) == (1.0, 1.0)
+
+
+@pytest.mark.parametrize("algo, override", [("dqn", "batch_size=0"), ("td3", "learning_starts=-1"),
+                                            ("sac", "replay_buffer_capacity=0"), ("dqn", "gamma=1.5")])
+def test_a_key_whose_default_an_algorithm_changes_keeps_its_rule(algo, override):
+    from rlpipe.pipelines import pipeline_class
+
+    with pytest.raises(InputError, match=rf"^{override.split('=')[0]}="):
+        apply_overrides(pipeline_class(algo).preset(), [override])

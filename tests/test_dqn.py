@@ -364,6 +364,24 @@ def test_the_target_network_moves_every_target_update_period_updates(tau):
         assert equal == [False, False, True] * 3
 
 
+def test_gradient_clipping_clips_each_tensor_as_dqn_agent_does():
+    # DqnAgent's gradient_clipping is TF-Agents' clip_gradient_norms: each variable's gradient on
+    # its own, not one norm over all of them (torch's clip_grad_norm_, used here before).
+    clip = 0.5
+    pipeline = DQN(tiny(f"gradient_clipping={clip}", "fc_layer_params=[8]", "batch_size=16"))
+    batch = pipeline.env.rollout(16, break_when_any_done=False)
+    batch.set(("next", "reward"), batch.get(("next", "reward")) * 1e4)  # gradients far above the limit
+    seen = []
+    pipeline.optimizers["q"].register_step_pre_hook(
+        lambda opt, args, kwargs: seen.append([p.grad.norm().item() for p in opt.param_groups[0]["params"]]))
+    pipeline.update(batch, 1)
+    norms = seen[0]
+    assert len(norms) == 4  # two layers' weights and biases
+    for norm in norms:
+        assert norm == pytest.approx(clip, rel=1e-4), norms  # each tensor at the limit, none below it
+    assert sum(n * n for n in norms) ** 0.5 > 1.9 * clip  # one global norm of `clip` would leave each below it
+
+
 @pytest.mark.parametrize("batch", [[], [16]])
 def test_the_collect_policy_on_tensors_gives_the_stock_sequences_actions_and_values(batch):
     # The dqn collect policy runs its Q-network, argmax and epsilon draw on tensors

@@ -79,6 +79,25 @@ def test_mujoco_presets_exist(name, env_id, action_dim, tmp_path, monkeypatch):
     assert float(pipeline.loss_module.target_entropy) == expected
 
 
+def test_the_update_weighs_samples_by_a_prioritized_buffers_weights():
+    # The pipeline's update computes SAC on tensors (LeanSACLoss.losses): it must read the batch's
+    # importance weights as TorchRL's SACLoss does, not drop them (a trap for prioritized replay).
+    cfg = apply_overrides(resolve_preset("sac")[1], [
+        "env=Pendulum-v1", "replay_buffer_capacity=1000", "batch_size=32", "actor_fc_layer_params=[16]",
+        "critic_joint_fc_layer_params=[16]", "num_threads=0"])
+    pipeline = sac.SAC(cfg)
+    assert pipeline.loss_module.lean
+    batch = pipeline.env.rollout(32, break_when_any_done=False).select(*pipeline.replay_keys)
+    batch["priority_weight"] = torch.linspace(0.0, 2.0, 32)
+    torch.manual_seed(7)
+    expected = pipeline.loss_module(batch.clone())  # SACLoss's TensorDict path, weights applied
+    torch.manual_seed(7)
+    got = pipeline.update(batch.clone(), 1)
+    torch.testing.assert_close(got["qvalue"], expected["loss_qvalue"].detach())
+    torch.testing.assert_close(got["actor"], expected["loss_actor"].detach())
+    torch.testing.assert_close(got["alpha"], expected["loss_alpha"].detach())
+
+
 def test_discrete_env_is_rejected():
     cfg = apply_overrides(sac.preset("sac"), ["env=CartPole-v1"])
     with pytest.raises(InputError) as info:

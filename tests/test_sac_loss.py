@@ -72,6 +72,24 @@ def test_lean_loss_matches_sacloss_values_and_gradients(bounds):
             torch.testing.assert_close(grads[name], expected_grads[name], rtol=1e-5, atol=1e-6, msg=name)
 
 
+def test_importance_weights_weigh_the_losses_as_sacloss_does():
+    # A prioritized buffer's weights ("priority_weight", TorchRL 0.14's key): SACLoss's weighted means.
+    stock, lean = losses_pair()
+    data = batch()
+    data["priority_weight"] = torch.rand(B, generator=torch.Generator().manual_seed(3)) * 2
+    torch.manual_seed(5)
+    expected = stock(data.clone())
+    for through_forward in (True, False):
+        torch.manual_seed(5)
+        got = lean(data.clone()) if through_forward else lean.losses(
+            *lean.tensors_from(data), weights=data["priority_weight"])
+        for key in ("loss_actor", "loss_qvalue", "loss_alpha"):
+            torch.testing.assert_close(got[key], expected[key], rtol=1e-6, atol=1e-6, msg=key)
+    torch.manual_seed(5)
+    unweighted = lean(data.exclude("priority_weight"))
+    assert not torch.allclose(unweighted["loss_qvalue"], expected["loss_qvalue"])  # the weights do count
+
+
 def test_tanh_normal_rsample_is_torchrls_tanh_normal():
     loc, scale = torch.randn(100, 2) * 3, torch.rand(100, 2) + 0.05
     low, high = torch.tensor([-2.0, 0.0]), torch.tensor([1.0, 4.0])

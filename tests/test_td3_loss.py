@@ -152,6 +152,28 @@ def test_matches_torchrl_td3loss_without_noise():
         torch.testing.assert_close(mine[key], theirs[key])
 
 
+def test_importance_weights_weigh_the_losses_as_td3loss_does():
+    """A prioritized buffer's weights ("priority_weight", TorchRL 0.14's key) give TD3Loss's weighted
+    means, through the TensorDict interface and through td3_update's tensor path alike."""
+    torch.manual_seed(1)
+    actor = make_deterministic_actor(OBS, SPEC, HIDDEN)
+    critic = make_qvalue_critic(OBS, ACT, HIDDEN)
+    ours = TD3AblationLoss(actor, critic, action_spec=SPEC, target_policy_smoothing=False)
+    stock = TD3Loss(actor, critic, action_spec=SPEC, policy_noise=0.0, loss_function="l2")
+    with torch.no_grad():
+        stock.qvalue_network_params.data.copy_(ours.qvalue_network_params.data)
+        stock.target_qvalue_network_params.data.copy_(ours.target_qvalue_network_params.data)
+    td = make_batch()
+    td["priority_weight"] = torch.tensor([0.1, 1.0, 0.5, 2.0, 0.0, 1.5])
+    mine, theirs, unweighted = ours(td.clone()), stock(td.clone()), ours(td.exclude("priority_weight"))
+    for key in ("loss_qvalue", "loss_actor"):
+        torch.testing.assert_close(mine[key], theirs[key], msg=key)
+        assert not torch.allclose(mine[key], unweighted[key]), key  # the weights do change the loss
+    critic_opt, actor_opt = optimizers(ours)
+    out = td3_update(ours, td.clone(), critic_opt, actor_opt, make_target_updater(ours, 0.005), update_index=2)
+    torch.testing.assert_close(out["loss_qvalue"], theirs["loss_qvalue"])
+
+
 def test_clipped_double_q_switch():
     torch.manual_seed(2)
     td = make_batch(32)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from pathlib import Path
 
 import torch
@@ -90,18 +91,24 @@ def _human(n: float) -> str:
 _WORKER_PROCESS_BYTES = 350 << 20
 
 
-def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, device: torch.device) -> None:
+def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, device: torch.device, *,
+                 stored: list | None = None, networks: dict[str, list[int]] | None = None) -> None:
     """Raise ``InputError`` if the run ``cfg`` describes cannot fit in this machine's memory.
 
-    The line names the key whose value takes the most, what the run would need, what the machine
-    has available, and the largest value that would fit where that is one number.
+    ``stored``: the keys the replay buffer keeps of each transition (None: all); ``networks``: the
+    config keys giving hidden layer sizes, with their values. The line names the key whose value
+    takes the most, what the run would need, what the machine has available, and the largest value
+    that would fit where that is one number.
     """
+    if networks is None:
+        warnings.warn("check_memory without stored= and networks= (the pipeline's replay keys, config.layer_sizes(cfg)) "
+                      "counts every key stored and no network; the old call goes in the next release",
+                      DeprecationWarning, stacklevel=2)
+        networks = {}
     available = available_bytes(device)
     if available is None:
         return
     obs = observation_key
-    stored = None if cfg.replay_all_keys else [obs, "action", ("next", obs), ("next", "reward"), ("next", "done"),
-                                               ("next", "terminated")]
     per_transition = transition_bytes(env, stored)
     per_block_transition = transition_bytes(env)
     obs_dim = int(env.observation_spec[obs].shape[-1]) if obs in env.observation_spec.keys() else 1
@@ -115,10 +122,10 @@ def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, devic
     ]
     if c.workers > 1 or not c.sync:
         parts.append(("collector.workers", f"{c.workers} collector processes", c.workers * _WORKER_PROCESS_BYTES))
-    for key in (k for k in vars(cfg) if k.endswith("layer_params")):
-        widths = [obs_dim + action_dim, *getattr(cfg, key), max(2 * action_dim, 1)]
+    for key, sizes in networks.items():
+        widths = [obs_dim + action_dim, *sizes, max(2 * action_dim, 1)]
         parameters = _mlp_parameters(widths)
-        parts.append((key, f"the networks of {key}={getattr(cfg, key)} ({parameters} parameters, with gradients, "
+        parts.append((key, f"the networks of {key}={sizes} ({parameters} parameters, with gradients, "
                       "optimiser moments and target copies)", parameters * 4 * _COPIES_PER_PARAMETER))
     total = sum(b for _, _, b in parts)
     if total <= available:
@@ -130,6 +137,9 @@ def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, devic
         expected = f"expected replay_buffer_capacity at most about {fits}"
     else:
         expected = "expected smaller values"
-    value = getattr(cfg, key) if "." not in key else getattr(cfg.collector, key.split(".")[1])
+    if key in networks:
+        value = networks[key]
+    else:
+        value = getattr(cfg, key) if "." not in key else getattr(cfg.collector, key.split(".")[1])
     raise InputError(f"{key}={value}: {what} would take {_human(need)}, the run {_human(total)} in all; {where} has "
                      f"{_human(available)} available; {expected}")
