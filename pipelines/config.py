@@ -27,6 +27,8 @@ from omegaconf.errors import OmegaConfBaseException
 from rlpipe.pipelines.errors import InputError
 
 __all__ = [
+    "BASELINE_SEED_OFFSET",
+    "EVAL_SEED_OFFSET",
     "CollectorConfig",
     "RayConfig",
     "TrainConfig",
@@ -39,6 +41,13 @@ __all__ = [
     "flat_keys",
     "validate",
 ]
+
+# Evaluations and the random baseline play env copies of their own, seeded apart from the collectors'
+# stream (``seed + frames``), wherever they run (the learner's process, a process, a Ray actor).
+EVAL_SEED_OFFSET = 10_000
+"""the eval env's seed is the run's seed plus this"""
+BASELINE_SEED_OFFSET = 20_000
+"""the random baseline's env's seed is the run's seed plus this"""
 
 
 @dataclass
