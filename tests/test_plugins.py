@@ -8,6 +8,7 @@ parts in a hand-written loop, the exported policy in a fresh process, and resume
 
 from __future__ import annotations
 
+import csv
 import functools
 import json
 import os
@@ -268,6 +269,23 @@ def test_custom_triggers_run_on_schedule_and_what_a_ctrl_c_left_owed_runs_on_res
     assert press_again.seen == [100] and record_again.seen == [50, 100]  # each iteration once, in all
     assert result.summary["updates"] == 100
     assert [int(r["step"]) for r in result.metrics if r["steps_per_s"]] == [50, 100]
+
+
+def test_a_key_a_users_trigger_logs_lands_in_metrics_csv_and_stays_there_on_resume(tmp_path):
+    def doubled(loop):
+        loop.log({"my_metric": 2 * loop.state.iteration})
+
+    press = _CtrlCAt(50)
+    with pytest.raises(KeyboardInterrupt):
+        dqn.DQN(config("dqn")).train(tmp_path / "run", progress=False, triggers=[
+            IntervalTrigger(50, doubled, name="doubled"), IntervalTrigger(50, press, name="press")])
+    result = dqn.DQN(config("dqn")).train(tmp_path / "run", resume=True, progress=False, triggers=[
+        IntervalTrigger(50, doubled, name="doubled"), IntervalTrigger(50, _CtrlCAt(None), name="press")])
+    with (result.run_dir / "metrics.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["step"], r["my_metric"]) for r in rows if r["my_metric"]] == [("50", "100"), ("100", "200")]
+    assert any(r["average_return"] and not r["my_metric"] for r in rows)  # the rows before it: blank there
+    assert [r["my_metric"] for r in result.metrics if r["my_metric"]] == ["100", "200"]
 
 
 def test_trigger_names_must_be_unique_and_a_refused_run_writes_nothing(tmp_path):
