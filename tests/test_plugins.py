@@ -31,7 +31,7 @@ from rlpipe.modules import make_qvalue_actor
 from rlpipe.pipelines import dqn, sac, td3
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.training.triggers import IntervalTrigger
+from rlpipe.pipelines.training.triggers import EVAL, IntervalTrigger
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -291,7 +291,7 @@ def test_a_key_a_users_trigger_logs_lands_in_metrics_csv_and_stays_there_on_resu
 def test_trigger_names_must_be_unique_and_a_refused_run_writes_nothing(tmp_path):
     with pytest.raises(InputError, match="unique"):
         dqn.DQN(config("dqn")).train(tmp_path / "run", progress=False,
-                                    triggers=[IntervalTrigger(5, lambda loop: None, name="eval")])
+                                    triggers=[IntervalTrigger(5, lambda loop: None, name=EVAL)])
     assert not (tmp_path / "run").exists()
 
 
