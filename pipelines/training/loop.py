@@ -29,16 +29,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir
-from rlpipe.pipelines.errors import InputError, TrainingDiverged
 from rlpipe.pipelines.system.runtime import (
     DeferredInterrupt,
     Interrupted,
@@ -48,6 +45,7 @@ from rlpipe.pipelines.system.runtime import (
     keep_freed_memory,
     stop_signals_blocked,
 )
+from rlpipe.pipelines.training.divergence import check_finite
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
 from rlpipe.pipelines.workers.supervision import SupervisedCollector, Supervisor, Watchdog, WorkersLost
@@ -270,26 +268,8 @@ class Loop:
         self.triggers[SAVE](self)
 
     def check_finite(self) -> None:
-        """Stop with ``TrainingDiverged`` if a loss since the last log row or a parameter is NaN or infinite.
-
-        Nothing is saved then: every checkpoint passed this check, so the last one on disk is the
-        run's last finite state, and ``--resume`` (with, say, a lower learning rate) continues from it.
-        """
-        sums = self.interval_stats.loss_sums
-        tensors = [torch.as_tensor(v).reshape(-1) for v in sums.values()]
-        tensors += [p.detach().reshape(-1).isfinite().all().reshape(1) for p in self.pipeline.loss_module.parameters()]
-        if not tensors or bool(torch.cat([t.float() for t in tensors]).isfinite().all()):
-            return
-        bad = [f"loss_{k}={float(v)}" for k, v in sums.items() if not torch.as_tensor(v).isfinite().all()]
-        try:
-            last = f"the checkpoint {ckpt.latest_checkpoint(self.run_dir.checkpoints)}"
-        except InputError:
-            last = "not saved (no checkpoint yet)"
-        raise TrainingDiverged(
-            f"training diverged by iteration {self.state.iteration} ({self.state.updates} updates): "
-            f"{', '.join(bad) or 'a parameter'} is not finite; stopped without saving: the last finite state is "
-            f"{last}; expected finite losses: lower the learning rates, then continue with --resume {self.run_dir.path}"
-        )
+        """``TrainingDiverged`` if a loss since the last log row or a parameter is NaN or infinite."""
+        check_finite(self.interval_stats.loss_sums, self.pipeline.loss_module, self.state, self.run_dir)
 
     @contextlib.contextmanager
     def _workers(self):
