@@ -115,11 +115,7 @@ class Run:
         pipeline = self.pipeline
         run = RunDir.create(out or default_run_dir(pipeline.algo, pipeline.config.env), pipeline.algo,
                             config_to_dict(pipeline.config))
-        try:
-            return run, *self._begin(run)
-        except BaseException:
-            run.close()
-            raise
+        return _opened(run, self._begin)
 
     def _begin(self, run: RunDir) -> tuple[MetricsCSV, list[dict], bool]:
         """A run from its first iteration: (its empty metrics table, no evaluations, fresh)."""
@@ -131,12 +127,7 @@ class Run:
     def _resume(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:
         if out is None:
             raise InputError("resume needs the run directory to continue")
-        run = RunDir.resume(out)
-        try:
-            return run, *self._continue(run)
-        except BaseException:
-            run.close()
-            raise
+        return _opened(RunDir.resume(out), self._continue)
 
     def _continue(self, run: RunDir) -> tuple[MetricsCSV, list[dict], bool]:
         """Load the newest whole checkpoint of ``run``; (metrics table, evaluations so far, fresh)."""
@@ -186,6 +177,15 @@ class Run:
             "env_steps_per_s": state.frames / train_s if train_s > 0 else None,
             "updates_per_s": state.updates / train_s if train_s > 0 else None,
         }
+
+
+def _opened(run: RunDir, then: Callable[[RunDir], tuple]) -> tuple:
+    """``(run, *then(run))``; the run directory's lock let go if ``then`` fails."""
+    try:
+        return run, *then(run)
+    except BaseException:
+        run.close()
+        raise
 
 
 def changed_keys(saved: dict, current: dict, prefix: str = "") -> list[str]:
