@@ -17,19 +17,14 @@ Adding an algorithm is one new module with such a class and one line in ``pipeli
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
-import math
-import os
-import random
-import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import nn
@@ -37,33 +32,26 @@ from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollecto
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
-from torchrl.record.loggers import Logger, TensorboardLogger
+from torchrl.record.loggers import Logger
 
 from rlpipe.envs import EnvError, describe_action_space, env_label, is_discrete, make_env, with_episode_return
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
-from rlpipe.pipelines.artifacts.files import STORAGE_ERRNOS, FileWriteError
-from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_dir, notice
-from rlpipe.pipelines.config import TrainConfig, config_to_dict, layer_sizes, validate
+from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.memory import check_memory
 from rlpipe.pipelines.system.runtime import start_resource_tracker
-from rlpipe.pipelines.training.loop import Loop, TrainResult
+from rlpipe.pipelines.training.loop import TrainResult
 from rlpipe.pipelines.training.meters import Clock
+from rlpipe.pipelines.training.run import Run, seed_everything
 from rlpipe.pipelines.training.state import RunState
-from rlpipe.pipelines.training.triggers import Trigger, default_triggers
+from rlpipe.pipelines.training.threads import choose_threads
+from rlpipe.pipelines.training.triggers import Trigger
 from rlpipe.pipelines.training.update_graph import GraphedUpdate
 from rlpipe.pipelines.workers.supervision import TimedSharedMemScheme
 
 __all__ = ["Agent", "OffPolicyPipeline", "seed_everything"]
 
 EnvArg = EnvBase | Callable[[], EnvBase] | None
-
-
-def seed_everything(seed: int) -> None:
-    """Seed Python's, NumPy's and torch's global generators (what TorchRL's samplers and exploration draw from)."""
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
 
 
 @dataclass
@@ -112,7 +100,7 @@ class OffPolicyPipeline:
         self.eval_env_fn = self.env_fn if cfg.collector.envs_per_worker == 1 else functools.partial(make_env, cfg.env, device="cpu")
         self.eval_env = self._eval_env(eval_env, cfg)
         self.env.set_seed(cfg.seed)
-        self.eval_env.set_seed(cfg.seed + 10_000)
+        self.eval_env.set_seed(cfg.seed + EVAL_SEED_OFFSET)
         # Runs are labelled (config.json, checkpoints, plots) with the env actually used.
         self.config = cfg if env is None else dataclasses.replace(cfg, env=env_label(self.env))
         self.action_spec = self.env.action_spec_unbatched
@@ -325,161 +313,20 @@ class OffPolicyPipeline:
         Ctrl-C (SIGINT) saves a checkpoint at the next safe point and raises ``KeyboardInterrupt``;
         ``train(out, resume=True)`` then continues from there. A loss or parameter that turns NaN or
         infinite raises ``TrainingDiverged`` at the end of that collected block, saving nothing more:
-        the last checkpoint is the run's last finite state.
+        the last checkpoint is the run's last finite state. (The run's lifecycle: ``training.run.Run``.)
         """
-        triggers = [*default_triggers(self.config), *triggers]
-        names = [t.name for t in triggers]
-        if len(set(names)) != len(names):
-            raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
-        if self.config.num_threads == -1:  # chosen once, before the run directory records the config
-            self.config = dataclasses.replace(self.config, num_threads=self.choose_threads())
-        if self.config.collector.backend == "ray":  # no Ray at ray.address: one line, and nothing written
-            from rlpipe.pipelines.workers.ray import check_address
-
-            check_address(self.config.ray.address)
-        run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
-        self.run_dir, loop = run, None
-        try:
-            with FileWriteError.on_failure(run.path / "tb"):
-                logger = logger or TensorboardLogger(exp_name="tb", log_dir=str(run.path))
-            loop = Loop(self, run, metrics, fresh=fresh, evaluations=evaluations, triggers=triggers,
-                        logger=logger, callbacks=callbacks, progress=progress)
-            with _torch_threads(self.config.num_threads):
-                return loop.run()
-        except OSError as exc:  # a write the storage refused, outside rlpipe's own (TensorBoard's writer)
-            if exc.errno not in STORAGE_ERRNOS:
-                raise
-            raise self._stopped_writing(FileWriteError(exc.filename or run.path, exc), loop) from exc
-        except FileWriteError as exc:
-            raise self._stopped_writing(exc, loop) from exc
-        finally:
-            run.close()
-
-    def _stopped_writing(self, exc: FileWriteError, loop: Loop | None) -> InputError:
-        """The one line for a run stopped by a refused write (disk full, permissions), after saving
-        what can be saved: a checkpoint of where the run is, unless the checkpoint was what failed."""
-        run = self.run_dir
-        saved = None
-        if loop is not None and run.checkpoints not in (exc.path, *exc.path.parents):
-            try:
-                loop.save()
-                saved = f"saved a checkpoint at iteration {self.state.iteration}"
-            except (FileWriteError, OSError):
-                pass
-        if saved is None:
-            try:
-                path = ckpt.newest_whole(run.checkpoints)[0]
-            except InputError:
-                path = None
-            saved = f"its last checkpoint, {path.name}, is intact" if path else "no checkpoint was saved"
-        return InputError(f"{exc}; {saved}: make room or allow writing there, then continue with --resume {run.path}")
+        return Run(self).train(out, resume=resume, progress=progress, logger=logger, callbacks=callbacks,
+                               triggers=triggers)
 
     def choose_threads(self) -> int:
-        """The learner's torch threads for this machine and collector layout (``num_threads=-1``).
-
-        Collector processes each keep a core busy stepping envs, so the learner gets the cores
-        they leave (at least one); within those, the thread count whose forward and backward pass
-        of the loss on a replay-sized batch measured fastest (by 10% or more over fewer threads).
-        The env steps in the learner's own process (``collector.workers=1``, ``sync=true``) take
-        turns with the updates, so there every core is the learner's. Parameters, optimisers and
-        the run's random state are left as they were; a loss that cannot run on the env's fake
-        batch (a plug-in's own keys) gets one thread.
-        """
-        c = self.config.collector
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-        budget = max(1, cores - (0 if c.workers == 1 and c.sync else c.workers))
-        if budget == 1:
-            return 1
-        candidates = sorted({*(2**k for k in range(budget.bit_length()) if 2**k <= budget), budget})
-        batch = self.env.fake_tensordict().reshape(-1)[:1].expand(self.config.batch_size).clone()
-        before = torch.get_num_threads()
-        timings = {}
-        with torch.random.fork_rng(devices=[]):
-            try:
-                for n in candidates:
-                    torch.set_num_threads(n)
-                    timings[n] = _loss_pass_seconds(self.loss_module, batch.to(self.device))
-            except Exception:  # the probe only picks a speed; it never stops a run
-                return 1
-            finally:
-                torch.set_num_threads(before)
-                self.loss_module.zero_grad(set_to_none=True)
-        # More threads only for a clear gain (10%): on noise, the count (and its arithmetic) stays put.
-        chosen = candidates[0]
-        for n in candidates[1:]:
-            if timings[n] < 0.9 * timings[chosen]:
-                chosen = n
-        return chosen
-
-    def _start(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:
-        run = RunDir.create(out or default_run_dir(self.algo, self.config.env), self.algo, config_to_dict(self.config))
-        try:
-            return run, *self._begin(run)
-        except BaseException:
-            run.close()
-            raise
-
-    def _begin(self, run: RunDir) -> tuple[MetricsCSV, list[dict], bool]:
-        """A run from its first iteration: (its empty metrics table, no evaluations, fresh)."""
-        seed_everything(self.config.seed)  # replay sampling, exploration: the same seed gives the same run
-        self.state.owed = ["eval"]  # the tutorials evaluate once before training
-        return MetricsCSV(run.metrics_path, list(self.loss_names), extra_columns=self.metrics_columns()), [], True
-
-    def _resume(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:
-        if out is None:
-            raise InputError("resume needs the run directory to continue")
-        run = RunDir.resume(out)
-        try:
-            return run, *self._continue(run)
-        except BaseException:
-            run.close()
-            raise
-
-    def _continue(self, run: RunDir) -> tuple[MetricsCSV, list[dict], bool]:
-        """Load the newest whole checkpoint of ``run``; (metrics table, evaluations so far, fresh)."""
-        path, skipped = ckpt.newest_whole(run.checkpoints)
-        if path is None:
-            if skipped:
-                raise InputError(f"{run.checkpoints}: no whole checkpoint to resume from ({'; '.join(skipped)})")
-            if run.has_progress():
-                raise InputError(f"{run.checkpoints}: no checkpoint to resume from; expected a run that saved one")
-            # killed while starting, before its first checkpoint: there is nothing to lose
-            notice(f"{run.path} stopped before its first checkpoint; starting it from the beginning")
-            run.write_config(self.algo, config_to_dict(self.config))
-            return self._begin(run)
-        try:
-            self.load_state_dict(ckpt.load_checkpoint(path, self.algo, self.config.env))
-        except InputError as exc:
-            changed = _changed_keys(run.read_config()[1], config_to_dict(self.config))
-            hint = f" (keys changed since it was saved: {', '.join(changed)})" if changed else ""
-            raise InputError(f"{path / 'state.pt'}: {exc}{hint}") from exc
-        if skipped:
-            notice(f"{run.checkpoints}: {'; '.join(skipped)}; resuming from {path.name}")
-        metrics = MetricsCSV(run.metrics_path, list(self.loss_names), resume_after_step=self.state.iteration,
-                             extra_columns=self.metrics_columns())
-        run.write_config(self.algo, config_to_dict(self.config))  # keys changed on resume are recorded
-        rows = metrics.rows()
-        self.state.forget_done(rows)
-        evaluations = [_evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
-        return metrics, evaluations, False
+        """The learner's torch threads for this machine and collector layout: ``training.threads.choose_threads``."""
+        return choose_threads(self)
 
     def summary(self, state: RunState, evaluations: list[dict], clock: Clock) -> dict[str, Any]:
-        last = evaluations[-1] if evaluations else {}
-        train_s = clock.train_seconds()
-        return {
-            "algo": self.algo,
-            "env": self.config.env,
-            "seed": self.config.seed,
-            "iterations": state.iteration,
-            "frames": state.frames,
-            "updates": state.updates,
-            "final_average_return": last.get("average_return"),
-            "final_average_episode_length": last.get("average_episode_length"),
-            "wall_time_s": clock.wall(),
-            "train_time_s": train_s,
-            "env_steps_per_s": state.frames / train_s if train_s > 0 else None,
-            "updates_per_s": state.updates / train_s if train_s > 0 else None,
-        }
+        """Deprecated: ``training.run.Run(pipeline).summary``."""
+        warnings.warn("OffPolicyPipeline.summary moved to rlpipe.pipelines.training.run.Run.summary",
+                      DeprecationWarning, stacklevel=2)
+        return Run(self).summary(state, evaluations, clock)
 
 
 def observation_key_of(*modules: nn.Module | None) -> str | None:
@@ -526,46 +373,3 @@ def _factory_and_env(env: EnvArg, cfg: TrainConfig) -> tuple[Callable[[], EnvBas
 
 def _made_with_episode_return(env_fn: Callable[[], EnvBase]) -> EnvBase:
     return with_episode_return(env_fn())
-
-
-@contextlib.contextmanager
-def _torch_threads(n: int):
-    """torch's intra-op threads set to ``n`` (0: leave them) while inside, then put back."""
-    before = torch.get_num_threads()
-    if n:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
-def _loss_pass_seconds(loss: LossModule, batch: TensorDictBase, repeats: int = 5) -> float:
-    """Best time of a forward and backward pass of ``loss`` on ``batch`` (its gradients are left for
-    the caller to clear; no optimiser steps, so no parameter changes)."""
-    best = math.inf
-    for i in range(repeats + 2):
-        t0 = time.perf_counter()
-        out = loss(batch.clone())
-        losses = [v for k, v in out.items() if (k == "loss" or k.startswith("loss_")) and v.requires_grad]
-        if losses:
-            sum(losses).backward()
-        if i >= 2:  # the first passes warm up
-            best = min(best, time.perf_counter() - t0)
-    return best
-
-
-def _changed_keys(saved: dict, current: dict, prefix: str = "") -> list[str]:
-    changed = []
-    for key, value in current.items():
-        if isinstance(value, dict) and isinstance(saved.get(key), dict):
-            changed += _changed_keys(saved[key], value, prefix + key + ".")
-        elif saved.get(key) != value:
-            changed.append(prefix + key)
-    return changed
-
-
-def _evaluation_of(row: dict[str, str]) -> dict[str, Any]:
-    return {"step": int(row["step"]), "frames": int(row["frames"]), "updates": int(row["updates"]),
-            "average_return": float(row["average_return"]),
-            "average_episode_length": float(row["average_episode_length"]), "returns": None}

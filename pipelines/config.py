@@ -33,6 +33,8 @@ from omegaconf.errors import OmegaConfBaseException
 from rlpipe.pipelines.errors import InputError
 
 __all__ = [
+    "BASELINE_SEED_OFFSET",
+    "EVAL_SEED_OFFSET",
     "GRADIENT_CLIPPING",
     "LAYER_SIZES",
     "LEARNING_RATE",
@@ -55,6 +57,13 @@ __all__ = [
     "one_of",
     "validate",
 ]
+
+# Evaluations and the random baseline play env copies of their own, seeded apart from the collectors'
+# stream (``seed + frames``), wherever they run (the learner's process, a process, a Ray actor).
+EVAL_SEED_OFFSET = 10_000
+"""the eval env's seed is the run's seed plus this"""
+BASELINE_SEED_OFFSET = 20_000
+"""the random baseline's env's seed is the run's seed plus this"""
 
 
 # --- rules on one key's value, declared with its field --------------------------------------------

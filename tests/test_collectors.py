@@ -28,6 +28,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from rlpipe.pipelines import td3
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import apply_overrides, config_from_dict
+from rlpipe.pipelines.training.triggers import EVAL
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -411,7 +412,7 @@ def test_resume_after_ctrl_c_evaluates_on_schedule(where, call, tmp_path, ctrl_c
     counters = latest_state(tmp_path / "run")["counters"]
     assert counters["iteration"] > 0
     if where == "evaluate":  # the checkpoint says the evaluation of its iteration is still to run
-        assert counters["iteration"] == 100 and counters["triggers"][0] == "eval", counters
+        assert counters["iteration"] == 100 and counters["triggers"][0] == EVAL, counters
     resumed = td3.TD3(cfg).train(tmp_path / "run", resume=True, progress=False)
     # the resumed run evaluates on schedule, and the checkpoint's iteration is that of its frames
     assert [e["step"] for e in resumed.evaluations] == [0, 100, 200, 300], counters

@@ -8,6 +8,7 @@ parts in a hand-written loop, the exported policy in a fresh process, and resume
 
 from __future__ import annotations
 
+import csv
 import functools
 import json
 import os
@@ -30,7 +31,7 @@ from rlpipe.modules import make_qvalue_actor
 from rlpipe.pipelines import dqn, sac, td3
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.training.triggers import IntervalTrigger
+from rlpipe.pipelines.training.triggers import EVAL, IntervalTrigger, Trigger
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -270,10 +271,65 @@ def test_custom_triggers_run_on_schedule_and_what_a_ctrl_c_left_owed_runs_on_res
     assert [int(r["step"]) for r in result.metrics if r["steps_per_s"]] == [50, 100]
 
 
+def test_a_key_a_users_trigger_logs_lands_in_metrics_csv_and_stays_there_on_resume(tmp_path):
+    def doubled(loop):
+        loop.log({"my_metric": 2 * loop.state.iteration})
+
+    press = _CtrlCAt(50)
+    with pytest.raises(KeyboardInterrupt):
+        dqn.DQN(config("dqn")).train(tmp_path / "run", progress=False, triggers=[
+            IntervalTrigger(50, doubled, name="doubled"), IntervalTrigger(50, press, name="press")])
+    result = dqn.DQN(config("dqn")).train(tmp_path / "run", resume=True, progress=False, triggers=[
+        IntervalTrigger(50, doubled, name="doubled"), IntervalTrigger(50, _CtrlCAt(None), name="press")])
+    with (result.run_dir / "metrics.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["step"], r["my_metric"]) for r in rows if r["my_metric"]] == [("50", "100"), ("100", "200")]
+    assert any(r["average_return"] and not r["my_metric"] for r in rows)  # the rows before it: blank there
+    assert [r["my_metric"] for r in result.metrics if r["my_metric"]] == ["100", "200"]
+
+
+class _Moments(Trigger):
+    """A user's trigger that records every moment of the run it is fired at."""
+
+    name = "moments"
+
+    def __init__(self):
+        super().__init__(50)
+        self.seen = []
+
+    def __call__(self, loop):
+        self.seen.append(("interval", loop.state.iteration))
+
+    def start(self, loop):
+        self.seen.append(("start", loop.state.iteration))
+
+    def final(self, loop):  # after the built-in ones' final firing: the last evaluation is in
+        self.seen.append(("final", loop.state.iteration, loop.evaluations[-1]["step"]))
+
+    def close(self, loop):
+        self.seen.append(("close",))
+
+
+def test_a_users_trigger_is_fired_at_the_start_on_schedule_and_once_more_at_the_end(tmp_path):
+    moments = _Moments()
+    dqn.DQN(config("dqn")).train(tmp_path / "run", progress=False, triggers=[moments])
+    assert moments.seen == [("start", 0), ("interval", 50), ("interval", 100), ("final", 100, 100), ("close",)]
+
+
+def test_the_pipelines_summary_and_thread_choice_still_answer_where_they_were():
+    from rlpipe.pipelines.training.meters import Clock
+
+    pipeline = dqn.DQN(config("dqn"))
+    with pytest.warns(DeprecationWarning, match="Run.summary"):
+        summary = pipeline.summary(pipeline.state, [{"average_return": 9.0, "average_episode_length": 9.0}], Clock())
+    assert (summary["algo"], summary["final_average_return"]) == ("dqn", 9.0)
+    assert pipeline.choose_threads() >= 1
+
+
 def test_trigger_names_must_be_unique_and_a_refused_run_writes_nothing(tmp_path):
     with pytest.raises(InputError, match="unique"):
         dqn.DQN(config("dqn")).train(tmp_path / "run", progress=False,
-                                    triggers=[IntervalTrigger(5, lambda loop: None, name="eval")])
+                                    triggers=[IntervalTrigger(5, lambda loop: None, name=EVAL)])
     assert not (tmp_path / "run").exists()
 
 

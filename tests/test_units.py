@@ -15,7 +15,17 @@ from tensordict import TensorDict
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.training.rate_limiter import SampleToInsertRatio
 from rlpipe.pipelines.training.state import RunState
-from rlpipe.pipelines.training.triggers import IntervalTrigger, Trigger, crossed, default_triggers
+from rlpipe.pipelines.training.triggers import (
+    EVAL,
+    EXPORT,
+    LOG,
+    SAVE,
+    VIDEO,
+    IntervalTrigger,
+    Trigger,
+    crossed,
+    default_triggers,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -39,22 +49,33 @@ def test_default_triggers_run_in_the_tutorials_order():
     cfg = TrainConfig(num_iterations=1000, log_interval=100, eval_interval=250, policy_save_interval=500,
                       checkpoint_interval=500)
     triggers = default_triggers(cfg)
-    assert [t.name for t in triggers] == ["log", "eval", "export", "save"]
-    assert names_due(triggers, 450, 500, 1000) == ["log", "eval", "export", "save"]
+    assert [t.name for t in triggers] == [LOG, EVAL, EXPORT, SAVE]
+    assert names_due(triggers, 450, 500, 1000) == [LOG, EVAL, EXPORT, SAVE]
     assert names_due(triggers, 0, 50, 1000) == []
-    assert names_due(triggers, 150, 250, 1000) == ["log", "eval"]
+    assert names_due(triggers, 150, 250, 1000) == [LOG, EVAL]
 
 
 def test_the_last_iteration_leaves_evaluation_and_checkpoint_to_the_end_of_the_run():
     triggers = default_triggers(TrainConfig(num_iterations=1000, log_interval=100, eval_interval=200,
                                             policy_save_interval=500, checkpoint_interval=500))
-    # the loop evaluates and saves after its last block itself: not twice
-    assert names_due(triggers, 950, 1000, 1000) == ["log", "export"]
+    # the final firing evaluates and saves after the last block: not twice
+    assert names_due(triggers, 950, 1000, 1000) == [LOG, EXPORT]
+
+
+def test_the_built_in_trigger_names_are_those_old_checkpoints_hold():
+    # a checkpoint records what its iteration still owes by these names: a run saved by any rlpipe resumes
+    assert (LOG, EVAL, EXPORT, SAVE, VIDEO) == ("log", "eval", "export", "save", "video")
+
+
+def test_the_video_is_a_final_firing_only_and_only_when_asked_for():
+    assert VIDEO not in [t.name for t in default_triggers(TrainConfig())]
+    video, = [t for t in default_triggers(TrainConfig(video=True)) if t.name == VIDEO]
+    assert not video.due(0, 10**6, 10**6)
 
 
 def test_an_interval_of_zero_never_triggers():
     triggers = default_triggers(TrainConfig(num_iterations=1000, eval_interval=0))
-    assert "eval" not in names_due(triggers, 0, 1000, 1000)
+    assert EVAL not in names_due(triggers, 0, 1000, 1000)
 
 
 def test_a_block_crossing_several_multiples_runs_a_trigger_once():
@@ -109,13 +130,13 @@ def test_state_round_trips_through_a_checkpoint_with_its_owed_work():
     state = RunState.fresh(c)
     state.insert(131, c)
     state.updated()
-    state.owed = ["eval", "export"]
+    state.owed = [EVAL, EXPORT]
     state.pending_evals.append(({"step": 10, "frames": 120, "updates": 1},
                                 TensorDict({"module": {"weight": torch.ones(2)}}, [])))
     saved = torch.load(_saved(state.state_dict()), weights_only=True)  # what a checkpoint file holds
     back = RunState.fresh(c)
     back.load_state_dict(saved)
-    assert back.position() == state.position() and back.owed == ["eval", "export"]
+    assert back.position() == state.position() and back.owed == [EVAL, EXPORT]
     assert back.limiter.state_dict() == state.limiter.state_dict()
     (at, weights), = back.pending_evals
     assert at == {"step": 10, "frames": 120, "updates": 1}
@@ -135,12 +156,12 @@ def test_resume_forgets_owed_work_whose_rows_were_written_after_the_checkpoint()
     c = cfg()
     state = RunState.fresh(c)
     state.iteration = 200
-    state.owed = ["log", "eval", "export"]
+    state.owed = [LOG, EVAL, EXPORT]
     state.pending_evals.extend([({"step": 100}, None), ({"step": 200}, None)])
     rows = [{"step": "100", "average_return": "-3", "steps_per_s": ""},
             {"step": "200", "average_return": "", "steps_per_s": "51.2"}]
     state.forget_done(rows)
-    assert state.owed == ["eval", "export"]  # logged at 200; not evaluated at 200
+    assert state.owed == [EVAL, EXPORT]  # logged at 200; not evaluated at 200
     assert [at["step"] for at, _ in state.pending_evals] == [200]
 
 

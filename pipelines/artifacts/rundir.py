@@ -246,7 +246,8 @@ def _remove_if_empty(path: Path) -> None:
 
 
 class MetricsCSV:
-    """metrics.csv: one row per evaluation/log point, columns fixed at the run's start.
+    """metrics.csv: one row per evaluation/log point; a key first logged later (a user's trigger or
+    callback) gets a column of its own then.
 
     TorchRL's CSVLogger writes one file per scalar; a person comparing runs wants one table, so the
     table is written here (TensorBoard gets the same scalars through TorchRL's logger). Each row is
@@ -263,19 +264,28 @@ class MetricsCSV:
         if resume_after_step is None:
             self._rewrite([])
         else:
-            # Rows past the checkpoint will be produced again by the resumed run.
+            # Rows past the checkpoint will be produced again by the resumed run; the columns a
+            # user's trigger added in an earlier session stay.
             rows = self.read_rows(self.path) if self.path.exists() else []
+            self.columns += [c for c in self.read_header(self.path) if c not in self.columns]
             self._rewrite([r for r in rows if int(r["step"]) <= resume_after_step])
 
     def _rewrite(self, rows: list[dict]) -> None:
         with atomic_path(self.path) as tmp, tmp.open("w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=self.columns, extrasaction="ignore")
+            writer = csv.DictWriter(fh, fieldnames=self.columns)
             writer.writeheader()
             writer.writerows(rows)
 
     def append(self, row: dict[str, Any]) -> None:
+        new = [str(k) for k in row if str(k) not in self.columns]
+        if new:
+            # A CSV's header comes first: the table is written again with the new columns (atomically:
+            # the old table or the new one, never half of each), once per new key.
+            rows = self.rows()
+            self.columns += new
+            self._rewrite(rows)
         line = io.StringIO()
-        csv.DictWriter(line, fieldnames=self.columns, extrasaction="ignore").writerow({k: _fmt(v) for k, v in row.items()})
+        csv.DictWriter(line, fieldnames=self.columns).writerow({str(k): _fmt(v) for k, v in row.items()})
         with FileWriteError.on_failure(self.path), self.path.open("a", newline="") as fh:
             fh.write(line.getvalue())  # one write: a row is in the file whole, or (disk full) torn at the end
 
@@ -285,6 +295,15 @@ class MetricsCSV:
 
     def rows(self) -> list[dict[str, str]]:
         return self.read_rows(self.path)
+
+    @staticmethod
+    def read_header(path: Path) -> list[str]:
+        """The file's columns ([] for a missing or empty file)."""
+        try:
+            with Path(path).open(newline="", encoding="utf-8", errors="replace") as fh:
+                return next(csv.reader([fh.readline().rstrip("\r\n")]), [])
+        except FileNotFoundError:
+            return []
 
     @staticmethod
     def read_rows(path: Path) -> list[dict[str, str]]:

@@ -1,2 +1,13 @@
-"""The loop and what runs inside it: ``Loop`` (collect, update, triggers), the triggers, the run's
-state and rate limiter, speeds and losses (``meters``), and the CUDA-graphed update."""
+"""The loop and what runs inside it.
+
+    run.py           a run's lifecycle: open or resume a run directory, train, summary, disk-full handling (``Run``)
+    loop.py          collect, update, then the triggers; their final firing at the end (``Loop``)
+    triggers.py      log, eval, export, checkpoint, video: each does its own work (``Trigger``, ``IntervalTrigger``)
+    evaluations.py   the eval trigger's evaluations: here, in a process, on a Ray actor; the random baseline
+    state.py         where a run is (counters, owed triggers, pending evaluations) and the triggers' names
+    rate_limiter.py  updates per frame (TF-Agents' SampleToInsertRatio)
+    meters.py        training time, speeds, losses, episode returns between two log rows
+    divergence.py    the check that stops a run whose loss or parameters turned NaN or infinite
+    threads.py       the learner's torch threads (``num_threads=-1``)
+    update_graph.py  the update replayed as CUDA graphs
+"""

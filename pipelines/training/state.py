@@ -16,7 +16,15 @@ from tensordict import TensorDict, TensorDictBase
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.training.rate_limiter import SampleToInsertRatio
 
-__all__ = ["RunState"]
+__all__ = ["EVAL", "EXPORT", "LOG", "SAVE", "VIDEO", "RunState"]
+
+# The built-in triggers' names. Checkpoints record the triggers an iteration still owes by name
+# (``counters.triggers``), so these never change: a run directory saved by an older rlpipe resumes.
+LOG = "log"
+EVAL = "eval"
+EXPORT = "export"
+SAVE = "save"
+VIDEO = "video"
 
 
 @dataclass
@@ -61,10 +69,10 @@ class RunState:
         """On resume: drop owed work whose metrics rows were written after the checkpoint was saved."""
         logged = {int(r["step"]) for r in rows if r.get("steps_per_s") not in ("", None)}
         evaluated = {int(r["step"]) for r in rows if r.get("average_return") not in ("", None)}
-        if "log" in self.owed and self.iteration in logged:
-            self.owed.remove("log")
-        if "eval" in self.owed and self.iteration in evaluated:
-            self.owed.remove("eval")
+        if LOG in self.owed and self.iteration in logged:
+            self.owed.remove(LOG)
+        if EVAL in self.owed and self.iteration in evaluated:
+            self.owed.remove(EVAL)
         self.pending_evals = deque((at, w) for at, w in self.pending_evals if at["step"] not in evaluated)
 
     # --- in checkpoints (the keys of rlpipe-checkpoint/1) -----------------------------------------

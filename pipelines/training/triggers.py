@@ -1,9 +1,10 @@
 """Triggers: what the loop does every so many iterations, after the updates (TF-Agents' triggers).
 
 A trigger has a ``name`` (saved in checkpoints: a run stopped between two triggers of the same
-iteration resumes with those it still owes) and an ``interval`` in iterations, and is called with
-the running ``Loop``. The built-in ones log, evaluate, export the policy and checkpoint; add your
-own by passing them to ``train(triggers=[...])``::
+iteration resumes with those it still owes; the built-in names are the constants ``LOG``, ``EVAL``,
+``EXPORT``, ``SAVE``, ``VIDEO`` and never change) and an ``interval`` in iterations, and is called
+with the running ``Loop``. The built-in ones log, evaluate, export the policy and checkpoint, and do
+that work themselves; add your own by passing them to ``train(triggers=[...])``::
 
     from rlpipe.pipelines.training.triggers import IntervalTrigger
 
@@ -11,6 +12,25 @@ own by passing them to ``train(triggers=[...])``::
         print(loop.state.iteration, loop.last_return)
 
     pipeline.train("runs/x", triggers=[IntervalTrigger(1000, print_return, name="print")])
+
+What a trigger may use of the loop: ``pipeline``, ``config``, ``state`` (counters), ``run_dir`` (the
+``RunDir``), ``evaluations`` (results so far, oldest first), ``last_return``, ``clock``,
+``interval_stats``, ``supervisor`` (workers alive, restarts), ``collector`` (the TorchRL collector
+collecting now, or None), ``triggers`` (the run's triggers by name), and the methods ``log(row)``
+(a metrics row: CSV, where a key new to metrics.csv gets a column; logger; callbacks), ``echo(line)``
+(the live log), ``speeds()``, ``evaluate()``, ``export()``, ``save()``.
+
+Besides ``__call__``, a trigger may define the run's other moments (each does nothing unless
+overridden), called on every trigger in the order given to ``train``:
+
+* ``start(loop)``: before the first block (after the checkpoint of a fresh run's iteration 0);
+* ``poll(loop)``: after each block's triggers (the eval trigger takes background results);
+* ``final(loop)``: once, at the run's end: the "final" firing (the last evaluation, export,
+  checkpoint and video are the built-in triggers' final firings, which is why ``at_last_iteration``
+  keeps their interval firing off the last iteration);
+* ``stopped(loop, lost)``: the run stops early, on a stop signal (``lost`` None) or on lost workers
+  (``lost``: the ``WorkersLost``); the checkpoint trigger saves what the iteration still owes;
+* ``close(loop)``: however the run ends (processes a trigger started are stopped here).
 """
 
 from __future__ import annotations
@@ -19,13 +39,20 @@ import math
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
+from rlpipe.pipelines.artifacts.export import export_policy
 from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.training.evaluations import Evaluations, eval_line
+from rlpipe.pipelines.training.state import EVAL, EXPORT, LOG, SAVE, VIDEO
+from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.training.loop import Loop
+    from rlpipe.pipelines.workers.supervision import WorkersLost
 
 __all__ = [
-    "CheckpointTrigger", "EvalTrigger", "ExportTrigger", "IntervalTrigger", "LogTrigger", "Trigger",
+    "EVAL", "EXPORT", "LOG", "SAVE", "VIDEO",
+    "CheckpointTrigger", "EvalTrigger", "ExportTrigger", "IntervalTrigger", "LogTrigger", "Trigger", "VideoTrigger",
     "crossed", "default_triggers", "eval_line", "log_line",
 ]
 
@@ -42,8 +69,8 @@ def crossed(previous: int, now: int, interval: int) -> bool:
 class Trigger:
     """Runs every ``interval`` iterations; subclasses set ``name`` and define ``__call__(loop)``.
 
-    ``at_last_iteration=False``: not at the run's last iteration (the loop's end does that work
-    itself: the final evaluation, the final checkpoint).
+    ``at_last_iteration=False``: not at the run's last iteration (its ``final`` firing does that
+    work: the final evaluation, the final checkpoint).
     """
 
     name: str = ""
@@ -60,6 +87,21 @@ class Trigger:
 
     def __call__(self, loop: Loop) -> None:
         raise NotImplementedError
+
+    def start(self, loop: Loop) -> None:
+        """Before the run's first block."""
+
+    def poll(self, loop: Loop) -> None:
+        """After each block's triggers."""
+
+    def final(self, loop: Loop) -> None:
+        """Once, at the run's end."""
+
+    def stopped(self, loop: Loop, lost: WorkersLost | None = None) -> None:
+        """The run stops early: on a stop signal (``lost`` None) or because its workers are lost."""
+
+    def close(self, loop: Loop) -> None:
+        """However the run ends."""
 
 
 class IntervalTrigger(Trigger):
@@ -79,7 +121,7 @@ class LogTrigger(Trigger):
     finished so far (TF-Agents' StepPerSecondLogTrigger and train metrics: NumberOfEpisodes,
     AverageReturnMetric, AverageEpisodeLengthMetric) and the workers' state (alive, restarts)."""
 
-    name = "log"
+    name = LOG
 
     def __call__(self, loop: Loop) -> None:
         row = {**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes, **loop.supervisor.columns()}
@@ -92,44 +134,126 @@ class LogTrigger(Trigger):
 
 
 class EvalTrigger(Trigger):
-    """An evaluation of the deterministic policy (the last iteration's one runs after the loop)."""
+    """An evaluation of the deterministic policy, here or in the background (``Evaluations``); the
+    random baseline at the start, and the last iteration's evaluation at the end."""
 
-    name = "eval"
+    name = EVAL
     at_last_iteration = False
 
+    def __init__(self, interval: int):
+        super().__init__(interval)
+        self.evaluations: Evaluations | None = None
+
     def __call__(self, loop: Loop) -> None:
-        loop.evaluate()
+        self.evaluations.ask()
+
+    def start(self, loop: Loop) -> None:
+        self.evaluations = Evaluations(loop)
+        self.evaluations.start()
+
+    def poll(self, loop: Loop) -> None:
+        self.evaluations.take()
+
+    def final(self, loop: Loop) -> None:
+        self.evaluations.finish()
+
+    def stopped(self, loop: Loop, lost: WorkersLost | None = None) -> None:
+        if self.evaluations is None:  # stopped before the run's start reached this trigger
+            return
+        if lost is None:
+            self.evaluations.take(feed=False)  # one already back is kept; the others are saved
+            return
+        try:
+            self.evaluations.take(feed=False)
+        except WorkerFailure:
+            pass
+        owed, pending = loop.state.owed, loop.state.pending_evals
+        if owed[:1] == [EVAL] and any(at["step"] == loop.state.iteration for at, _ in pending):
+            owed.pop(0)  # asked before its evaluator failed: saved as pending, not asked twice
+
+    def close(self, loop: Loop) -> None:
+        if self.evaluations is not None:
+            self.evaluations.close()
 
 
 class ExportTrigger(Trigger):
     """The deterministic policy exported to ``RUN/policy`` as ``step_NNNNNNN.onnx/.pt2`` and ``policy.onnx/.pt2``
-    (TF-Agents' PolicySavedModelTrigger; ``policy_keep`` says how many steps stay)."""
+    (TF-Agents' PolicySavedModelTrigger; ``policy_keep`` says how many steps stay), and at the end."""
 
-    name = "export"
+    name = EXPORT
+
+    def __init__(self, interval: int):
+        super().__init__(interval)
+        self.exported_at: int | None = None
 
     def __call__(self, loop: Loop) -> None:
-        loop.export()
+        pipeline = loop.pipeline
+        with loop.clock.paused():
+            export_policy(pipeline.export_module(), pipeline.observation_dim, loop.run_dir.policy_dir,
+                          pipeline.export_info(), step=loop.state.iteration, keep=loop.config.policy_keep)
+        self.exported_at = loop.state.iteration
+
+    def final(self, loop: Loop) -> None:
+        if self.exported_at != loop.state.iteration:
+            self(loop)
 
 
 class CheckpointTrigger(Trigger):
-    """A checkpoint that ``--resume`` continues from (the last one is saved after the loop)."""
+    """A checkpoint that ``--resume`` continues from: every ``interval``, at the end, and when the run
+    stops early (recording what its iteration still owes)."""
 
-    name = "save"
+    name = SAVE
     at_last_iteration = False
     crossed_off_first = True
 
     def __call__(self, loop: Loop) -> None:
-        loop.save()
+        loop.check_finite()  # every checkpoint is a finite state (TrainingDiverged otherwise)
+        with loop.clock.paused():
+            loop.metrics.sync()  # the rows this checkpoint counts reach the disk before it does
+            ckpt.save_checkpoint(loop.run_dir.checkpoints, loop.state.iteration, loop.pipeline.state_dict(),
+                                 keep=loop.config.checkpoint_keep)
+
+    def final(self, loop: Loop) -> None:
+        self(loop)
+
+    def stopped(self, loop: Loop, lost: WorkersLost | None = None) -> None:
+        self(loop)  # with what this iteration still owes: --resume does that first
+
+
+class VideoTrigger(Trigger):
+    """``video=true``: at the end, the exported policy filmed to RUN/trained-agent.mp4, as ``rlpipe video RUN`` does."""
+
+    name = VIDEO
+
+    def __init__(self):
+        super().__init__(0)  # no interval: only the final firing
+
+    def __call__(self, loop: Loop) -> None:
+        from rlpipe.pipelines.analysis.pages import VIDEO_FILE
+        from rlpipe.pipelines.artifacts.export import load_policy
+        from rlpipe.pipelines.artifacts.video import record_video
+
+        # the policy this run exported a moment ago: its own file, so a .pt2-only export (a plug-in
+        # actor ONNX cannot express) is trusted here, as it would not be from someone else's run
+        policy = load_policy(loop.run_dir.policy_dir, trust=True)[0]
+        path = record_video(loop.config.env, policy, loop.run_dir.path / VIDEO_FILE)
+        loop.echo(f"video: {path}")
+
+    def final(self, loop: Loop) -> None:
+        self(loop)
 
 
 def default_triggers(cfg: TrainConfig) -> list[Trigger]:
-    """The tutorials' triggers, in the order they run within an iteration."""
-    return [
+    """The tutorials' triggers, in the order they run within an iteration (and in the final firing)."""
+    triggers = [
         LogTrigger(cfg.log_interval),
         EvalTrigger(cfg.eval_interval),
         ExportTrigger(cfg.policy_save_interval),
         CheckpointTrigger(cfg.checkpoint_interval),
     ]
+    if cfg.video:
+        triggers.append(VideoTrigger())
+    return triggers
 
 
 # --- the live log: the tutorials' printed lines ------------------------------------------------------
@@ -155,13 +279,3 @@ def log_line(step: int, row: Mapping[str, Any]) -> str:
     if "train_episode_return" in row:
         parts.append(f"train episode return = {_num(float(row['train_episode_return']))}")
     return f"step = {step}: " + ", ".join(parts)
-
-
-def eval_line(step: int, result: Mapping[str, Any], steps_per_s: float, updates_per_s: float) -> str:
-    """``step = 1000: AverageReturn = ..., AverageEpisodeLength = ..., ...``: the tutorials' evaluation line.
-
-    The speeds are training time's (evaluations and saving left out) since this session started.
-    """
-    return (f"step = {step}: AverageReturn = {result['average_return']:.6f}, "
-            f"AverageEpisodeLength = {result['average_episode_length']:.6f}, "
-            f"env steps/s = {steps_per_s:.1f}, updates/s = {updates_per_s:.1f}")

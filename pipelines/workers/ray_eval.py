@@ -3,7 +3,7 @@
 ``RayEvaluator`` is an ``evaluation.AsyncEvaluator``, as ``BackgroundEvaluator`` is (``ask``, ``results``,
 ``check``, ``close``, ``worker_pid``, ``snapshot``), with the evaluation in a Ray actor that Ray
 places on any node with ``ray.num_cpus_per_worker`` CPUs free: one actor, ``EvalActor``, that makes
-the eval env (seeded ``seed + 10_000``, as the learner's own eval env is) and a CPU copy of the
+the eval env (seeded ``seed + EVAL_SEED_OFFSET``, as the learner's own eval env is) and a CPU copy of the
 policy, and runs ``evaluation.evaluate`` on each snapshot of weights sent to it. The same weights on
 the same seed give the same result as an evaluation in the learner's process.
 
@@ -37,7 +37,7 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import STOP_SIGNALS
 from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, _PolicyCopy, evaluate
@@ -45,10 +45,6 @@ from rlpipe.pipelines.workers.ray import MIN_START_TIMEOUT_S, RayRuntime
 from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 __all__ = ["EvalActor", "RayEvaluator", "hold_ray"]
-
-EVAL_SEED_OFFSET = 10_000
-"""the eval env's seed is the run's seed plus this (as ``OffPolicyPipeline`` seeds its own eval env)"""
-
 
 def hold_ray(config: TrainConfig) -> RayRuntime:
     """The run's hold on Ray while its evaluator lives there: joins ``ray.address`` or starts a local

@@ -1,0 +1,194 @@
+"""A run's evaluations, as the eval trigger runs them: here, in a background process, or on a Ray
+actor (started, restarted when it fails, its results taken and recorded), and the random agent's
+baseline played once at the start.
+
+An evaluation's result becomes a metrics row (``average_return``, ``average_episode_length``), the
+tutorials' live line, a point of RUN/returns.png and a refreshed RUN/report.html.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+from tensordict import TensorDictBase
+from torchrl.envs.utils import RandomPolicy
+
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
+from rlpipe.pipelines.config import BASELINE_SEED_OFFSET
+from rlpipe.pipelines.system.runtime import fault_point, stop_signals_blocked
+from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, BackgroundEvaluator, evaluate
+from rlpipe.pipelines.workers.supervision import WorkerFailure, kill_new_children
+
+if TYPE_CHECKING:
+    from rlpipe.pipelines.training.loop import Loop
+
+__all__ = ["Evaluations", "eval_line", "write_report"]
+
+
+class Evaluations:
+    """The evaluations of ``loop``'s run; ``loop.evaluations`` holds their results, oldest first."""
+
+    def __init__(self, loop: Loop):
+        self.loop = loop
+        self.background: AsyncEvaluator | None = None
+        self.ray = None  # the run's hold on Ray while its evaluator is a Ray actor (ray_eval.hold_ray)
+
+    def start(self) -> None:
+        """The random baseline, then the background evaluator (``eval_in_background``), which asks
+        again for what a stopped run left pending; without one, those are evaluated here."""
+        loop = self.loop
+        self.measure_random_baseline()
+        pending = loop.state.pending_evals
+        if loop.config.eval_in_background:
+            self.background = self._start_evaluator()
+        while pending and self.background is None:  # asked for in the background before a resume that turned it off
+            at, weights = pending[0]
+            self.now(weights, at)
+            pending.popleft()
+
+    def ask(self) -> None:
+        """Evaluate the policy as it is now: in the background if the run does so, else here."""
+        loop = self.loop
+        if self.background is not None and loop.state.iteration > 0:
+            self.background.ask(loop.state.position(), self.background.snapshot(loop.pipeline.policy))
+            fault_point("evaluator_worker", loop.state.iteration, worker=lambda: self.background.worker_pid)
+            self.take()
+        else:
+            self.now()
+
+    def now(self, weights: TensorDictBase | None = None, at: dict[str, int] | None = None) -> None:
+        """Evaluate the policy (or ``weights``, taken at ``at``) in this process."""
+        loop = self.loop
+        at = at or loop.state.position()
+        fault_point("evaluate", at["step"])
+        policy = loop.pipeline.policy
+        if weights is not None:
+            policy = copy.deepcopy(policy)
+            weights.to_module(policy)
+        with loop.clock.paused():
+            result = evaluate(loop.pipeline.eval_env, policy, loop.config.num_eval_episodes, interrupt=loop.stop.check)
+        self.record(result, at)
+
+    def take(self, block: bool = False, feed: bool = True) -> None:
+        """Record the background evaluations that are back (``block``: wait for all of them); an
+        evaluator that failed is replaced, and asked again for what it had not answered."""
+        loop = self.loop
+        while self.background is not None:
+            try:
+                with loop.clock.paused() if block else contextlib.nullcontext():
+                    for at, result in self.background.results(block=block, feed=feed, interrupt=loop.stop.check):
+                        self.record(result, at)
+                return
+            except WorkerFailure as failure:
+                self._restart_evaluator(failure)
+
+    def finish(self) -> None:
+        """The run's last evaluations: those still in the background, then the last iteration's."""
+        loop = self.loop
+        self.take(block=True)
+        if not loop.evaluations or loop.evaluations[-1]["step"] != loop.state.iteration:
+            self.now()
+
+    def close(self) -> None:
+        """Stop the evaluator (its process or Ray actor), then the run's hold on Ray."""
+        if self.background is not None:
+            self.background.close()
+        if self.ray is not None:
+            self.ray.close()
+
+    def _start_evaluator(self) -> AsyncEvaluator:
+        loop, cfg = self.loop, self.loop.config
+        pipeline, supervisor = loop.pipeline, loop.supervisor
+        if cfg.collector.backend == "ray":  # on a Ray actor, on the Ray the run holds until its end
+            from rlpipe.pipelines.workers.ray_eval import RayEvaluator, hold_ray
+
+            # a local Ray's processes start deaf to the stop signals, as Ray collectors start it (_make_collector)
+            with loop.clock.paused(), stop_signals_blocked():
+                self.ray = self.ray or hold_ray(cfg)
+                evaluator = RayEvaluator(pipeline.eval_env_fn, pipeline.policy, cfg.num_eval_episodes,
+                                         loop.state.pending_evals, config=cfg, timeout=cfg.eval_timeout,
+                                         start_timeout=supervisor.start_timeout)
+            supervisor.report("evaluator", 1, 1)
+            return evaluator
+        # TorchRL reads the new worker's first message with no timeout: the watchdog kills one that hangs
+        with loop.clock.paused(), loop.watchdog.limit(supervisor.start_timeout, kill_new_children()):
+            evaluator = BackgroundEvaluator(pipeline.eval_env_fn, pipeline.policy, cfg.num_eval_episodes,
+                                            loop.state.pending_evals, timeout=cfg.eval_timeout,
+                                            ack_timeout=cfg.collector.timeout)
+        supervisor.report("evaluator", 1, 1)
+        return evaluator
+
+    def _restart_evaluator(self, failure: WorkerFailure) -> None:
+        loop = self.loop
+        with loop.clock.paused():
+            self.background.close()
+        self.background = None
+        loop.supervisor.report("evaluator", 0, 1)
+        while self.background is None:
+            loop.supervisor.failed("evaluator", failure)  # WorkersLost when no restart is left
+            try:
+                self.background = self._start_evaluator()  # it asks again for the oldest pending evaluation
+            except (RuntimeError, ValueError, EOFError, OSError) as exc:
+                failure = WorkerFailure("evaluator", f"the evaluator did not start again: {exc}")
+
+    def record(self, result: dict[str, Any], at: dict[str, int]) -> None:
+        from rlpipe.pipelines.analysis import plot_training_returns  # matplotlib: imported when first needed
+
+        loop = self.loop
+        loop.evaluations.append({**at, **result})
+        loop.log({"average_return": result["average_return"],
+                  "average_episode_length": result["average_episode_length"], "wall_time": loop.clock.wall()}, at)
+        loop.echo(eval_line(at["step"], result, *loop.speeds()))
+        with loop.clock.paused():  # from the evaluations in memory: metrics.csv is not read again
+            plot_training_returns(loop.evaluations, loop.run_dir.returns_png,
+                                  title=f"{loop.pipeline.algo} on {loop.config.env}")
+            write_report(loop.run_dir.path)
+        loop.bar.set_postfix(avg_return=f"{loop.last_return:.1f}", refresh=False)
+
+    def measure_random_baseline(self) -> None:
+        """The random agent's return on the eval env (the DQN tutorial's baseline), once per run: RUN/baseline.json.
+
+        Played on an env of its own, with the run's random generators (torch, numpy, Python) put back
+        afterwards, so the run's own evaluations and draws are those of a run without it, and a run
+        resumed from its first checkpoint (saved before this) goes on as the uninterrupted one. A
+        pipeline handed env instances (no function to make another) has no baseline.
+        """
+        from rlpipe.pipelines.analysis.pages import read_baseline, write_baseline
+
+        loop, cfg = self.loop, self.loop.config
+        episodes = cfg.num_eval_episodes if cfg.baseline_episodes == -1 else cfg.baseline_episodes
+        if episodes == 0 or read_baseline(loop.run_dir.path) is not None or loop.pipeline.eval_env_fn is None:
+            return
+        loop.echo(f"random agent: playing {episodes} episodes for its baseline return (baseline_episodes)")
+        generators = ckpt.rng_state()
+        env = loop.pipeline.eval_env_fn()
+        try:
+            env.set_seed(cfg.seed + BASELINE_SEED_OFFSET)
+            result = evaluate(env, RandomPolicy(env.full_action_spec), episodes, interrupt=loop.stop.check)
+        finally:
+            env.close()
+            ckpt.set_rng_state(generators)
+        write_baseline(loop.run_dir.path, result)
+        loop.echo(f"random agent: AverageReturn = {result['average_return']:.6f}, "
+                  f"AverageEpisodeLength = {result['average_episode_length']:.6f} "
+                  f"({episodes} episodes)")
+
+
+def write_report(path) -> None:
+    """RUN/report.html from what the run directory at ``path`` holds now."""
+    from rlpipe.pipelines.analysis.pages import write_run_report
+
+    write_run_report(path)
+
+
+def eval_line(step: int, result: Mapping[str, Any], steps_per_s: float, updates_per_s: float) -> str:
+    """``step = 1000: AverageReturn = ..., AverageEpisodeLength = ..., ...``: the tutorials' evaluation line.
+
+    The speeds are training time's (evaluations and saving left out) since this session started.
+    """
+    return (f"step = {step}: AverageReturn = {result['average_return']:.6f}, "
+            f"AverageEpisodeLength = {result['average_episode_length']:.6f}, "
+            f"env steps/s = {steps_per_s:.1f}, updates/s = {updates_per_s:.1f}")

@@ -1,0 +1,206 @@
+"""A run's lifecycle: open a run directory (new, or resumed from its newest whole checkpoint), train
+a pipeline in it with the ``Loop``, write its summary, and stop with one line when the storage
+refuses a write (disk full, permissions), after saving what can be saved.
+
+``OffPolicyPipeline.train(out, ...)`` is ``Run(pipeline).train(out, ...)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torchrl.record.loggers import Logger, TensorboardLogger
+
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
+from rlpipe.pipelines.artifacts.files import STORAGE_ERRNOS, FileWriteError, write_json_atomic
+from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_dir, notice
+from rlpipe.pipelines.config import config_to_dict
+from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.training.evaluations import write_report
+from rlpipe.pipelines.training.loop import Loop, TrainResult
+from rlpipe.pipelines.training.meters import Clock
+from rlpipe.pipelines.training.state import EVAL, RunState
+from rlpipe.pipelines.training.threads import choose_threads, torch_threads
+from rlpipe.pipelines.training.triggers import Trigger, default_triggers
+
+if TYPE_CHECKING:
+    from rlpipe.pipelines.base import OffPolicyPipeline
+
+__all__ = ["Run", "seed_everything"]
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python's, NumPy's and torch's global generators (what TorchRL's samplers and exploration draw from)."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+class Run:
+    """``pipeline``'s run into a run directory, from its start or from where a checkpoint left it."""
+
+    def __init__(self, pipeline: OffPolicyPipeline):
+        self.pipeline = pipeline
+        self.run_dir: RunDir | None = None
+
+    def train(self, out: str | Path | None = None, *, resume: bool = False, progress: bool = True,
+              logger: Logger | None = None, callbacks: Sequence[Callable[[dict], None]] = (),
+              triggers: Sequence[Trigger] = ()) -> TrainResult:
+        """``OffPolicyPipeline.train``: see there."""
+        pipeline = self.pipeline
+        triggers = [*default_triggers(pipeline.config), *triggers]
+        names = [t.name for t in triggers]
+        if len(set(names)) != len(names):
+            raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
+        if pipeline.config.num_threads == -1:  # chosen once, before the run directory records the config
+            pipeline.config = dataclasses.replace(pipeline.config, num_threads=choose_threads(pipeline))
+        if pipeline.config.collector.backend == "ray":  # no Ray at ray.address: one line, and nothing written
+            from rlpipe.pipelines.workers.ray import check_address
+
+            check_address(pipeline.config.ray.address)
+        run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
+        self.run_dir = pipeline.run_dir = run
+        loop = None
+        try:
+            with FileWriteError.on_failure(run.path / "tb"):
+                logger = logger or TensorboardLogger(exp_name="tb", log_dir=str(run.path))
+            loop = Loop(pipeline, run, metrics, fresh=fresh, evaluations=evaluations, triggers=triggers,
+                        logger=logger, callbacks=callbacks, progress=progress)
+            with torch_threads(pipeline.config.num_threads), loop.running():
+                loop.run()
+                return self.finish(loop)
+        except OSError as exc:  # a write the storage refused, outside rlpipe's own (TensorBoard's writer)
+            if exc.errno not in STORAGE_ERRNOS:
+                raise
+            raise self._stopped_writing(FileWriteError(exc.filename or run.path, exc), loop) from exc
+        except FileWriteError as exc:
+            raise self._stopped_writing(exc, loop) from exc
+        finally:
+            run.close()
+
+    def finish(self, loop: Loop) -> TrainResult:
+        """summary.json and the report page of the finished run; what ``train`` hands back."""
+        summary = self.summary(loop.state, loop.evaluations, loop.clock)
+        write_json_atomic(loop.run_dir.summary_path, summary)
+        write_report(loop.run_dir.path)
+        return TrainResult(policy=self.pipeline.policy, run_dir=loop.run_dir.path, metrics=loop.metrics.rows(),
+                           summary=summary, evaluations=loop.evaluations)
+
+    def _stopped_writing(self, exc: FileWriteError, loop: Loop | None) -> InputError:
+        """The one line for a run stopped by a refused write (disk full, permissions), after saving
+        what can be saved: a checkpoint of where the run is, unless the checkpoint was what failed."""
+        run = self.run_dir
+        saved = None
+        if loop is not None and run.checkpoints not in (exc.path, *exc.path.parents):
+            try:
+                loop.save()
+                saved = f"saved a checkpoint at iteration {self.pipeline.state.iteration}"
+            except (FileWriteError, OSError):
+                pass
+        if saved is None:
+            try:
+                path = ckpt.newest_whole(run.checkpoints)[0]
+            except InputError:
+                path = None
+            saved = f"its last checkpoint, {path.name}, is intact" if path else "no checkpoint was saved"
+        return InputError(f"{exc}; {saved}: make room or allow writing there, then continue with --resume {run.path}")
+
+    def _start(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:
+        pipeline = self.pipeline
+        run = RunDir.create(out or default_run_dir(pipeline.algo, pipeline.config.env), pipeline.algo,
+                            config_to_dict(pipeline.config))
+        return _opened(run, self._begin)
+
+    def _begin(self, run: RunDir) -> tuple[MetricsCSV, list[dict], bool]:
+        """A run from its first iteration: (its empty metrics table, no evaluations, fresh)."""
+        pipeline = self.pipeline
+        seed_everything(pipeline.config.seed)  # replay sampling, exploration: the same seed gives the same run
+        pipeline.state.owed = [EVAL]  # the tutorials evaluate once before training
+        return MetricsCSV(run.metrics_path, list(pipeline.loss_names), extra_columns=pipeline.metrics_columns()), [], True
+
+    def _resume(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:
+        if out is None:
+            raise InputError("resume needs the run directory to continue")
+        return _opened(RunDir.resume(out), self._continue)
+
+    def _continue(self, run: RunDir) -> tuple[MetricsCSV, list[dict], bool]:
+        """Load the newest whole checkpoint of ``run``; (metrics table, evaluations so far, fresh)."""
+        pipeline = self.pipeline
+        path, skipped = ckpt.newest_whole(run.checkpoints)
+        if path is None:
+            if skipped:
+                raise InputError(f"{run.checkpoints}: no whole checkpoint to resume from ({'; '.join(skipped)})")
+            if run.has_progress():
+                raise InputError(f"{run.checkpoints}: no checkpoint to resume from; expected a run that saved one")
+            # killed while starting, before its first checkpoint: there is nothing to lose
+            notice(f"{run.path} stopped before its first checkpoint; starting it from the beginning")
+            run.write_config(pipeline.algo, config_to_dict(pipeline.config))
+            return self._begin(run)
+        try:
+            pipeline.load_state_dict(ckpt.load_checkpoint(path, pipeline.algo, pipeline.config.env))
+        except InputError as exc:
+            changed = changed_keys(run.read_config()[1], config_to_dict(pipeline.config))
+            hint = f" (keys changed since it was saved: {', '.join(changed)})" if changed else ""
+            raise InputError(f"{path / 'state.pt'}: {exc}{hint}") from exc
+        if skipped:
+            notice(f"{run.checkpoints}: {'; '.join(skipped)}; resuming from {path.name}")
+        metrics = MetricsCSV(run.metrics_path, list(pipeline.loss_names), resume_after_step=pipeline.state.iteration,
+                             extra_columns=pipeline.metrics_columns())
+        run.write_config(pipeline.algo, config_to_dict(pipeline.config))  # keys changed on resume are recorded
+        rows = metrics.rows()
+        pipeline.state.forget_done(rows)
+        evaluations = [evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
+        return metrics, evaluations, False
+
+    def summary(self, state: RunState, evaluations: list[dict], clock: Clock) -> dict[str, Any]:
+        """summary.json: the run's final figures, counters and speeds."""
+        pipeline = self.pipeline
+        last = evaluations[-1] if evaluations else {}
+        train_s = clock.train_seconds()
+        return {
+            "algo": pipeline.algo,
+            "env": pipeline.config.env,
+            "seed": pipeline.config.seed,
+            "iterations": state.iteration,
+            "frames": state.frames,
+            "updates": state.updates,
+            "final_average_return": last.get("average_return"),
+            "final_average_episode_length": last.get("average_episode_length"),
+            "wall_time_s": clock.wall(),
+            "train_time_s": train_s,
+            "env_steps_per_s": state.frames / train_s if train_s > 0 else None,
+            "updates_per_s": state.updates / train_s if train_s > 0 else None,
+        }
+
+
+def _opened(run: RunDir, then: Callable[[RunDir], tuple]) -> tuple:
+    """``(run, *then(run))``; the run directory's lock let go if ``then`` fails."""
+    try:
+        return run, *then(run)
+    except BaseException:
+        run.close()
+        raise
+
+
+def changed_keys(saved: dict, current: dict, prefix: str = "") -> list[str]:
+    """The dotted config keys whose value in ``current`` differs from ``saved``."""
+    changed = []
+    for key, value in current.items():
+        if isinstance(value, dict) and isinstance(saved.get(key), dict):
+            changed += changed_keys(saved[key], value, prefix + key + ".")
+        elif saved.get(key) != value:
+            changed.append(prefix + key)
+    return changed
+
+
+def evaluation_of(row: dict[str, str]) -> dict[str, Any]:
+    """An evaluation as ``Loop.evaluations`` holds it, from its metrics row (a resumed run's)."""
+    return {"step": int(row["step"]), "frames": int(row["frames"]), "updates": int(row["updates"]),
+            "average_return": float(row["average_return"]),
+            "average_episode_length": float(row["average_episode_length"]), "returns": None}
