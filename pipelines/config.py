@@ -27,6 +27,8 @@ from omegaconf.errors import OmegaConfBaseException
 from rlpipe.pipelines.errors import InputError
 
 __all__ = [
+    "COLLECTOR_BACKENDS",
+    "BackendNeeds",
     "CollectorConfig",
     "RayConfig",
     "TrainConfig",
@@ -39,6 +41,26 @@ __all__ = [
     "flat_keys",
     "validate",
 ]
+
+
+@dataclass(frozen=True)
+class BackendNeeds:
+    """What a collector backend (``workers.backend``) asks of a config, checked by ``validate``: the
+    config cannot import the backends (they sit above it), so each says here what it needs."""
+
+    what: str
+    """a few words for error messages"""
+    package: str | None = None
+    """a module it imports, installed by the extra of the same name (``pip install 'rlpipe[ray]'``)"""
+    even_sync_blocks: bool = False
+    """with collector.sync=true, each block splits evenly over the workers"""
+
+
+COLLECTOR_BACKENDS = {
+    "local": BackendNeeds("collector processes"),
+    "ray": BackendNeeds("Ray actors", package="ray", even_sync_blocks=True),
+}
+"""``collector.backend`` -> what that backend needs (``workers.backend.make_backend`` picks the backend itself)"""
 
 
 @dataclass
@@ -204,13 +226,15 @@ def validate(cfg, *, machine: bool = True) -> None:
         raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
                          "cudagraph=false or null on this device")
     c = cfg.collector
-    if c.backend not in ("local", "ray"):
-        raise InputError(f"collector.backend={c.backend!r}: expected 'local' (collector processes) or 'ray' (Ray actors)")
+    if c.backend not in COLLECTOR_BACKENDS:
+        choices = " or ".join(f"{name!r} ({needs.what})" for name, needs in COLLECTOR_BACKENDS.items())
+        raise InputError(f"collector.backend={c.backend!r}: expected {choices}")
+    needs = COLLECTOR_BACKENDS[c.backend]
     if not cfg.ray.num_cpus_per_worker > 0:
         raise InputError(f"ray.num_cpus_per_worker={cfg.ray.num_cpus_per_worker}: expected a positive number of CPUs")
-    if c.backend == "ray" and importlib.util.find_spec("ray") is None:
-        raise InputError("collector.backend=ray: Ray is not installed; expected `pip install 'rlpipe[ray]'` "
-                         "(or collector.backend=local)")
+    if needs.package and importlib.util.find_spec(needs.package) is None:
+        raise InputError(f"collector.backend={c.backend}: {needs.package} is not installed; expected "
+                         f"`pip install 'rlpipe[{needs.package}]'` (or collector.backend=local)")
     per_block = c.envs_per_worker * (c.workers if c.sync else 1)
     if c.envs_per_worker > 1 and c.frames_per_batch % per_block:
         raise InputError(
@@ -218,9 +242,9 @@ def validate(cfg, *, machine: bool = True) -> None:
             f"{per_block} envs (collector.workers={c.workers} x collector.envs_per_worker={c.envs_per_worker}"
             f"{'' if c.sync else ', one worker per block'}): expected a multiple of {per_block}"
         )
-    if c.backend == "ray" and c.sync and c.frames_per_batch % c.workers:
+    if needs.even_sync_blocks and c.sync and c.frames_per_batch % c.workers:
         raise InputError(f"collector.frames_per_batch={c.frames_per_batch} does not split evenly over "
-                         f"collector.workers={c.workers} Ray actors (collector.sync=true): expected a multiple of {c.workers}")
+                         f"collector.workers={c.workers} {needs.what} (collector.sync=true): expected a multiple of {c.workers}")
     if not 0.0 < cfg.gamma <= 1.0:
         raise InputError(f"gamma={cfg.gamma}: expected a discount in (0, 1]")
     if not 0.0 < cfg.target_update_tau <= 1.0:

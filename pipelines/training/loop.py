@@ -14,7 +14,7 @@ they start with them blocked, and the learner stops them. A second signal stops 
 
 Workers are supervised (``supervision``): a collector or evaluator process that dies or stops
 answering is replaced, up to ``collector.max_restarts`` times; one more failure saves a checkpoint
-and ends the run with ``WorkersLost``.
+and ends the run with ``NoRestartLeft``.
 """
 
 from __future__ import annotations
@@ -55,16 +55,17 @@ from rlpipe.pipelines.training.meters import Clock, IntervalStats
 from rlpipe.pipelines.training.triggers import Trigger, eval_line
 from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, BackgroundEvaluator, evaluate
 from rlpipe.pipelines.workers.supervision import (
+    NoRestartLeft,
     SupervisedCollector,
     Supervisor,
     Watchdog,
     WorkerFailure,
-    WorkersLost,
     kill_new_children,
 )
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.base import OffPolicyPipeline
+    from rlpipe.pipelines.workers.backend import CollectorBackend
 
 __all__ = ["LIVE_LOG", "Loop", "TrainResult"]
 
@@ -113,7 +114,7 @@ class Loop:
 
     @property
     def collector(self):
-        """The TorchRL collector collecting now (None outside ``collect``, or while one is replaced)."""
+        """The collector backend collecting now (None outside ``collect``, or while one is replaced)."""
         return None if self.collection is None else self.collection.collector
 
     @property
@@ -144,7 +145,7 @@ class Loop:
                     self.take_background_results(feed=False)  # one already back is kept; the others are saved
                     self.save()  # with what this iteration still owes: --resume does that first
                     raise Interrupted(stop.signum) from None
-                except WorkersLost as lost:
+                except NoRestartLeft as lost:
                     with contextlib.suppress(WorkerFailure):
                         self.take_background_results(feed=False)
                     owed, pending = self.state.owed, self.state.pending_evals
@@ -200,18 +201,16 @@ class Loop:
             self.collection.close()
             self.collection = None
 
-    def _make_collector(self, restarts: int):
-        """A started collector for the frames still to collect, seeded; after a restart, with a seed
+    def _make_collector(self, restarts: int) -> CollectorBackend:
+        """A started collector backend for the frames still to collect, seeded; after a restart, with a seed
         stream no earlier collector of the run used."""
         cfg, state = self.config, self.state
         seed = cfg.seed + state.frames
         if restarts:
             seed = int(np.random.SeedSequence([cfg.seed, state.frames, restarts]).generate_state(1)[0])
         with stop_signals_blocked(), self.clock.paused():  # worker start-up is not training time
-            collector = self.pipeline.make_collector(cfg.total_frames - state.frames,
-                                                     max(0, cfg.initial_collect_steps - state.frames))
-            collector.set_seed(seed)
-        return collector
+            return self.pipeline.make_backend().start(cfg.total_frames - state.frames,
+                                                      max(0, cfg.initial_collect_steps - state.frames), seed)
 
     def insert(self, batch: TensorDictBase) -> None:
         """Store a block in the replay buffer, count it, and note the triggers its iterations crossed."""
@@ -239,7 +238,7 @@ class Loop:
         if made:
             self.check_finite()  # once per block: a few scalars, before the collectors get the weights
         if made and self.collection is not None and self.state.updates % self.config.collector.weight_sync_interval < made:
-            self.collection.push_weights(self.pipeline.push_weights)
+            self.collection.push_weights()
 
     def run_triggers(self) -> None:
         """Run what the current iteration owes, in order; each is crossed off once done."""
@@ -333,7 +332,7 @@ class Loop:
         self.background = None
         self.supervisor.report("evaluator", 0, 1)
         while self.background is None:
-            self.supervisor.failed("evaluator", failure)  # WorkersLost when no restart is left
+            self.supervisor.failed("evaluator", failure)  # NoRestartLeft when no restart is left
             try:
                 self.background = self._start_evaluator()  # it asks again for the oldest pending evaluation
             except (RuntimeError, ValueError, EOFError, OSError) as exc:

@@ -83,9 +83,8 @@ class LogTrigger(Trigger):
 
     def __call__(self, loop: Loop) -> None:
         row = {**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes, **loop.supervisor.columns()}
-        collector_metrics = getattr(loop.collector, "metrics", None)  # a backend's own figures (Ray: workers alive)
-        if collector_metrics is not None:
-            row.update(collector_metrics())
+        if loop.collector is not None:  # the backend's own figures (Ray: weight versions)
+            row.update(loop.collector.metrics())
         loop.log(row)
         if any(k.startswith("loss_") for k in row):  # nothing to say before the first update
             loop.echo(log_line(loop.state.iteration, row))

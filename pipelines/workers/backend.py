@@ -1,0 +1,161 @@
+"""The collector-backend interface: where a run's env steps are collected, behind one small class.
+
+Tianshou's ``EnvWorker`` is the model: the loop and the supervisor hold a ``CollectorBackend`` and never
+ask which one it is. Two implement it: ``local.LocalBackend`` (TorchRL's ``Collector`` in the learner's
+process, or its ``MultiSyncCollector`` / ``MultiAsyncCollector`` over worker processes) and
+``ray.RayBackend`` (TorchRL's ``RayCollector``, one actor per worker). ``make_backend`` picks one from
+``collector.backend``; it is the one place that reads that key. Another backend is one module with a
+subclass, one line in ``_BACKENDS`` and one in ``config.COLLECTOR_BACKENDS`` (what it needs of a config).
+
+The life of one backend: ``start`` (for N frames) -> iterate its blocks, with ``push_weights`` between
+them -> ``close``. ``health`` and ``kill`` are for a supervisor: a backend reports its workers (and
+which died, and why) and ends a wait on them; it never restarts one itself. A lost worker surfaces as
+``supervision.WorkerFailure`` from the blocks, from ``push_weights`` or in ``health().failure``;
+``supervision.SupervisedCollector`` then closes the backend and starts a new one.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.envs import EnvBase
+
+from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.workers.supervision import WorkerFailure
+
+__all__ = ["CollectorBackend", "Health", "backend_class", "make_backend"]
+
+
+@dataclass(frozen=True)
+class Health:
+    """A backend's workers as it sees them now."""
+
+    total: int
+    """workers started (0: the env steps in the learner's own process; nothing to watch)"""
+    pids: tuple[int, ...] = ()
+    """the live workers' processes (a Ray actor's is on its node)"""
+    failure: WorkerFailure | None = None
+    """the first worker found dead, saying which and why; None while every one runs"""
+
+    @property
+    def alive(self) -> int:
+        return len(self.pids)
+
+
+class CollectorBackend(abc.ABC):
+    """Blocks of env steps from ``collector.workers`` workers running the collect policy.
+
+    Made by ``make_backend`` (not started); ``start`` makes its workers, and the backend is then
+    iterable once, block by block (TensorDicts as TorchRL's collectors give them), until the frames
+    it was started for are collected. ``close`` stops its workers, whatever state they are in.
+    """
+
+    metric_columns: ClassVar[tuple[str, ...]] = ()
+    """what ``metrics`` adds to each log row (metrics.csv's columns past the losses and speeds)"""
+    role: ClassVar[str] = "collector"
+
+    def __init__(self, config: TrainConfig, *, policy: nn.Module, env_fn: Callable[[], EnvBase] | None,
+                 env: EnvBase | None = None, device: torch.device | str = "cpu",
+                 learner_version: Callable[[], int] = lambda: 0):
+        self.config, self.policy, self.env_fn, self.env = config, policy, env_fn, env
+        self.device = torch.device(device)
+        self.learner_version = learner_version  # the learner's update count: the version of the weights it sends
+        self.started = False
+
+    @classmethod
+    def preflight(cls, config: TrainConfig) -> None:
+        """``InputError`` now if this backend cannot run at all with ``config`` (a run calls it before it
+        writes anything, so such a command leaves nothing behind)."""
+        return None  # a local backend has nothing to check that validation has not
+
+    def start(self, total_frames: int, init_random_frames: int, seed: int | None = None) -> CollectorBackend:
+        """Start the workers for ``total_frames`` frames, the first ``init_random_frames`` of them from
+        random actions (none with ``initial_collect_policy=collect``), seeded with ``seed`` (None: as
+        TorchRL leaves them). Returns the backend, started; ``WorkerFailure`` if a worker is lost meanwhile."""
+        if self.started:
+            raise RuntimeError(f"{type(self).__name__} was started already; make another (make_backend)")
+        if self.config.initial_collect_policy == "collect":  # the initial steps come from the exploring policy
+            init_random_frames = 0
+        self._start(total_frames, init_random_frames)
+        self.started = True
+        if seed is not None:
+            self._seed(seed)
+        return self
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        return self.blocks()
+
+    @abc.abstractmethod
+    def _start(self, total_frames: int, init_random_frames: int) -> None: ...
+
+    @abc.abstractmethod
+    def _seed(self, seed: int) -> None: ...
+
+    @abc.abstractmethod
+    def blocks(self) -> Iterator[TensorDictBase]:
+        """The collected blocks until the frame budget is met; ``WorkerFailure`` when a worker is lost."""
+
+    @abc.abstractmethod
+    def push_weights(self) -> None:
+        """Hand the workers the policy's weights as they are now (or arrange that their next blocks use
+        them); ``WorkerFailure`` if a worker is dead or does not take them within ``collector.timeout``."""
+
+    @abc.abstractmethod
+    def health(self) -> Health:
+        """The workers alive now, and the first one found dead with its reason."""
+
+    @abc.abstractmethod
+    def kill(self) -> None:
+        """Kill every worker now (a supervisor ends a wait past its deadline so): a block or weight push
+        being waited on then fails at once, as a lost worker's does."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Stop the workers (asked first, killed if they do not go) and free what the backend holds;
+        safe to call again, and on a backend whose workers died."""
+
+    def metrics(self) -> dict[str, Any]:
+        """This backend's own figures for a log row, keyed by ``metric_columns``."""
+        return {}
+
+    @property
+    def collector(self):
+        """What a loop of one's own iterates: a TorchRL collector (``shutdown`` when done; push weights
+        with ``OffPolicyPipeline.push_weights``)."""
+        return self
+
+
+def _local() -> type[CollectorBackend]:
+    from rlpipe.pipelines.workers.local import LocalBackend
+
+    return LocalBackend
+
+
+def _ray() -> type[CollectorBackend]:
+    from rlpipe.pipelines.workers.ray import RayBackend  # Ray is an extra: imported only when asked for
+
+    return RayBackend
+
+
+_BACKENDS: dict[str, Callable[[], type[CollectorBackend]]] = {"local": _local, "ray": _ray}
+"""``collector.backend`` -> the backend class (config validation has checked the name)"""
+
+
+def backend_class(config: TrainConfig) -> type[CollectorBackend]:
+    """The ``CollectorBackend`` subclass ``config.collector.backend`` names."""
+    return _BACKENDS[config.collector.backend]()
+
+
+def make_backend(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[[], EnvBase] | None,
+                 env: EnvBase | None = None, device: torch.device | str = "cpu",
+                 learner_version: Callable[[], int] = lambda: 0) -> CollectorBackend:
+    """The backend ``config.collector.backend`` names, not started yet: ``policy`` collects, on envs made
+    by ``env_fn`` (``env``: the learner's own, stepped in its process with one in-process worker)."""
+    return backend_class(config)(config, policy=policy, env_fn=env_fn, env=env, device=device,
+                                 learner_version=learner_version)
