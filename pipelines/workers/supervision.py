@@ -105,7 +105,7 @@ def is_running(proc) -> bool:
     if getattr(proc, "_closed", False):
         return False
     try:
-        return proc.isis_running()
+        return proc.is_alive()
     except ValueError:
         return False
 
