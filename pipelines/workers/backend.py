@@ -7,6 +7,9 @@ process, or its ``MultiSyncCollector`` / ``MultiAsyncCollector`` over worker pro
 ``collector.backend``; it is the one place that reads that key. Another backend is one module with a
 subclass, one line in ``_BACKENDS`` and one in ``config.COLLECTOR_BACKENDS`` (what it needs of a config).
 
+A backend class also says what a run holds while its workers come and go (``hold``) and where
+the background evaluator runs beside them (``start_evaluator``).
+
 The life of one backend: ``start`` (for N frames) -> iterate its blocks, with ``push_weights`` between
 them -> ``close``. ``health`` and ``kill`` are for a supervisor: a backend reports its workers (and
 which died, and why) and ends a wait on them; it never restarts one itself. A lost worker surfaces as
@@ -17,9 +20,10 @@ which died, and why) and ends a wait on them; it never restarts one itself. A lo
 from __future__ import annotations
 
 import abc
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import torch
 from tensordict import TensorDictBase
@@ -27,9 +31,16 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import TrainConfig
-from rlpipe.pipelines.workers.supervision import WorkerFailure
+from rlpipe.pipelines.workers.supervision import Watchdog, WorkerFailure, kill_new_children
+
+if TYPE_CHECKING:
+    from rlpipe.pipelines.workers.evaluation import AsyncEvaluator
 
 __all__ = ["CollectorBackend", "Health", "backend_class", "make_backend"]
+
+
+class Closeable(Protocol):
+    def close(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -73,6 +84,24 @@ class CollectorBackend(abc.ABC):
         """``InputError`` now if this backend cannot run at all with ``config`` (a run calls it before it
         writes anything, so such a command leaves nothing behind)."""
         return None  # a local backend has nothing to check that validation has not
+
+    @classmethod
+    def hold(cls, config: TrainConfig) -> Closeable | None:
+        """What a run holds for its whole length while this backend's workers and its evaluator come and
+        go (Ray: the run's hold on Ray, ``ray_eval.hold_ray``); ``close()`` it at the run's end. None: nothing."""
+        return None
+
+    @classmethod
+    def start_evaluator(cls, config: TrainConfig, *, env_fn: Callable[[], EnvBase], policy: nn.Module,
+                        pending: deque, start_timeout: float, watchdog: Watchdog) -> AsyncEvaluator:
+        """The background evaluator (``eval_in_background=true``) beside this backend's workers, started:
+        here a child process (TorchRL's ``Evaluator``); ``watchdog`` kills it if it takes longer than
+        ``start_timeout`` to start (TorchRL reads the new worker's first message with no timeout)."""
+        from rlpipe.pipelines.workers.evaluation import BackgroundEvaluator
+
+        with watchdog.limit(start_timeout, kill_new_children()):
+            return BackgroundEvaluator(env_fn, policy, config.num_eval_episodes, pending, timeout=config.eval_timeout,
+                                       ack_timeout=config.collector.timeout)
 
     def start(self, total_frames: int, init_random_frames: int, seed: int | None = None) -> CollectorBackend:
         """Start the workers for ``total_frames`` frames, the first ``init_random_frames`` of them from

@@ -45,12 +45,13 @@ from rlpipe.pipelines.workers.supervision import MIN_START_TIMEOUT_S, WorkerFail
 __all__ = ["METRIC_COLUMNS", "RayBackend", "RayRuntime", "check_address", "check_cpus"]
 
 METRIC_COLUMNS = ["workers_alive", "weight_version", "weight_staleness"]
-"""what ``RayCollectors.metrics`` adds to each log row of metrics.csv"""
+"""what ``RayBackend.metrics`` adds to each log row of metrics.csv"""
+
 
 def _lost_errors() -> tuple[type[BaseException], ...]:
     """Ray's errors that mean a collector actor, its node or the object it owed is gone: each is a
-    ``WorkerFailure`` of the collector. Which one comes depends on where the loss is seen: a killed actor's block raises
-    ``ActorDiedError``; a node gone, ``ActorDiedError`` (node died), ``ActorUnavailableError`` while
+    ``WorkerFailure`` of the collector. Which one comes depends on where the loss is seen: a killed
+    actor's block raises ``ActorDiedError``; a node gone, ``ActorDiedError`` (node died), ``ActorUnavailableError`` while
     Ray still tries to reach it, ``NodeDiedError``, ``ObjectLostError`` (``OwnerDiedError``, ...) for
     a block stored there; a wait with a deadline, ``GetTimeoutError``."""
     from ray import exceptions as e
@@ -113,6 +114,21 @@ class RayBackend(CollectorBackend):
     def preflight(cls, config: TrainConfig) -> None:
         check_address(config.ray.address)  # no Ray at ray.address: one line, and nothing written
 
+    @classmethod
+    def hold(cls, config: TrainConfig) -> RayRuntime:
+        from rlpipe.pipelines.workers.ray_eval import hold_ray
+
+        return hold_ray(config)
+
+    @classmethod
+    def start_evaluator(cls, config: TrainConfig, *, env_fn, policy, pending, start_timeout: float, watchdog):
+        """On a Ray actor (``ray_eval.RayEvaluator``), on the Ray the run holds (``hold``); Ray's own
+        deadline on placing it is ``start_timeout``."""
+        from rlpipe.pipelines.workers.ray_eval import RayEvaluator
+
+        return RayEvaluator(env_fn, policy, config.num_eval_episodes, pending, config=config,
+                            timeout=config.eval_timeout, start_timeout=start_timeout)
+
     def _start(self, total_frames: int, init_random_frames: int) -> None:
         import ray
         from torchrl.weight_update import RayWeightSyncScheme
@@ -155,10 +171,7 @@ class RayBackend(CollectorBackend):
         ray.get(ready)  # an actor that failed to start raises here, with its own error
 
     def _seed(self, seed: int) -> None:
-        try:
-            self._ray_collector.set_seed(seed, False)
-        except _lost_errors() as exc:
-            raise _lost(f"a Ray collector actor was lost while starting ({first_line(exc)})") from exc
+        self.set_seed(seed)
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         """As a TorchRL collector's (a loop of one's own)."""
