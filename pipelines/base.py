@@ -28,7 +28,6 @@ from typing import Any, ClassVar
 import torch
 from tensordict import TensorDictBase
 from torch import nn
-from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
@@ -47,7 +46,9 @@ from rlpipe.pipelines.training.state import RunState
 from rlpipe.pipelines.training.threads import choose_threads
 from rlpipe.pipelines.training.triggers import Trigger
 from rlpipe.pipelines.training.update_graph import GraphedUpdate
-from rlpipe.pipelines.workers.supervision import TimedSharedMemScheme
+from rlpipe.pipelines.workers.backend import CollectorBackend
+from rlpipe.pipelines.workers.factory import backend_class, make_backend
+from rlpipe.pipelines.workers.local import push_weights as push_collector_weights
 
 __all__ = ["Agent", "OffPolicyPipeline", "seed_everything"]
 
@@ -218,58 +219,34 @@ class OffPolicyPipeline:
         return ReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer_capacity, device=self.device),
                             batch_size=cfg.batch_size)
 
+    def make_backend(self) -> CollectorBackend:
+        """The collector backend ``collector.backend`` names (local processes, Ray actors), not started:
+        the exploring policy collects, on envs from the pipeline's env function."""
+        return make_backend(self.config, policy=self.collect_policy, env_fn=self.env_fn, env=self.env,
+                            device=self.device, learner_version=lambda: self.state.updates)
+
     def make_collector(self, total_frames: int, init_random_frames: int):
-        c = self.config.collector
-        if self.config.initial_collect_policy == "collect":  # the initial steps come from the exploring policy
-            init_random_frames = 0
-        if c.backend == "ray":
-            return self._make_ray_collector(total_frames, init_random_frames)
-        common = dict(frames_per_batch=c.frames_per_batch, total_frames=total_frames,
-                      init_random_frames=init_random_frames,
-                      # a user's env without the transforms the policy reads (InitTracker) gets them
-                      # appended, as TorchRL 0.15 will do by default
-                      auto_register_policy_transforms=True,
-                      # the env steps where it lives; its outputs go to the policy's device, and the
-                      # collected blocks to the learner's (where the replay buffer is)
-                      policy_device=self.device, storing_device=self.device)
-        if c.workers == 1 and c.sync:
-            return Collector(self.env, self.collect_policy, **common)
-        if not c.sync and init_random_frames > 0:
-            # MultiAsyncCollector decides random-or-policy for a worker's next block when it hands
-            # over that worker's last one, so the other workers' blocks in flight are random too:
-            # ask for that many fewer, and exactly `init_random_frames` come out random (to a block).
-            # (Each async worker's block is a whole `frames_per_batch`.)
-            common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
-        cls = MultiSyncCollector if c.sync else MultiAsyncCollector
-        # TorchRL's weight sync for these collectors (shared memory), with a deadline on the workers'
-        # acknowledgements: a push to a dead worker is a WorkerFailure, not a wait for good.
-        scheme = TimedSharedMemScheme(ack_timeout=c.timeout)
-        return cls([self.env_fn] * c.workers, self.collect_policy, weight_sync_schemes={"policy": scheme}, **common)
-
-    def _make_ray_collector(self, total_frames: int, init_random_frames: int):
-        from rlpipe.pipelines.workers.ray import RayCollectors
-
-        if self.env_fn is None:
-            raise InputError("collector.backend=ray: pass env as a function that makes the env (Ray actors make their own)")
-        return RayCollectors(self.env_fn, self.collect_policy, self.config, total_frames=total_frames,
-                             init_random_frames=init_random_frames, learner_version=lambda: self.state.updates)
+        """A started collector for a loop of one's own: a TorchRL collector (``Collector``,
+        ``MultiSyncCollector`` or ``MultiAsyncCollector``; with ``collector.backend=ray``, the Ray
+        backend, which iterates, ``set_seed``s and ``shutdown``s as one does) for ``total_frames``
+        frames, the first ``init_random_frames`` random (none with ``initial_collect_policy=collect``).
+        Push the learner's weights to it with ``push_weights``; ``shutdown()`` it when done."""
+        return self.make_backend().start(total_frames, init_random_frames).collector
 
     def metrics_columns(self) -> list[str]:
         """metrics.csv's columns past the losses and speeds: what the collector backend reports."""
-        if self.config.collector.backend == "ray":
-            from rlpipe.pipelines.workers.ray import METRIC_COLUMNS
-
-            return list(METRIC_COLUMNS)
-        return []
+        return list(backend_class(self.config).metric_columns)
 
     def push_weights(self, collector) -> None:
-        """Send the policy's weights to collector processes (in-process collection shares them; Ray
-        actors get them from TorchRL's ``RayCollector`` each time it asks one for a block).
+        """Send the policy's weights to a collector's workers (``make_collector``'s, or a backend's;
+        in-process collection shares them; Ray actors get them each time they are asked for a block).
 
         Raises ``supervision.WorkerFailure`` if a worker is dead or does not take them within
         ``collector.timeout`` seconds."""
-        if not isinstance(collector, Collector):
-            collector.update_policy_weights_()
+        if isinstance(collector, CollectorBackend):
+            collector.push_weights()
+        else:
+            push_collector_weights(collector)
 
     # --- checkpoint state -------------------------------------------------------------------------
 

@@ -34,6 +34,7 @@ from rlpipe.pipelines.errors import InputError
 
 __all__ = [
     "BASELINE_SEED_OFFSET",
+    "COLLECTOR_BACKENDS",
     "EVAL_SEED_OFFSET",
     "GRADIENT_CLIPPING",
     "LAYER_SIZES",
@@ -41,6 +42,7 @@ __all__ = [
     "NON_NEGATIVE",
     "POSITIVE",
     "PROBABILITY",
+    "BackendNeeds",
     "Check",
     "CollectorConfig",
     "RayConfig",
@@ -131,6 +133,26 @@ WORKERS_PER_CPU = 8
 """collector processes per CPU beyond which a run only thrashes (each is a whole Python process with torch)"""
 
 
+@dataclass(frozen=True)
+class BackendNeeds:
+    """What a collector backend (``workers.backend``) asks of a config, checked by ``validate``: the
+    config cannot import the backends (they sit above it), so each says here what it needs."""
+
+    what: str
+    """a few words for error messages"""
+    package: str | None = None
+    """a module it imports, installed by the extra of the same name (``pip install 'rlpipe[ray]'``)"""
+    even_sync_blocks: bool = False
+    """with collector.sync=true, each block splits evenly over the workers"""
+
+
+COLLECTOR_BACKENDS = {
+    "local": BackendNeeds("collector processes"),
+    "ray": BackendNeeds("Ray actors", package="ray", even_sync_blocks=True),
+}
+"""``collector.backend`` -> what that backend needs (``workers.factory.make_backend`` picks the backend itself)"""
+
+
 @dataclass
 class CollectorConfig:
     """How env steps are gathered: TorchRL collectors in place of TF-Agents' actor processes."""
@@ -145,7 +167,8 @@ class CollectorConfig:
     """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
     weight_sync_interval: int = checked(1, POSITIVE)
     """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container); with backend=ray a worker gets the learner's weights each time it is asked for a block"""
-    backend: str = checked("local", one_of("local", "ray", expected="'local' (collector processes) or 'ray' (Ray actors)"))
+    backend: str = checked("local", one_of(*COLLECTOR_BACKENDS, expected=" or ".join(
+        f"{name!r} ({needs.what})" for name, needs in COLLECTOR_BACKENDS.items())))
     """'local': collector processes on this machine; 'ray': collectors as Ray actors placed by Ray (TorchRL's `RayCollector`; see the `ray` keys)"""
     max_restarts: int = checked(3, NON_NEGATIVE)
     """restarts allowed (each of the collector and of the background evaluator, per session) when a worker process dies or stops answering; one more failure saves a checkpoint and stops the run (exit status 75)"""
@@ -271,9 +294,10 @@ def validate(cfg, *, machine: bool = True) -> None:
         raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
                          "cudagraph=false or null on this device")
     c = cfg.collector
-    if c.backend == "ray" and importlib.util.find_spec("ray") is None:
-        raise InputError("collector.backend=ray: Ray is not installed; expected `pip install 'rlpipe[ray]'` "
-                         "(or collector.backend=local)")
+    needs = COLLECTOR_BACKENDS[c.backend]  # a known name: its field's rule ran above
+    if needs.package and importlib.util.find_spec(needs.package) is None:
+        raise InputError(f"collector.backend={c.backend}: {needs.package} is not installed; expected "
+                         f"`pip install 'rlpipe[{needs.package}]'` (or collector.backend=local)")
     per_block = c.envs_per_worker * (c.workers if c.sync else 1)
     if c.envs_per_worker > 1 and c.frames_per_batch % per_block:
         raise InputError(
@@ -281,9 +305,9 @@ def validate(cfg, *, machine: bool = True) -> None:
             f"{per_block} envs (collector.workers={c.workers} x collector.envs_per_worker={c.envs_per_worker}"
             f"{'' if c.sync else ', one worker per block'}): expected a multiple of {per_block}"
         )
-    if c.backend == "ray" and c.sync and c.frames_per_batch % c.workers:
+    if needs.even_sync_blocks and c.sync and c.frames_per_batch % c.workers:
         raise InputError(f"collector.frames_per_batch={c.frames_per_batch} does not split evenly over "
-                         f"collector.workers={c.workers} Ray actors (collector.sync=true): expected a multiple of {c.workers}")
+                         f"collector.workers={c.workers} {needs.what} (collector.sync=true): expected a multiple of {c.workers}")
     if cfg.batch_size > cfg.replay_buffer_capacity:
         raise InputError(
             f"batch_size={cfg.batch_size} is larger than replay_buffer_capacity={cfg.replay_buffer_capacity}: "

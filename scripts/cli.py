@@ -110,7 +110,7 @@ def cmd_train(args) -> int:
     from rlpipe.pipelines.artifacts.rundir import RunDir, default_run_dir
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.pipelines.workers.supervision import WorkersLost
+    from rlpipe.pipelines.workers.supervision import NoRestartLeft
 
     algo, cfg = resolve_preset(args.preset)
     Pipeline = pipeline_class(algo)
@@ -145,7 +145,7 @@ def cmd_train(args) -> int:
         by = f" by {signal.Signals(signame).name}" if signame not in (None, signal.SIGINT) else ""
         print(f"rlpipe: interrupted{by}; continue with: rlpipe train {args.preset} --resume {run_dir}", file=sys.stderr)
         return getattr(exc, "exit_status", 130)
-    except WorkersLost as exc:
+    except NoRestartLeft as exc:
         run_dir = getattr(getattr(pipeline, "run_dir", None), "path", out)
         print(f"rlpipe: error: {exc}; continue with: rlpipe train {args.preset} --resume {run_dir}", file=sys.stderr)
         return exc.exit_status

@@ -287,9 +287,9 @@ def test_resume_with_changed_keys_records_them_in_config_json(saved_run, tmp_pat
 class _InterruptedAtStart(DQN):
     """Gets a Ctrl-C while the collector starts (seconds with collector.workers>1)."""
 
-    def make_collector(self, *args, **kwargs):
+    def make_backend(self, *args, **kwargs):
         os.kill(os.getpid(), signal.SIGINT)
-        return super().make_collector(*args, **kwargs)
+        return super().make_backend(*args, **kwargs)
 
 
 def test_ctrl_c_before_the_first_checkpoint_can_be_resumed(tmp_path):

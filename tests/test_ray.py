@@ -227,7 +227,7 @@ def test_ctrl_c_on_a_local_ray_run_saves_exits_130_and_stops_its_ray(tmp_path):
 @pytest.mark.slow
 def test_a_lost_actor_is_replaced_and_the_run_finishes(tmp_path, sync):
     """kill -9 of one collector actor once the run has logged: the learner learns of it at its next
-    block (WorkerLost, a WorkerFailure of the collector), the supervisor starts the Ray collectors
+    block (a WorkerFailure of the collector), the supervisor starts the Ray collectors
     again, counted in metrics.csv, and the run finishes; the local Ray instance goes with it."""
     run = tmp_path / "run"
     args = [*MODULE, "train", "td3", *TINY, f"collector.sync={sync}", "num_iterations=600", "--out", "run",

@@ -243,7 +243,7 @@ def test_a_node_removed_mid_run_its_actor_is_started_on_another_and_the_run_fini
 def test_an_actor_that_stops_answering_is_killed_at_the_deadline_and_replaced(tmp_path):
     """A collector actor frozen (SIGSTOP) while the learner holds itself after the block of iteration
     100: the learner's next block is not back within collector.timeout, so the actor is killed (the
-    supervisor's deadline, ``RayCollectors.kill_workers``) and the collector started again."""
+    supervisor's deadline, ``RayBackend.kill``) and the collector started again."""
     run = tmp_path / "run"
     proc = start([*RUN, "collector.workers=1", "collector.sync=true", "collector.timeout=30", "--out", "run"],
                  tmp_path, fault="collected@100:SIGSTOP:self")

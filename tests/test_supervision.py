@@ -30,7 +30,7 @@ from rlpipe.pipelines import td3
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.workers.evaluation import BackgroundEvaluator
-from rlpipe.pipelines.workers.supervision import Supervisor, Watchdog, WorkerFailure, WorkersLost
+from rlpipe.pipelines.workers.supervision import NoRestartLeft, Supervisor, Watchdog, WorkerFailure
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -298,7 +298,7 @@ def test_supervisor_counts_restarts_per_role_and_gives_up_past_the_budget():
     assert lines == ["rlpipe: collector worker 1 (pid 7) died: killed by SIGKILL; restarting the collector (restart 1 of 1)",
                      "rlpipe: evaluator worker 0 (pid 8) died: exited with status 1; restarting the evaluator "
                      "(restart 1 of 1)"]
-    with pytest.raises(WorkersLost, match=r"no restart left \(1 restart made, collector.max_restarts=1\)"):
+    with pytest.raises(NoRestartLeft, match=r"no restart left \(1 restart made, collector.max_restarts=1\)"):
         supervisor.failed("collector", WorkerFailure("collector", "collector worker 0 (pid 9) died"))
 
 

@@ -19,8 +19,9 @@ from torchrl.envs.utils import RandomPolicy
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import BASELINE_SEED_OFFSET
 from rlpipe.pipelines.system.runtime import fault_point, stop_signals_blocked
-from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, BackgroundEvaluator, evaluate
-from rlpipe.pipelines.workers.supervision import WorkerFailure, kill_new_children
+from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, evaluate
+from rlpipe.pipelines.workers.factory import backend_class
+from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.training.loop import Loop
@@ -100,24 +101,15 @@ class Evaluations:
             self.ray.close()
 
     def _start_evaluator(self) -> AsyncEvaluator:
+        """The collector backend's evaluator (a process beside local collectors, a Ray actor beside Ray's),
+        started with the stop signals blocked (its processes must not see them) and outside training time."""
         loop, cfg = self.loop, self.loop.config
-        pipeline, supervisor = loop.pipeline, loop.supervisor
-        if cfg.collector.backend == "ray":  # on a Ray actor, on the Ray the run holds until its end
-            from rlpipe.pipelines.workers.ray_eval import RayEvaluator, hold_ray
-
-            # a local Ray's processes start deaf to the stop signals, as Ray collectors start it (_make_collector)
-            with loop.clock.paused(), stop_signals_blocked():
-                self.ray = self.ray or hold_ray(cfg)
-                evaluator = RayEvaluator(pipeline.eval_env_fn, pipeline.policy, cfg.num_eval_episodes,
-                                         loop.state.pending_evals, config=cfg, timeout=cfg.eval_timeout,
-                                         start_timeout=supervisor.start_timeout)
-            supervisor.report("evaluator", 1, 1)
-            return evaluator
-        # TorchRL reads the new worker's first message with no timeout: the watchdog kills one that hangs
-        with loop.clock.paused(), loop.watchdog.limit(supervisor.start_timeout, kill_new_children()):
-            evaluator = BackgroundEvaluator(pipeline.eval_env_fn, pipeline.policy, cfg.num_eval_episodes,
-                                            loop.state.pending_evals, timeout=cfg.eval_timeout,
-                                            ack_timeout=cfg.collector.timeout)
+        backend, supervisor = backend_class(cfg), loop.supervisor
+        with loop.clock.paused(), stop_signals_blocked():
+            self.ray = self.ray or backend.hold(cfg)
+            evaluator = backend.start_evaluator(cfg, env_fn=loop.pipeline.eval_env_fn, policy=loop.pipeline.policy,
+                                                pending=loop.state.pending_evals,
+                                                start_timeout=supervisor.start_timeout, watchdog=loop.watchdog)
         supervisor.report("evaluator", 1, 1)
         return evaluator
 
@@ -128,7 +120,7 @@ class Evaluations:
         self.background = None
         loop.supervisor.report("evaluator", 0, 1)
         while self.background is None:
-            loop.supervisor.failed("evaluator", failure)  # WorkersLost when no restart is left
+            loop.supervisor.failed("evaluator", failure)  # NoRestartLeft when no restart is left
             try:
                 self.background = self._start_evaluator()  # it asks again for the oldest pending evaluation
             except (RuntimeError, ValueError, EOFError, OSError) as exc:

@@ -15,7 +15,7 @@ they start with them blocked, and the learner stops them. A second signal stops 
 
 Workers are supervised (``supervision``): a collector or evaluator process that dies or stops
 answering is replaced, up to ``collector.max_restarts`` times; one more failure saves a checkpoint
-and ends the run with ``WorkersLost``.
+and ends the run with ``NoRestartLeft``.
 """
 
 from __future__ import annotations
@@ -48,11 +48,12 @@ from rlpipe.pipelines.system.runtime import (
 from rlpipe.pipelines.training.divergence import check_finite
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
-from rlpipe.pipelines.workers.supervision import SupervisedCollector, Supervisor, Watchdog, WorkersLost
+from rlpipe.pipelines.workers.supervision import NoRestartLeft, SupervisedCollector, Supervisor, Watchdog
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.base import OffPolicyPipeline
     from rlpipe.pipelines.training.triggers import Trigger
+    from rlpipe.pipelines.workers.backend import CollectorBackend
 
 __all__ = ["LIVE_LOG", "Loop", "TrainResult"]
 
@@ -96,7 +97,7 @@ class Loop:
 
     @property
     def collector(self):
-        """The TorchRL collector collecting now (None outside ``collect``, or while one is replaced)."""
+        """The collector backend collecting now (None outside ``collect``, or while one is replaced)."""
         return None if self.collection is None else self.collection.collector
 
     @property
@@ -131,7 +132,7 @@ class Loop:
             except Stopped as stop:
                 self.fire("stopped")  # the checkpoint trigger saves what this iteration still owes
                 raise Interrupted(stop.signum) from None
-            except WorkersLost as lost:
+            except NoRestartLeft as lost:
                 self.fire("stopped", lost)  # the collector's blocks handed out so far are in the replay buffer
                 lost.saved_at = self.state.iteration
                 raise
@@ -176,18 +177,16 @@ class Loop:
             self.collection.close()
             self.collection = None
 
-    def _make_collector(self, restarts: int):
-        """A started collector for the frames still to collect, seeded; after a restart, with a seed
+    def _make_collector(self, restarts: int) -> CollectorBackend:
+        """A started collector backend for the frames still to collect, seeded; after a restart, with a seed
         stream no earlier collector of the run used."""
         cfg, state = self.config, self.state
         seed = cfg.seed + state.frames
         if restarts:
             seed = int(np.random.SeedSequence([cfg.seed, state.frames, restarts]).generate_state(1)[0])
         with stop_signals_blocked(), self.clock.paused():  # worker start-up is not training time
-            collector = self.pipeline.make_collector(cfg.total_frames - state.frames,
-                                                     max(0, cfg.initial_collect_steps - state.frames))
-            collector.set_seed(seed)
-        return collector
+            return self.pipeline.make_backend().start(cfg.total_frames - state.frames,
+                                                      max(0, cfg.initial_collect_steps - state.frames), seed)
 
     def insert(self, batch: TensorDictBase) -> None:
         """Store a block in the replay buffer, count it, and note the triggers its iterations crossed."""
@@ -216,7 +215,7 @@ class Loop:
         if made:
             self.check_finite()  # once per block: a few scalars, before the collectors get the weights
         if made and self.collection is not None and self.state.updates % self.config.collector.weight_sync_interval < made:
-            self.collection.push_weights(self.pipeline.push_weights)
+            self.collection.push_weights()
 
     def run_triggers(self) -> None:
         """Run what the current iteration owes, in order; each is crossed off once done."""

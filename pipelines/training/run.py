@@ -28,6 +28,7 @@ from rlpipe.pipelines.training.meters import Clock
 from rlpipe.pipelines.training.state import EVAL, RunState
 from rlpipe.pipelines.training.threads import choose_threads, torch_threads
 from rlpipe.pipelines.training.triggers import Trigger, default_triggers
+from rlpipe.pipelines.workers.factory import backend_class
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.base import OffPolicyPipeline
@@ -60,10 +61,7 @@ class Run:
             raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
         if pipeline.config.num_threads == -1:  # chosen once, before the run directory records the config
             pipeline.config = dataclasses.replace(pipeline.config, num_threads=choose_threads(pipeline))
-        if pipeline.config.collector.backend == "ray":  # no Ray at ray.address: one line, and nothing written
-            from rlpipe.pipelines.workers.ray import check_address
-
-            check_address(pipeline.config.ray.address)
+        backend_class(pipeline.config).preflight(pipeline.config)  # e.g. no Ray at ray.address: one line, nothing written
         run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
         self.run_dir = pipeline.run_dir = run
         loop = None

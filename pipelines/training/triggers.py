@@ -29,7 +29,7 @@ overridden), called on every trigger in the order given to ``train``:
   checkpoint and video are the built-in triggers' final firings, which is why ``at_last_iteration``
   keeps their interval firing off the last iteration);
 * ``stopped(loop, lost)``: the run stops early, on a stop signal (``lost`` None) or on lost workers
-  (``lost``: the ``WorkersLost``); the checkpoint trigger saves what the iteration still owes;
+  (``lost``: the ``NoRestartLeft``); the checkpoint trigger saves what the iteration still owes;
 * ``close(loop)``: however the run ends (processes a trigger started are stopped here).
 """
 
@@ -48,7 +48,7 @@ from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.training.loop import Loop
-    from rlpipe.pipelines.workers.supervision import WorkersLost
+    from rlpipe.pipelines.workers.supervision import NoRestartLeft
 
 __all__ = [
     "EVAL", "EXPORT", "LOG", "SAVE", "VIDEO",
@@ -97,7 +97,7 @@ class Trigger:
     def final(self, loop: Loop) -> None:
         """Once, at the run's end."""
 
-    def stopped(self, loop: Loop, lost: WorkersLost | None = None) -> None:
+    def stopped(self, loop: Loop, lost: NoRestartLeft | None = None) -> None:
         """The run stops early: on a stop signal (``lost`` None) or because its workers are lost."""
 
     def close(self, loop: Loop) -> None:
@@ -125,9 +125,8 @@ class LogTrigger(Trigger):
 
     def __call__(self, loop: Loop) -> None:
         row = {**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes, **loop.supervisor.columns()}
-        collector_metrics = getattr(loop.collector, "metrics", None)  # a backend's own figures (Ray: workers alive)
-        if collector_metrics is not None:
-            row.update(collector_metrics())
+        if loop.collector is not None:  # the backend's own figures (Ray: weight versions)
+            row.update(loop.collector.metrics())
         loop.log(row)
         if any(k.startswith("loss_") for k in row):  # nothing to say before the first update
             loop.echo(log_line(loop.state.iteration, row))
@@ -157,7 +156,7 @@ class EvalTrigger(Trigger):
     def final(self, loop: Loop) -> None:
         self.evaluations.finish()
 
-    def stopped(self, loop: Loop, lost: WorkersLost | None = None) -> None:
+    def stopped(self, loop: Loop, lost: NoRestartLeft | None = None) -> None:
         if self.evaluations is None:  # stopped before the run's start reached this trigger
             return
         if lost is None:
@@ -216,7 +215,7 @@ class CheckpointTrigger(Trigger):
     def final(self, loop: Loop) -> None:
         self(loop)
 
-    def stopped(self, loop: Loop, lost: WorkersLost | None = None) -> None:
+    def stopped(self, loop: Loop, lost: NoRestartLeft | None = None) -> None:
         self(loop)  # with what this iteration still owes: --resume does that first
 
 

@@ -38,11 +38,10 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig
-from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import STOP_SIGNALS
 from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, _PolicyCopy, evaluate
-from rlpipe.pipelines.workers.ray import MIN_START_TIMEOUT_S, RayRuntime
-from rlpipe.pipelines.workers.supervision import WorkerFailure
+from rlpipe.pipelines.workers.ray_runtime import RayRuntime, check_cpus
+from rlpipe.pipelines.workers.supervision import MIN_START_TIMEOUT_S, WorkerFailure, first_line
 
 __all__ = ["EvalActor", "RayEvaluator", "hold_ray"]
 
@@ -95,8 +94,7 @@ class RayEvaluator(AsyncEvaluator):
         self._checked_at = 0.0
         self.worker_pid: int | None = None  # the actor's process on its node (the test hook kills it there)
         cpus = config.ray.num_cpus_per_worker
-        start_timeout = max(start_timeout, MIN_START_TIMEOUT_S)  # as the collector actors' (ray_backend)
-        _check_cpus(ray, config)
+        check_cpus(ray, config, evaluator=True)
         remote = ray.remote(num_cpus=cpus, num_gpus=0, max_restarts=0, max_task_retries=0)(EvalActor)
         self._actor = remote.remote(env_fn, _PolicyCopy(policy), config.seed + EVAL_SEED_OFFSET)
         try:
@@ -108,7 +106,7 @@ class RayEvaluator(AsyncEvaluator):
             try:
                 self.worker_pid = ray.get(ref)
             except ray.exceptions.RayError as exc:
-                raise WorkerFailure(self.role, f"the evaluator actor did not start: {_first_line(exc)}") from exc
+                raise WorkerFailure(self.role, f"the evaluator actor did not start: {first_line(exc)}") from exc
         except BaseException:
             self.close()
             raise
@@ -126,11 +124,11 @@ class RayEvaluator(AsyncEvaluator):
             result = ray.get(self._ref)
         except ray.exceptions.RayActorError as exc:  # its process or node is gone
             raise WorkerFailure(self.role, f"the evaluator actor (pid {self.worker_pid}) died "
-                                           f"({_first_line(exc).rstrip('.')})") from exc
+                                           f"({first_line(exc).rstrip('.')})") from exc
         except ray.exceptions.RayError as exc:  # the evaluation raised: as the process evaluator's thread
             cause = getattr(exc, "cause", None) or exc
             raise WorkerFailure(self.role, f"the evaluator stopped on {type(cause).__name__}: "
-                                           f"{_first_line(cause)}") from exc
+                                           f"{first_line(cause)}") from exc
         self._ref = None
         return result
 
@@ -171,7 +169,7 @@ def _actor_state(actor) -> str | None:
     """The actor's state in Ray's actor table (GCS): "ALIVE", "DEAD", ...; None if Ray does not know it.
 
     The table, not a ping: a ping would queue behind the evaluation in flight; the public state API
-    (ray.util.state) needs the dashboard, which the run does not start (as ``RayCollectors.alive_workers``)."""
+    (ray.util.state) needs the dashboard, which the run does not start (as ``RayBackend.health``)."""
     import ray
     from ray._private.state import actors
 
@@ -182,22 +180,3 @@ def _actor_state(actor) -> str | None:
     except Exception:
         return None
     return {2: "ALIVE", 4: "DEAD"}.get(state, state) if isinstance(state, int) else state
-
-
-def _check_cpus(ray, config: TrainConfig) -> None:
-    """The collector actors and the evaluator's each need ``ray.num_cpus_per_worker``: the cluster
-    must have that many CPUs, or one of them would wait for Ray to place it."""
-    c, r = config.collector, config.ray
-    needed = (c.workers + 1) * r.num_cpus_per_worker
-    total = ray.cluster_resources().get("CPU", 0.0)
-    if total < needed:
-        where = f"the Ray cluster at {r.address!r}" if r.address else "the local Ray instance"
-        raise InputError(f"collector.workers={c.workers} collector actors and the background evaluator's, "
-                         f"x ray.num_cpus_per_worker={r.num_cpus_per_worker:g}, need {needed:g} CPUs; {where} has "
-                         f"{total:g}: expected fewer workers, a smaller ray.num_cpus_per_worker, more nodes, "
-                         "or eval_in_background=false")
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0][:200] if text else type(exc).__name__

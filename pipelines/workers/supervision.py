@@ -1,7 +1,7 @@
-"""Supervision of a run's workers: collector processes (or, later, Ray actors) and the background
+"""Supervision of a run's workers: the collector backend's (processes or Ray actors) and the background
 evaluator. A worker that dies, or a wait on one that runs past its time, is a ``WorkerFailure``; the
 ``Supervisor`` counts it against ``collector.max_restarts`` and the part is started again, with the
-learner's current weights and a seed stream of its own. Past the budget, ``WorkersLost``: the loop
+learner's current weights and a seed stream of its own. Past the budget, ``NoRestartLeft``: the loop
 saves a checkpoint and the run stops with one line.
 
 Why this is ours: TorchRL 0.14's multi-process collectors notice a dead worker only inside their
@@ -13,8 +13,9 @@ is unbounded by default). Nothing there restarts a worker. So: the weight-sync s
 with a deadline and a liveness check (the patched wait is ``compat.torchrl.AckDeadline``), a
 ``Watchdog`` puts a deadline on every other wait by killing the workers waited on (TorchRL then sees
 them dead within its 1 s poll), and ``SupervisedCollector`` tears a failed collector down and starts
-another. A Ray collector reports into the same ``Supervisor`` (``report``, ``failed``): it names its
-workers and how many are alive.
+another. ``SupervisedCollector`` knows a collector only as a ``backend.CollectorBackend`` (local
+processes or Ray actors alike): its blocks, ``push_weights``, ``health`` (which workers live, which
+died and why), ``kill`` and ``close``.
 """
 
 from __future__ import annotations
@@ -24,9 +25,10 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from collections import Counter
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import psutil
 from tensordict import TensorDictBase
@@ -34,22 +36,43 @@ from torchrl.weight_update import MultiProcessWeightSyncScheme, SharedMemWeightS
 
 from rlpipe.pipelines.compat.torchrl import AckDeadline, close_weight_sync_queues
 
+if TYPE_CHECKING:
+    from rlpipe.pipelines.workers.backend import CollectorBackend
+
 __all__ = [
-    "Supervisor", "SupervisedCollector", "close_weight_sync_queues", "TimedMultiProcessScheme", "TimedSharedMemScheme", "Watchdog",
-    "WorkerFailure", "WorkersLost", "dead_worker", "describe_exit", "kill_new_children", "kill_processes",
+    "MIN_START_TIMEOUT_S", "NoRestartLeft", "Supervisor", "SupervisedCollector", "close_weight_sync_queues",
+    "TimedMultiProcessScheme", "TimedSharedMemScheme", "Watchdog", "WorkerFailure", "dead_worker", "describe_exit",
+    "first_line", "is_running", "kill_new_children", "kill_processes", "start_timeout",
 ]
+
+MIN_START_TIMEOUT_S = 300.0
+"""starting workers (each imports torch and TorchRL and makes its env; a Ray actor is placed by Ray first)
+takes a minute on a loaded 2-core machine: every start-up wait, of a process or a Ray actor, waits at
+least this long, however short ``collector.timeout`` is"""
+
+
+def start_timeout(timeout: float) -> float:
+    """The seconds a start-up of workers may take, for a run whose other waits take ``timeout``."""
+    return max(float(timeout), MIN_START_TIMEOUT_S)
+
+
+def first_line(exc: BaseException) -> str:
+    """An error's first line (200 characters at most), or its type's name: for one-line messages."""
+    text = str(exc).strip()
+    return text.splitlines()[0][:200] if text else type(exc).__name__
 
 
 class WorkerFailure(RuntimeError):
-    """A worker of ``role`` ("collector", "evaluator") died, or did not answer in time."""
+    """A worker of ``role`` ("collector", "evaluator") died, or did not answer in time: restart it
+    (``Supervisor.failed`` counts it, or raises ``NoRestartLeft``)."""
 
     def __init__(self, role: str, message: str):
         super().__init__(message)
         self.role = role
 
 
-class WorkersLost(RuntimeError):
-    """A worker failed with no restart left: the run saved a checkpoint and stopped.
+class NoRestartLeft(RuntimeError):
+    """A worker failed with no restart left: the run saved a checkpoint and stopped (was ``WorkersLost``).
 
     ``exit_status`` 75 is sysexits' EX_TEMPFAIL ("try again later"): the run can be resumed.
     """
@@ -79,7 +102,7 @@ def describe_exit(exitcode: int | None) -> str:
     return f"exited with status {exitcode}"
 
 
-def _alive(proc) -> bool:
+def is_running(proc) -> bool:
     # A process object TorchRL has already closed (after terminating it) counts as dead.
     if getattr(proc, "_closed", False):
         return False
@@ -92,7 +115,7 @@ def _alive(proc) -> bool:
 def dead_worker(role: str, procs) -> WorkerFailure | None:
     """The first of ``procs`` that is no longer running, as a failure; None if all are."""
     for i, proc in enumerate(procs):
-        if not _alive(proc):
+        if not is_running(proc):
             pid = getattr(proc, "pid", None)
             code = None if getattr(proc, "_closed", False) else proc.exitcode
             return WorkerFailure(role, f"{role} worker {i} (pid {pid}) died: {describe_exit(code)}")
@@ -107,7 +130,7 @@ def kill_processes(procs, timeout: float = 5.0) -> None:
     """
     deadline = time.monotonic() + timeout
     for proc in procs:
-        if _alive(proc):
+        if is_running(proc):
             with contextlib.suppress(OSError, ValueError, AttributeError):
                 proc.kill()
     for proc in procs:
@@ -215,18 +238,16 @@ class Supervisor:
 
     ``max_restarts`` applies to each role (the collector, the evaluator) over this session of the run
     (a resumed run starts a new count). Parts report into it: ``report(role, alive, total)`` as they
-    see their workers, ``failed(role, failure)`` when one fails; ``failed`` raises ``WorkersLost``
+    see their workers, ``failed(role, failure)`` when one fails; ``failed`` raises ``NoRestartLeft``
     when no restart is left.
     """
 
     ROLES = ("collector", "evaluator")
-    MIN_START_TIMEOUT = 300.0
-    """starting workers (each imports torch and TorchRL, and makes its env) takes a minute on a loaded
-    2-core machine: their start-up waits at least this long, however short ``timeout`` is"""
+    MIN_START_TIMEOUT = MIN_START_TIMEOUT_S  # the old name (kept: a public class attribute)
 
     def __init__(self, max_restarts: int, timeout: float, *, log: Callable[[str], None] | None = None):
         self.max_restarts, self.timeout = int(max_restarts), float(timeout)
-        self.start_timeout = max(self.timeout, self.MIN_START_TIMEOUT)
+        self.start_timeout = start_timeout(self.timeout)
         self.restarts: Counter[str] = Counter()
         self.alive: dict[str, tuple[int, int]] = {}
         self._log = log or (lambda line: print(line, file=sys.stderr, flush=True))
@@ -235,10 +256,10 @@ class Supervisor:
         self.alive[role] = (alive, total)
 
     def failed(self, role: str, failure: Exception) -> None:
-        """Count a failure of ``role``'s workers; ``WorkersLost`` if it has no restart left."""
+        """Count a failure of ``role``'s workers; ``NoRestartLeft`` if it has no restart left."""
         if self.restarts[role] >= self.max_restarts:
             spent = f"{self.restarts[role]} restart{'s' * (self.restarts[role] != 1)}"
-            raise WorkersLost(f"{failure}; no restart left ({spent} made, collector.max_restarts="
+            raise NoRestartLeft(f"{failure}; no restart left ({spent} made, collector.max_restarts="
                               f"{self.max_restarts})") from failure
         self.restarts[role] += 1
         self._log(f"rlpipe: {failure}; restarting the {role} "
@@ -256,31 +277,28 @@ class Supervisor:
 
 
 class SupervisedCollector:
-    """Blocks of env steps from a TorchRL collector that is started again when one of its workers fails.
+    """Blocks of env steps from a collector backend that is started again when one of its workers fails.
 
-    ``make(restarts)`` makes a started, seeded collector (called again after each failure: the frame
-    budget and seed it gets are the caller's business). A failure seen anywhere (a dead worker, a
-    weight push or a block not back in ``supervisor.timeout`` seconds) tears the whole collector down
-    and makes a new one: TorchRL's multi-process collectors share one output queue and one control
-    flow between their workers, and a worker killed while writing may leave that queue unusable, so
-    one worker is never replaced alone. Blocks already handed out are the caller's (in its replay
-    buffer); the new collector starts from the learner's weights as they are.
+    ``make(restarts)`` makes a started, seeded ``backend.CollectorBackend`` (called again after each
+    failure: the frame budget and seed it gets are the caller's business). A failure seen anywhere (a
+    dead worker, a weight push or a block not back in ``supervisor.timeout`` seconds) closes the whole
+    backend and makes a new one: TorchRL's multi-process collectors share one output queue and one
+    control flow between their workers, and a worker killed while writing may leave that queue
+    unusable, so one worker is never replaced alone. Blocks already handed out are the caller's (in
+    its replay buffer); the new backend starts from the learner's weights as they are.
     """
 
     role = "collector"
 
-    def __init__(self, make: Callable[[int], Any], supervisor: Supervisor, watchdog: Watchdog):
+    def __init__(self, make: Callable[[int], CollectorBackend], supervisor: Supervisor, watchdog: Watchdog):
         self._make, self.supervisor, self.watchdog = make, supervisor, watchdog
-        self.collector: Any = None
+        self.collector: CollectorBackend | None = None
         self._failure: WorkerFailure | None = None
         self._timed_out: str | None = None
 
-    @property
-    def procs(self) -> list:
-        return list(getattr(self.collector, "procs", None) or [])
-
     def pids(self) -> list[int]:
-        return [p.pid for p in self.procs if _alive(p)]
+        """The live workers' processes (none while the backend is replaced)."""
+        return [] if self.collector is None else list(self.collector.health().pids)
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         while True:
@@ -294,19 +312,20 @@ class SupervisedCollector:
             finally:
                 self._stop()
 
-    def push_weights(self, push: Callable[[Any], None]) -> None:
-        """``push(collector)`` within the deadline; a failure is kept for the next block to act on."""
+    def push_weights(self, push: Callable[[Any], None] | None = None) -> None:
+        """The backend's ``push_weights`` within the deadline; a failure is kept for the next block to act on.
+
+        ``push``: the old way of calling this, ``push(backend)`` in place of the backend's own push (deprecated)."""
         if self.collector is None or self._failure is not None:
             return
-        failure = dead_worker(self.role, self.procs)
-        if failure is None:
-            try:
-                with self.watchdog.limit(self.supervisor.timeout + 5.0, self._kill_on_timeout("a weight push")):
-                    push(self.collector)
-                return
-            except WorkerFailure as exc:
-                failure = exc
-        self._failure = failure
+        if push is not None:
+            warnings.warn("SupervisedCollector.push_weights(push): the backend pushes its own weights; "
+                          "call push_weights()", DeprecationWarning, stacklevel=2)
+        try:
+            with self.watchdog.limit(self.supervisor.timeout + 5.0, self._kill_on_timeout("a weight push")):
+                self.collector.push_weights() if push is None else push(self.collector)
+        except WorkerFailure as failure:
+            self._failure = failure
 
     def close(self) -> None:
         self._stop()
@@ -338,9 +357,8 @@ class SupervisedCollector:
                 except StopIteration:
                     return
                 except (RuntimeError, ValueError, EOFError, OSError) as exc:
-                    # TorchRL's iterator saw a worker gone (RuntimeError "At least one process failed",
-                    # or ValueError from its close() of a process still running): ours to handle.
-                    failure = self._timeout_failure() or dead_worker(self.role, self.procs)
+                    # a worker lost (the backend's WorkerFailure), or killed by the watchdog: say so
+                    failure = self._timeout_failure()
                     if failure is None:
                         raise
                     raise failure from exc
@@ -348,19 +366,16 @@ class SupervisedCollector:
             yield batch
 
     def _report(self) -> None:
-        procs = self.procs  # none for in-process collection: nothing to watch, nothing to report
-        if procs:
-            self.supervisor.report(self.role, sum(_alive(p) for p in procs), len(procs))
-        elif hasattr(self.collector, "alive_workers"):  # Ray actors (ray_backend.RayCollectors)
-            self.supervisor.report(self.role, self.collector.alive_workers(), self.collector.num_workers)
+        health = self.collector.health()
+        if health.total:  # none for in-process collection: nothing to watch, nothing to report
+            self.supervisor.report(self.role, health.alive, health.total)
 
     def _kill_on_timeout(self, what: str) -> Callable[[], None]:
+        collector = self.collector
+
         def expire():
             self._timed_out = f"{self.role}: {what} was not back within {self.supervisor.timeout:g} s"
-            kill_processes(self.procs, timeout=0)  # TorchRL's loops then see them dead within ~1 s
-            kill_workers = getattr(self.collector, "kill_workers", None)  # Ray actors: no process of ours
-            if kill_workers is not None:
-                kill_workers()
+            collector.kill()  # the wait on its workers then ends within ~1 s
         return expire
 
     def _timeout_failure(self) -> WorkerFailure | None:
@@ -370,14 +385,9 @@ class SupervisedCollector:
         collector, self.collector = self.collector, None
         if collector is None:
             return
-        procs = list(getattr(collector, "procs", None) or [])
-        if self._failure is not None or self._timed_out is not None or dead_worker(self.role, procs):
-            kill_processes(procs)  # a failed collector's workers: nothing to wait for
-        # TorchRL's shutdown asks each worker to close, then terminates and kills within the timeout.
-        with contextlib.suppress(Exception):
-            collector.shutdown(timeout=2.0, raise_on_error=False)
-        kill_processes(procs)
-        close_weight_sync_queues(collector)
+        if self._failure is not None or self._timed_out is not None:
+            collector.kill()  # a failed backend's workers: nothing to wait for
+        collector.close()
 
 
 def kill_new_children() -> Callable[[], None]:
@@ -398,3 +408,15 @@ def _cmdline(proc) -> list[str]:
         return proc.cmdline()
     except psutil.Error:
         return []
+
+
+_RENAMED = {"WorkersLost": "NoRestartLeft"}
+
+
+def __getattr__(name: str):
+    """Old names, kept for one release with a ``DeprecationWarning``."""
+    if name in _RENAMED:
+        warnings.warn(f"rlpipe.pipelines.workers.supervision.{name} is now {_RENAMED[name]}; the old name goes in "
+                      "the next release", DeprecationWarning, stacklevel=2)
+        return globals()[_RENAMED[name]]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

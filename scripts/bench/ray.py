@@ -4,7 +4,7 @@ Three parts, all on this machine, Ray on a local instance the bench starts and s
 (``ray.address`` empty):
 
 1. Collect-only env steps/s (no learner) with 1, 2, 4 workers (``--workers``): ``collector.backend=ray``
-   (``RayCollectors``: TorchRL's ``RayCollector``, one actor per worker, weights pushed to a worker
+   (``RayBackend``: TorchRL's ``RayCollector``, one actor per worker, weights pushed to a worker
    each time it is asked for a block, as in training) against ``collector.backend=local``
    (``MultiAsyncCollector``), both made by ``pipeline.make_collector`` of the ``sac`` preset with its
    stochastic actor and ``collector.sync=false``. The rate is timed after the first block; Ray's

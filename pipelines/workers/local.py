@@ -1,0 +1,127 @@
+"""The local collector backend (``collector.backend=local``): TorchRL's collectors on this machine.
+
+One worker with ``collector.sync=true`` steps the env in the learner's process (TorchRL's ``Collector``,
+no process to watch); otherwise ``collector.workers`` processes, stepping in lock-step
+(``MultiSyncCollector``) or each at its own pace (``MultiAsyncCollector``). Weights reach the processes
+through TorchRL's shared-memory weight sync, with a deadline on the workers' acknowledgements
+(``supervision.TimedSharedMemScheme``): a push to a dead worker is a ``WorkerFailure``, not a wait for good.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
+from torchrl.envs import EnvBase
+
+from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.workers.backend import CollectorBackend, Health
+from rlpipe.pipelines.workers.supervision import (
+    TimedSharedMemScheme,
+    close_weight_sync_queues,
+    dead_worker,
+    is_running,
+    kill_processes,
+)
+
+__all__ = ["LocalBackend", "local_collector", "push_weights"]
+
+
+def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[[], EnvBase] | None,
+                    env: EnvBase | None, device: torch.device, total_frames: int, init_random_frames: int):
+    """The TorchRL collector ``config.collector`` describes, started, for ``total_frames`` frames."""
+    c = config.collector
+    common = dict(frames_per_batch=c.frames_per_batch, total_frames=total_frames,
+                  init_random_frames=init_random_frames,
+                  # a user's env without the transforms the policy reads (InitTracker) gets them
+                  # appended, as TorchRL 0.15 will do by default
+                  auto_register_policy_transforms=True,
+                  # the env steps where it lives; its outputs go to the policy's device, and the
+                  # collected blocks to the learner's (where the replay buffer is)
+                  policy_device=device, storing_device=device)
+    if c.workers == 1 and c.sync:
+        return Collector(env if env is not None else env_fn(), policy, **common)
+    if not c.sync and init_random_frames > 0:
+        # MultiAsyncCollector decides random-or-policy for a worker's next block when it hands
+        # over that worker's last one, so the other workers' blocks in flight are random too:
+        # ask for that many fewer, and exactly `init_random_frames` come out random (to a block).
+        # (Each async worker's block is a whole `frames_per_batch`.)
+        common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
+    cls = MultiSyncCollector if c.sync else MultiAsyncCollector
+    scheme = TimedSharedMemScheme(ack_timeout=c.timeout)
+    return cls([env_fn] * c.workers, policy, weight_sync_schemes={"policy": scheme}, **common)
+
+
+def push_weights(collector) -> None:
+    """Send the policy's weights to a TorchRL collector's worker processes (in-process collection
+    shares the policy itself: nothing to send)."""
+    if not isinstance(collector, Collector):
+        collector.update_policy_weights_()
+
+
+class LocalBackend(CollectorBackend):
+    """TorchRL's ``Collector`` / ``MultiSyncCollector`` / ``MultiAsyncCollector`` as a ``CollectorBackend``."""
+
+    _collector = None
+
+    def _start(self, total_frames: int, init_random_frames: int) -> None:
+        self._collector = local_collector(self.config, policy=self.policy, env_fn=self.env_fn, env=self.env,
+                                          device=self.device, total_frames=total_frames,
+                                          init_random_frames=init_random_frames)
+
+    def _seed(self, seed: int) -> None:
+        self._collector.set_seed(seed)
+
+    @property
+    def collector(self):
+        return self._collector
+
+    @property
+    def _procs(self) -> list:
+        return list(getattr(self._collector, "procs", None) or [])
+
+    def blocks(self) -> Iterator[TensorDictBase]:
+        iterator = iter(self._collector)
+        while True:
+            try:
+                batch = next(iterator)
+            except StopIteration:
+                return
+            except (RuntimeError, ValueError, EOFError, OSError) as exc:
+                # TorchRL's iterator saw a worker gone (RuntimeError "At least one process failed",
+                # or ValueError from its close() of a process still running): say which one, and how.
+                failure = dead_worker(self.role, self._procs)
+                if failure is None:
+                    raise
+                raise failure from exc
+            yield batch
+
+    def push_weights(self) -> None:
+        failure = dead_worker(self.role, self._procs)
+        if failure is not None:
+            raise failure
+        push_weights(self._collector)
+
+    def health(self) -> Health:
+        procs = self._procs
+        return Health(len(procs), tuple(p.pid for p in procs if is_running(p)), dead_worker(self.role, procs))
+
+    def kill(self) -> None:
+        kill_processes(self._procs, timeout=0)  # TorchRL's loops then see them dead within ~1 s
+
+    def close(self) -> None:
+        collector, self._collector = self._collector, None
+        if collector is None:
+            return
+        procs = list(getattr(collector, "procs", None) or [])
+        if dead_worker(self.role, procs):
+            kill_processes(procs)  # a failed collector's workers: nothing to wait for
+        # TorchRL's shutdown asks each worker to close, then terminates and kills within the timeout.
+        with contextlib.suppress(Exception):
+            collector.shutdown(timeout=2.0, raise_on_error=False)
+        kill_processes(procs)
+        close_weight_sync_queues(collector)
