@@ -3,7 +3,10 @@
 This package never imports ``rlpipe.pipelines``: everything here is a plain TorchRL/torch object.
 
     actors, critics, qnetworks, exploration   policies and value networks (TensorDict modules)
+    plain_policy      any TensorDict policy as a plain module on observation tensors (what torch.export takes)
     td3_loss          TorchRL's TD3Loss with TD3's six ingredients as switches, and one TD3 step
+    sac_loss          TorchRL's SACLoss terms on plain tensors (LeanSACLoss), importance weights included
+    dqn_loss          TorchRL's DQNLoss on plain tensors (LeanDQNLoss)
     target_updates    SoftUpdate with a one-kernel step, for any loss with target networks
     optim             LeanAdam: fused Adam without Optimizer.step's per-call Python;
                       clip_gradient_norms: TF-Agents' per-tensor gradient clipping

@@ -3,21 +3,22 @@
     from rlpipe.pipelines import dqn
     result = dqn.DQN(dqn.preset("dqn")).train("runs/dqn")
 
-The map of this package:
+The map of this package (each room's ``__init__`` maps its own modules):
 
     base         OffPolicyPipeline: the algorithm contract, the plug-in surface (env, eval_env,
-                 actor, qvalue, loss_module, observation_key), device, collector, replay buffer
-    loop         Loop: collect, update, triggers (TF-Agents' Learner.run)
-    triggers     Trigger and the built-in ones (log, eval, export, save); add your own
-    state        RunState: counters and the work an iteration still owes (saved in checkpoints)
-    evaluation   evaluate(), AsyncEvaluator (evaluations while training goes on), BackgroundEvaluator
-                 (TorchRL's Evaluator in a process; ray_eval: on a Ray actor)
-    runtime      Ctrl-C at safe points, workers deaf to Ctrl-C, GC freeze
-    meters       Clock, IntervalStats: speeds, mean losses, training returns
-    config       typed configs, key=value overrides, validation (this machine's limits included)
-    memory       what a run will allocate, from the env's specs, against the memory available
-    rundir, checkpoint, export, files, video, analysis   what a run leaves on disk, and reading it back
-    rate_limiter SampleToInsertRatio (Reverb's, for TorchRL collectors)
+                 actor, qvalue, loss_module, observation_key) and its assembly (device, optimisers,
+                 replay buffer, collector backend); ``train`` hands the run to ``training.run.Run``
+    dqn, td3, sac  the algorithms: each a config, presets, its modules and loss, one ``update``
+    config       the shared keys (``TrainConfig``), each key's rule declared with its field, overrides
+    errors       InputError (one line, exit 2), TrainingDiverged
+    training/    the loop and what runs inside it: the run's lifecycle, Loop, the triggers (log, eval,
+                 export, checkpoint, video), evaluations, run state, rate limiter, meters, threads
+    workers/     what collects and evaluates: the collector-backend interface and its local and Ray
+                 backends, the evaluators, supervision
+    artifacts/   what a run leaves on disk: run directory, checkpoints, exported policy, video, files
+    system/      the operating system's side: stop signals, the fault hook, child processes, memory
+    compat/      each workaround for a library version, one module per library
+    analysis/    reading finished runs: tables, statistics, plots, report pages
 
 Presets are named after the tutorials they reproduce; ``presets()`` lists them.
 """

@@ -25,7 +25,7 @@ def _run(block: str, cwd: Path) -> list[str]:
 
 
 def test_readme_has_the_python_examples_it_promises():
-    assert len(_python_blocks()) == 3
+    assert len(_python_blocks()) == 4
 
 
 def test_the_first_example_prints_the_runs_own_final_return(tmp_path):
@@ -45,6 +45,11 @@ def test_the_own_env_example_uses_a_batched_plain_env_a_logger_and_a_trigger(tmp
 
 def test_the_own_networks_example_trains_each_algorithm(tmp_path):
     assert _run(_python_blocks()[2], tmp_path)[-3:] == ["200", "200", "200"]
+
+
+def test_the_own_loop_example_collects_updates_and_exports(tmp_path):
+    assert _run(_python_blocks()[3], tmp_path)[-1] == "MultiSyncCollector 1200 800 policy.onnx"
+    assert (tmp_path / "runs/readme-own-loop/policy.pt2").exists()
 
 
 def test_readme_opens_with_setup_and_test_commands():
