@@ -29,14 +29,21 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
-from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 
-from rlpipe.envs import EnvError, describe_action_space, env_label, is_discrete, make_env, with_episode_return
+from rlpipe.envs import env_label, is_discrete, make_env
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.plugins import (
+    EnvArg,
+    check_action_space,
+    eval_env_of,
+    factory_and_env,
+    observation_key_in,
+    observation_key_of,
+)
 from rlpipe.pipelines.system.memory import check_memory
 from rlpipe.pipelines.system.runtime import start_resource_tracker
 from rlpipe.pipelines.training.loop import TrainResult
@@ -50,9 +57,8 @@ from rlpipe.pipelines.workers.backend import CollectorBackend
 from rlpipe.pipelines.workers.factory import backend_class, make_backend
 from rlpipe.pipelines.workers.local import push_weights as push_collector_weights
 
-__all__ = ["Agent", "OffPolicyPipeline", "seed_everything"]
+__all__ = ["Agent", "OffPolicyPipeline", "observation_key_of", "seed_everything"]
 
-EnvArg = EnvBase | Callable[[], EnvBase] | None
 
 
 @dataclass
@@ -96,47 +102,22 @@ class OffPolicyPipeline:
             raise InputError(f"config is a {type(cfg).__name__}; expected {self.Config.__name__} for {self.algo}")
         validate(cfg)
         self.device = torch.device(cfg.device)
-        self.env_fn, self.env = _factory_and_env(env, cfg)
+        self.env_fn, self.env = factory_and_env(env, cfg)
         # Evaluation plays one env copy: the collection env may be a vector of them.
         self.eval_env_fn = self.env_fn if cfg.collector.envs_per_worker == 1 else functools.partial(make_env, cfg.env, device="cpu")
-        self.eval_env = self._eval_env(eval_env, cfg)
+        self.eval_env = eval_env_of(eval_env, self.eval_env_fn)
         self.env.set_seed(cfg.seed)
         self.eval_env.set_seed(cfg.seed + EVAL_SEED_OFFSET)
         # Runs are labelled (config.json, checkpoints, plots) with the env actually used.
         self.config = cfg if env is None else dataclasses.replace(cfg, env=env_label(self.env))
         self.action_spec = self.env.action_spec_unbatched
-        if is_discrete(self.action_spec) != (self.action_space == "discrete"):
-            other = "td3 or sac for continuous actions" if self.action_space == "discrete" else "dqn for discrete actions"
-            raise InputError(f"{self.algo.upper()} needs a {self._space_phrase()}; env {self.config.env!r} has a "
-                             f"{describe_action_space(self.action_spec)} (use {other})")
-        self.observation_key = self._observation_key(observation_key)
+        check_action_space(self.algo, self.action_space, self.action_spec, self.config.env)
+        self.observation_key = observation_key_in(self.env, observation_key, self.config.env)
         self.observation_dim = int(self.env.observation_spec[self.observation_key].shape[-1])
         action_dim = int(self.action_spec.space.n) if is_discrete(self.action_spec) else int(self.action_spec.shape[-1])
         check_memory(cfg, self.env, self.observation_key, action_dim, self.device,  # before a network is built
                      stored=self._replay_keys(), networks=layer_sizes(cfg))
         self.state = RunState.fresh(cfg)
-
-    def _space_phrase(self) -> str:
-        return "discrete action space" if self.action_space == "discrete" else "continuous (Box) action space"
-
-    def _eval_env(self, eval_env: EnvArg, cfg: TrainConfig) -> EnvBase:
-        if eval_env is None:
-            if self.eval_env_fn is None:
-                raise InputError("env is an instance: pass eval_env as well (an env or a function making one), "
-                                 "or pass env as a function that makes the env")
-            return self.eval_env_fn()
-        env = eval_env() if callable(eval_env) and not isinstance(eval_env, EnvBase) else eval_env
-        if not isinstance(env, EnvBase):
-            raise InputError(f"eval_env is a {type(env).__name__}; expected a TorchRL EnvBase or a function returning one")
-        return env
-
-    def _observation_key(self, given: str | None) -> str:
-        keys = [k for k in self.env.observation_spec.keys() if k not in ("episode_reward", "step_count", "is_init")]
-        key = given or ("observation" if "observation" in keys else keys[0] if len(keys) == 1 else None)
-        if key not in keys:
-            raise InputError(f"env {self.config.env!r} has no observation {key or 'observation'!r} (it has "
-                             f"{', '.join(map(str, keys))}); pass observation_key=... or an actor that reads one of them")
-        return key
 
     # --- what a pipeline supplies -----------------------------------------------------------------
 
@@ -304,49 +285,3 @@ class OffPolicyPipeline:
         warnings.warn("OffPolicyPipeline.summary moved to rlpipe.pipelines.training.run.Run.summary",
                       DeprecationWarning, stacklevel=2)
         return Run(self).summary(state, evaluations, clock)
-
-
-def observation_key_of(*modules: nn.Module | None) -> str | None:
-    """The observation key the first given module reads (an actor's first in_key, or a loss's actor's)."""
-    for module in modules:
-        if module is None:
-            continue
-        for name in ("actor_network", "value_network"):  # a loss: the network that reads observations
-            if getattr(module, name, None) is not None:
-                module = getattr(module, name)
-                break
-        in_keys = getattr(module, "in_keys", None)
-        if in_keys:
-            key = in_keys[0]
-            return key if isinstance(key, str) else None
-    return None
-
-
-def _factory_and_env(env: EnvArg, cfg: TrainConfig) -> tuple[Callable[[], EnvBase] | None, EnvBase]:
-    """(a picklable factory, or None for an instance; the learner's env), with what the loop needs added."""
-    if env is not None and cfg.collector.envs_per_worker > 1:
-        raise InputError(f"collector.envs_per_worker={cfg.collector.envs_per_worker} makes vector envs from config.env; "
-                         "with env= given, expected collector.envs_per_worker=1 (batch your own env, e.g. a SerialEnv)")
-    if env is None:
-        factory = functools.partial(make_env, cfg.env, device="cpu", num_envs=cfg.collector.envs_per_worker)
-    elif isinstance(env, EnvBase):
-        if cfg.collector.workers > 1 or not cfg.collector.sync:
-            raise InputError("collector.workers>1 or collector.sync=false: pass env as a function that makes the env")
-        if cfg.eval_in_background:
-            raise InputError("eval_in_background=true: pass env as a function that makes the env")
-        return None, with_episode_return(env)
-    elif callable(env):
-        factory = functools.partial(_made_with_episode_return, env)
-    else:
-        raise InputError(f"env is a {type(env).__name__}; expected a TorchRL EnvBase or a function returning one")
-    try:
-        made = factory()
-    except EnvError as exc:
-        raise InputError(str(exc)) from exc
-    if not isinstance(made, EnvBase):
-        raise InputError(f"env() returned a {type(made).__name__}; expected a TorchRL EnvBase")
-    return factory, made
-
-
-def _made_with_episode_return(env_fn: Callable[[], EnvBase]) -> EnvBase:
-    return with_episode_return(env_fn())
