@@ -49,3 +49,32 @@ def ctrl_c_on_call():
         return hook
 
     return make
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist's ``--dist loadgroup`` (pyproject's addopts), the tests that share a fixture
+    wider than one test (a trained run that many checks read, defined in a test module) form one
+    ``xdist_group``: they go to one worker as one unit, so the run is made once, not once per worker.
+    Tests that share such fixtures through each other (``commands`` built on ``cli_run``) join one group.
+    A test's own ``xdist_group`` mark (the Ray tests: one Ray at a time) is left as it is."""
+    parent: dict[str, str] = {}
+
+    def find(key: str) -> str:
+        while parent.setdefault(key, key) != key:
+            key = parent[key]
+        return key
+
+    shared = {}
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)  # pytest's record of the fixtures a test requests
+        if info is None or item.get_closest_marker("xdist_group"):
+            continue
+        keys = [f"{defs[-1].baseid}::{name}" for name, defs in info.name2fixturedefs.items()
+                if defs and defs[-1].scope != "function" and defs[-1].baseid.endswith(".py")]
+        for key in keys[1:]:
+            parent[find(key)] = find(keys[0])
+        if keys:
+            shared[item] = keys[0]
+    for item, key in shared.items():
+        item.add_marker(pytest.mark.xdist_group(find(key)))
