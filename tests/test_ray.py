@@ -31,9 +31,6 @@ from rlpipe.pipelines.workers.evaluation import evaluate
 
 ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'` (scripts/setup.sh does)")
 
-# one Ray at a time on the machine (pyproject's xdist workers): each Ray instance starts a dozen processes on 2 cores
-pytestmark = pytest.mark.xdist_group("ray")
-
 MODULE = [sys.executable, "-m", "rlpipe.scripts.cli"]
 # td3 on Pendulum: 100 random steps, then 300 iterations; updates start at learning_starts=256
 TINY = ["num_iterations=300", "initial_collect_steps=100", "eval_interval=150", "num_eval_episodes=1",

@@ -28,8 +28,7 @@ from rlpipe.pipelines.config import apply_overrides
 
 ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'` (scripts/setup.sh does)")
 
-# one Ray at a time on the machine (pyproject's xdist workers): each Ray instance starts a dozen processes on 2 cores
-pytestmark = [pytest.mark.filterwarnings("ignore::UserWarning"), pytest.mark.xdist_group("ray")]
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 MODULE = [sys.executable, "-m", "rlpipe.scripts.cli"]
 QUIET = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_DEDUP_LOGS": "0", "PYTHONFAULTHANDLER": "1"}
