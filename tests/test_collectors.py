@@ -110,7 +110,7 @@ def wait_until(predicate, timeout: float, interval: float = 0.2) -> bool:
 def assert_frames_from_two_workers(data) -> None:
     """``data``: transitions in insertion order. Each worker steps its own env, so two trajectories
     run side by side and their frames interleave in the buffer; one env's trajectories follow each
-    other. Both workers also start an episode at once, in the first blocks."""
+    other. Each worker starts a fresh episode: the first two trajectories begin at step 0."""
     traj = data["collector", "traj_ids"].flatten()
     step_count = data["step_count"].flatten()
     spans = {}
@@ -122,8 +122,9 @@ def assert_frames_from_two_workers(data) -> None:
     interleaved = [(a, b) for a in spans for b in spans
                    if a < b and spans[a][0] < spans[b][1] and spans[b][0] < spans[a][1]]
     assert interleaved, f"no two trajectories overlap in time: {spans}"
-    starts = [i for i in spans if spans[i][0] < 2 * FRAMES_PER_BATCH and int(step_count[spans[i][0]]) == 0]
-    assert len(starts) >= 2, spans
+    # (how many blocks one async worker delivers before the other's first depends on the machine's load)
+    first_two = sorted(spans, key=lambda i: spans[i][0])[:2]
+    assert len(first_two) == 2 and all(int(step_count[spans[i][0]]) == 0 for i in first_two), spans
 
 
 def assert_ratio_kept(cfg, frames: int, updates: int) -> None:
