@@ -49,3 +49,25 @@ def ctrl_c_on_call():
         return hook
 
     return make
+
+
+# Ray's tests start a Ray instance each (a dozen processes, a cluster of two nodes): one at a time on the machine.
+RAY_FILES = ("tests/test_ray.py", "tests/test_ray_faults.py")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """pyproject's addopts run the tests on pytest-xdist workers, a test file at a time (``--dist loadfile``):
+    a file's tests share its module fixtures (a trained run that many checks read), made once on one worker.
+    The Ray files go to one worker as one unit. (``--dist loadgroup`` with ``xdist_group`` marks would be
+    finer, but with pytest 9.2 xdist 3.8 silently ignores the marks: pytest-dev/pytest-xdist#1386.)"""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class RayFilesTogether(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            scope = super()._split_scope(nodeid)
+            return "ray" if scope in RAY_FILES else scope
+
+    return RayFilesTogether(config, log)

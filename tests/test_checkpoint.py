@@ -474,49 +474,69 @@ def _session_processes(sid: int) -> list[int]:
     return pids
 
 
+def _wait_stopped(proc: subprocess.Popen) -> None:
+    """Until ``proc`` is stopped (SIGSTOP from its fault point): its state in /proc says so."""
+    deadline = time.monotonic() + 240  # generous: the machine is shared; the wait is for the event
+    while Path(f"/proc/{proc.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "T":
+        assert proc.poll() is None, f"the run ended before its fault point: {proc.communicate()}"
+        assert time.monotonic() < deadline, "the run did not reach its fault point"
+        time.sleep(0.02)
+
+
+def _held(args: list[str], run: Path, at: int, command: list[str] = RLPIPE, **popen) -> subprocess.Popen:
+    """``rlpipe ARGS --out RUN`` in its own process group, held (SIGSTOP to the group, from rlpipe's
+    fault hook) once the block of iteration ``at`` is collected."""
+    proc = subprocess.Popen([*command, *args, "--out", str(run)], cwd=run.parent, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env={**os.environ, "RLPIPE_FAULT": f"collected@{at}:SIGSTOP"}, **popen)
+    try:
+        _wait_stopped(proc)
+    except BaseException:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise
+    return proc
+
+
 def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tmp_path):
     run = tmp_path / "run"
-    entry_point = Path(sys.executable).parent / "rlpipe"
+    entry_point = [str(Path(sys.executable).parent / "rlpipe")]
     # two collector processes, so that there are children that must not outlive the run
-    args = ["train", "dqn", "num_iterations=1500", "initial_collect_steps=100", "eval_interval=0",
+    args = ["train", "dqn", "num_iterations=300", "initial_collect_steps=100", "eval_interval=0",
             "num_eval_episodes=2", "checkpoint_interval=100", "log_interval=100", "collector.workers=2",
             "--no-progress"]
-    proc = subprocess.Popen([str(entry_point), *args, "--out", str(run)], cwd=tmp_path, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    # held after the block of iteration 200, past the checkpoint of 100; Ctrl-C lands as it goes on
+    proc = _held(args, run, 200, entry_point)
     try:
-        deadline = time.monotonic() + 180
-        latest_file = run / "checkpoints" / "latest"
-        # the run checkpoints at iteration 0 before its collectors start: wait for a later one
-        while not latest_file.exists() or latest_file.read_text().strip() == f"step_{0:010d}":
-            assert proc.poll() is None, f"training ended before a checkpoint: {proc.communicate()}"
-            assert time.monotonic() < deadline, "no checkpoint within 180 s"
-            time.sleep(0.05)
-        time.sleep(0.3)
         assert len(_session_processes(proc.pid)) >= 3, "expected the run and its two collector processes"
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole process group
+        os.killpg(proc.pid, signal.SIGCONT)
         out, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
-            proc.kill()
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
     assert proc.returncode == 130, f"exit {proc.returncode}\n{err}"
     assert "--resume" in err and "Traceback" not in err, err
     latest = ckpt.latest_checkpoint(run / "checkpoints")
     state = ckpt.load_checkpoint(latest, "dqn", "CartPole-v0")
-    assert 0 < state["counters"]["iteration"] < 1500
+    assert 200 <= state["counters"]["iteration"] < 300, state["counters"]  # where it stopped, not the one of 100
     assert not list((run / "checkpoints").glob(".tmp-*"))
-    time.sleep(0.5)
+    deadline = time.monotonic() + 60  # a collector process may take a moment to see its learner gone
+    while _session_processes(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
     assert _session_processes(proc.pid) == [], "child processes outlived the interrupted run"
 
-    resumed = subprocess.run([str(entry_point), "train", "dqn", "--resume", str(run), "--no-progress"], cwd=tmp_path,
+    resumed = subprocess.run([*entry_point, "train", "dqn", "--resume", str(run), "--no-progress"], cwd=tmp_path,
                              capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stderr
     assert "AverageReturn" in resumed.stdout
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["iterations"] == 1500
-    assert summary["frames"] == 100 + 1500
+    assert summary["iterations"] == 300
+    assert summary["frames"] == 100 + 300
     rows = metric_rows(run)
     assert_no_duplicated_steps(rows)
-    assert int(rows[-1]["step"]) == 1500
+    assert int(rows[-1]["step"]) == 300
 
 
 def _logged_past(run: Path, step: int) -> bool:
@@ -569,13 +589,20 @@ def test_resume_after_a_kill_has_every_evaluation_once(tmp_path):
 def test_a_run_started_immune_to_ctrl_c_stays_so(tmp_path):
     """Started with SIGINT ignored (nohup, a background job), a run ignores it, as Python does."""
     run = tmp_path / "run"
-    args = ["train", "dqn", "num_iterations=1500", "initial_collect_steps=100", "eval_interval=500",
-            "num_eval_episodes=1", "log_interval=100", "checkpoint_interval=500", "--no-progress"]
-    with _run_logged_past(args, run, 200, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) as proc:
+    args = ["train", "dqn", "num_iterations=300", "initial_collect_steps=100", "eval_interval=100",
+            "num_eval_episodes=1", "log_interval=100", "checkpoint_interval=100", "--no-progress"]
+    # held mid-run (after the block of iteration 200), so the Ctrl-C surely finds it running
+    proc = _held(args, run, 200, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
         os.killpg(proc.pid, signal.SIGINT)
+        os.killpg(proc.pid, signal.SIGCONT)
         out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
     assert proc.returncode == 0, err[-3000:]
-    assert json.loads((run / "summary.json").read_text())["iterations"] == 1500
+    assert json.loads((run / "summary.json").read_text())["iterations"] == 300
 
 
 # --- crash-safe saves ----------------------------------------------------------------------------------

@@ -111,9 +111,9 @@ def test_eval_prints_json_and_writes_the_ecdf(commands):
     data = json.loads(proc.stdout.strip().splitlines()[-1])
     assert len(data["returns"]) == 3
     assert data["AverageReturn"] == pytest.approx(sum(data["returns"]) / 3)
-    # CartPole pays 1 per step
+    # CartPole pays 1 per step, for at most 200 steps in v0: whole returns, each its episode's length
     assert data["AverageEpisodeLength"] == pytest.approx(data["AverageReturn"])
-    assert data["AverageReturn"] > 0
+    assert all(r == int(r) and 1 <= r <= 200 for r in data["returns"]), data["returns"]
     assert (run / "ecdf.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -121,6 +121,9 @@ def test_eval_prints_text(commands):
     proc = commands[2]["eval-text"]
     assert proc.returncode == 0, proc.stderr
     assert "AverageReturn = " in proc.stdout and "AverageEpisodeLength = " in proc.stdout
+    # the same default seed: the episodes of the 3-episode evaluation above, its first two
+    returns = json.loads(commands[2]["eval"].stdout.strip().splitlines()[-1])["returns"]
+    assert f"AverageReturn = {sum(returns[:2]) / 2:.2f}" in proc.stdout, (proc.stdout, returns)
 
 
 def _episode_length(run: Path, seed: int) -> int:
