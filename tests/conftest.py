@@ -51,8 +51,9 @@ def ctrl_c_on_call():
     return make
 
 
-# Ray's tests start a Ray instance each (a dozen processes, a cluster of two nodes): one at a time on the machine.
-RAY_FILES = ("tests/test_ray.py", "tests/test_ray_faults.py")
+# Ray's tests start a Ray instance each (a dozen processes, a cluster of two nodes): one at a time on the machine
+# (test_backends.py runs its contract on a local Ray too).
+RAY_FILES = ("tests/test_backends.py", "tests/test_ray.py", "tests/test_ray_faults.py")
 
 
 @pytest.hookimpl(optionalhook=True)
