@@ -15,8 +15,8 @@ that work themselves; add your own by passing them to ``train(triggers=[...])``:
 
 What a trigger may use of the loop: ``pipeline``, ``config``, ``state`` (counters), ``run_dir`` (the
 ``RunDir``), ``evaluations`` (results so far, oldest first), ``last_return``, ``clock``,
-``interval_stats``, ``supervisor`` (workers alive, restarts), ``collector`` (the TorchRL collector
-collecting now, or None), ``triggers`` (the run's triggers by name), and the methods ``log(row)``
+``interval_stats``, ``supervisor`` (workers alive, restarts), ``collector`` (the collector backend
+collecting now, or None: a ``workers.backend.CollectorBackend``, whose ``.collector`` is TorchRL's), ``triggers`` (the run's triggers by name), and the methods ``log(row)``
 (a metrics row: CSV, where a key new to metrics.csv gets a column; logger; callbacks), ``echo(line)``
 (the live log), ``speeds()``, ``evaluate()``, ``export()``, ``save()``.
 
