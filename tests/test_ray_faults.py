@@ -353,11 +353,13 @@ def test_kill_9_of_a_learner_inside_a_checkpoint_write_on_a_cluster_ends_its_act
 
 # tests/test_sac.py's and tests/test_td3.py's learning checks, with the env stepped by one Ray actor
 # (a local Ray instance) that gets the learner's weights before each block (collector.sync=true).
-# Seen on this 2-core machine under load (3-4 min each): SAC -1268 -> -163, -164, -485, -163; TD3 -1383 ->
-# -160, -156, -157 (random and untrained: -1100 to -1700). Runs of the same seed differ here (cause not found):
-# SAC's threshold is looser than its in-process check's (-500), with room below the -485 seen.
+# Seen on this 2-core machine under load (3-4 min each): SAC at 3000 iterations -1268 -> -163, -164, -485, -163,
+# -819; TD3 -1383 -> -160, -156, -157 (random and untrained: -1100 to -1700). Runs of the same seed differ here
+# (cause not found; issue 23), and at 3000 iterations SAC is still on the steep part of its curve (training
+# episodes: -1298 at 2000, -490 at 3000), so the spread decided the check: SAC runs 4000, past the climb
+# (seen quiet, 30 s each: -155, -374, -155), with room below the worst seen.
 SAC_LEARN = [
-    "env=Pendulum-v1", "seed=0", "num_iterations=3000", "initial_collect_steps=1000",
+    "env=Pendulum-v1", "seed=0", "num_iterations=4000", "initial_collect_steps=1000",
     "replay_buffer_capacity=100000", "actor_fc_layer_params=[64,64]", "critic_joint_fc_layer_params=[64,64]",
     "actor_learning_rate=1e-3", "critic_learning_rate=1e-3", "alpha_learning_rate=1e-3",
     "eval_in_background=false", "eval_interval=0", "num_eval_episodes=5", "log_interval=1000",
@@ -374,7 +376,7 @@ TD3_LEARN = [
 
 @pytest.mark.slow
 @pytest.mark.parametrize("pipeline, overrides, iterations, threshold", [
-    pytest.param(sac.SAC, SAC_LEARN, 3000, -700, id="sac"),
+    pytest.param(sac.SAC, SAC_LEARN, 4000, -600, id="sac"),
     pytest.param(td3.TD3, TD3_LEARN, 8000, -400, id="td3"),
 ])
 def test_learns_pendulum_with_ray_collectors(run_dir, pipeline, overrides, iterations, threshold):
