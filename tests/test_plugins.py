@@ -203,6 +203,15 @@ def test_dqn_takes_a_bare_q_network(tmp_path):
     assert changed(before, qnet)
 
 
+def test_dqns_old_qvalue_actor_keyword_still_builds_with_the_users_actor_and_warns():
+    actor = users_actor("dqn")
+    with pytest.warns(DeprecationWarning, match="actor="):
+        pipeline = dqn.DQN(config("dqn"), qvalue_actor=actor)
+    assert pipeline.policy is actor or any(m is actor for m in pipeline.policy.modules())
+    with pytest.raises(InputError, match="once"), pytest.warns(DeprecationWarning):
+        dqn.DQN(config("dqn"), actor=users_actor("dqn"), qvalue_actor=actor)
+
+
 def users_loss(algo: str):
     spec = make_plain(algo).action_spec
     if algo == "dqn":

@@ -36,6 +36,7 @@ import torch
 
 from rlpipe.pipelines.artifacts.files import FileWriteError, fsync_path, remove_temporaries, write_text_atomic
 from rlpipe.pipelines.compat.torchrl import write_cursor
+from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import fault_point
 
@@ -45,8 +46,8 @@ __all__ = [
 ]
 
 FORMAT = "rlpipe-checkpoint/1"
-KEEP = 2
-"""checkpoints kept by default (``checkpoint_keep``): the newest and one to fall back on"""
+KEEP = TrainConfig.checkpoint_keep
+"""checkpoints kept by default: ``checkpoint_keep``'s default (the newest and one to fall back on)"""
 _NAME = re.compile(r"step_(\d{10,})")
 _TMP, _OLD = ".tmp-", ".old-"
 
