@@ -231,3 +231,18 @@ def test_state_dict_round_trip_continues_exactly():
 def test_a_non_positive_ratio_is_refused():
     with pytest.raises(ValueError):
         SampleToInsertRatio(0)
+
+
+# --- the module paths from before the rooms still import, warned ---------------------------------------
+
+
+@pytest.mark.parametrize("old, new", [("loop", "training.loop"), ("ray_backend", "workers.ray"),
+                                      ("checkpoint", "artifacts.checkpoint"), ("runtime", "system.runtime")])
+def test_an_old_module_path_gives_the_moved_module_with_a_deprecation_warning(old, new):
+    import importlib
+    import sys
+
+    sys.modules.pop(f"rlpipe.pipelines.{old}", None)  # an earlier test may have imported it already
+    with pytest.warns(DeprecationWarning, match=f"rlpipe.pipelines.{new}"):
+        module = importlib.import_module(f"rlpipe.pipelines.{old}")
+    assert module is importlib.import_module(f"rlpipe.pipelines.{new}")
