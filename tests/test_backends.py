@@ -82,7 +82,7 @@ def collected(request) -> dict:
             with torch.no_grad():  # an update, as far as the workers can tell
                 for p in pipeline.policy.parameters():
                     p.add_(0.3 * torch.randn_like(p))
-            out["stale_new_before_push"] = stale_frames(pipeline, next(blocks))
+            next(blocks)  # in flight at the change: either weights (no promise either way, see below)
             backend.push_weights()
             out["stale_after"] = [stale_frames(pipeline, b) for b in blocks]
             out["metrics"] = backend.metrics()
@@ -112,9 +112,11 @@ def test_started_for_n_frames_it_gives_exactly_the_blocks_promised(collected):
 
 
 def test_pushed_weights_reach_the_workers(collected):
+    # What the contract promises is that pushed weights are acted with from the next blocks on. Before a
+    # push a worker may already see a change: TorchRL's multi-process collectors put the learner's policy
+    # in shared memory (its parameters are is_shared() once they start), and Ray's actors get the learner's
+    # weights with each request; so how the block in flight at the change was collected is left unchecked.
     assert collected["stale_before"] == [0] * PUSH_AFTER  # the workers started with the learner's weights
-    if collected["kind"] == "local":  # processes hold a copy: a change reaches them only when pushed (Ray's
-        assert collected["stale_new_before_push"] > 0  # actors get the learner's weights with each request)
     after = collected["stale_after"]
     assert after[IN_FLIGHT:] == [0] * (len(after) - IN_FLIGHT), after
 
