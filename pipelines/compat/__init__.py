@@ -4,7 +4,7 @@ when to delete it, so that an upgrade removes it in one commit.
     torchrl.py   TorchRL 0.14: weight-sync acks with a deadline (``AckDeadline``), weight-sync queues
                  left open by a collector's shutdown, the Ray scheme's version stamp, the replay
                  writer's cursor, the process ``Evaluator``'s worker start, threads, shutdown and
-                 trajectory-format warning
+                 trajectory-format warning, a user's env given the transforms the policy reads
     torch.py     torch 2.13: the TorchScript ONNX exporter's C++ log on every export
     ray.py       Ray 2.60: ``ray.init`` taking over SIGTERM; ``ray.init`` retrying an unreachable
                  address for minutes
@@ -12,11 +12,10 @@ when to delete it, so that an upgrade removes it in one commit.
 This is the lowest room of ``pipelines`` (it imports no other part of rlpipe), so any room may use it.
 What it does not hold, and why:
 
-* in blocks being rewritten in issue 20, to move here after: ``base.OffPolicyPipeline.make_collector``
-  and ``workers/ray.py``'s ``_ray_collector`` pass ``auto_register_policy_transforms=True`` (TorchRL
-  0.14 defaults to False, 0.15 to True: drop the argument when ``torchrl>=0.15`` is the floor);
-  ``training/loop.py`` puts a watchdog on a new collector's start-up (TorchRL 0.14 reads a worker's
-  first message with no timeout; ``workers.supervision.kill_new_children``).
+* where the workaround is a deadline of our own on a wait TorchRL 0.14 leaves unbounded: the watchdog
+  on a new collector's or evaluator's start-up (TorchRL reads a worker's first message with no
+  timeout; ``workers.supervision.Watchdog`` with ``kill_new_children``), used by the supervisor and
+  ``workers.backend.CollectorBackend.start_evaluator``.
 * below ``pipelines`` (``modules/`` and ``envs/`` never import it): ``modules/optim.py``'s ``LeanAdam``
   calls torch 2.13's private ``torch._fused_adam_`` with that version's arguments (a speed path,
   checked bitwise against ``Adam`` by tests/test_optim.py at each upgrade).

@@ -12,7 +12,7 @@ import sys
 import threading
 import time
 
-__all__ = ["EVALUATOR_COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "evaluator_collector",
+__all__ = ["COLLECTOR_KWARGS", "EVALUATOR_COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "evaluator_collector",
            "evaluator_threads", "set_model_version", "start_evaluator_worker", "stop_evaluator_threads",
            "write_cursor"]
 
@@ -124,6 +124,10 @@ def stop_evaluator_threads(evaluator) -> None:
     evaluator._async_trigger.set()
     backend._eval_ready.set()
 
+
+# TorchRL 0.14's collectors leave a user's env without the transforms the policy reads (InitTracker)
+# unless asked to append them; 0.15 appends them by default. Delete when torchrl>=0.15 is the floor.
+COLLECTOR_KWARGS = {"auto_register_policy_transforms": True}
 
 # TorchRL 0.14's Evaluator pads trajectories by default and warns (FutureWarning) that the default will
 # change; asking for "padded" keeps 0.14's behaviour without the warning. Delete at the upgrade that

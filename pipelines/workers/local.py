@@ -18,6 +18,7 @@ from torch import nn
 from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
 from torchrl.envs import EnvBase
 
+from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
 from rlpipe.pipelines.workers.supervision import (
@@ -36,10 +37,7 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
     """The TorchRL collector ``config.collector`` describes, started, for ``total_frames`` frames."""
     c = config.collector
     common = dict(frames_per_batch=c.frames_per_batch, total_frames=total_frames,
-                  init_random_frames=init_random_frames,
-                  # a user's env without the transforms the policy reads (InitTracker) gets them
-                  # appended, as TorchRL 0.15 will do by default
-                  auto_register_policy_transforms=True,
+                  init_random_frames=init_random_frames, **COLLECTOR_KWARGS,
                   # the env steps where it lives; its outputs go to the policy's device, and the
                   # collected blocks to the learner's (where the replay buffer is)
                   policy_device=device, storing_device=device)

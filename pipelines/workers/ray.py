@@ -30,7 +30,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from rlpipe.pipelines.compat.torchrl import set_model_version
+from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS, set_model_version
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
@@ -295,7 +295,7 @@ def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_
         return RayCollector(
             [env_fn] * c.workers, policy,
             collector_class=Collector,
-            collector_kwargs={"track_policy_version": True, "auto_register_policy_transforms": True},
+            collector_kwargs={"track_policy_version": True, **COLLECTOR_KWARGS},
             frames_per_batch=c.frames_per_batch, total_frames=total_frames, init_random_frames=init_random_frames,
             # the learner's device is not the actors' business: they step and act on CPU
             device="cpu", storing_device="cpu",
