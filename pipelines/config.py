@@ -247,6 +247,14 @@ class TrainConfig:
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
     initial_collect_policy: str = checked("random", one_of("random", "collect"))
     """policy of the `initial_collect_steps`: 'random' (uniform actions, the DQN and actor-learner SAC tutorials) or 'collect' (the exploring policy of the untrained networks, the older SAC tutorial's driver)"""
+    target_return: float | None = None
+    """stop training once the mean return of the last `target_window` finished training episodes is at least this and a greedy evaluation of `target_eval_episodes` episodes confirms it (summary.json's "target" records when); null: train for `num_iterations`"""
+    target_window: int = checked(5, POSITIVE)
+    """finished training episodes whose mean return is compared with `target_return`"""
+    target_eval_episodes: int = checked(10, POSITIVE)
+    """episodes of the deterministic policy that must reach `target_return` on average to confirm it (the eval env)"""
+    target_recheck_episodes: int = checked(5, POSITIVE)
+    """after an evaluation that did not confirm `target_return`, finished training episodes before the next one (so evaluations cannot dominate the run)"""
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     ray: RayConfig = field(default_factory=RayConfig)
 
@@ -408,7 +416,8 @@ def _describe_type(cfg, key: str) -> str:
     ftype = typing.get_type_hints(type(owner))[leaf]
     text = getattr(ftype, "__name__", None) if isinstance(ftype, type) else str(ftype).replace("typing.", "")
     names = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
-             "Optional[int]": "an integer or null", "List[int]": "a list of integers such as [256,256]",
+             "Optional[int]": "an integer or null", "int | None": "an integer or null",
+             "Optional[float]": "a number or null", "float | None": "a number or null", "List[int]": "a list of integers such as [256,256]",
              "list[int]": "a list of integers such as [256,256]"}
     return names.get(text, text)
 

@@ -23,6 +23,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import time
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,6 +94,12 @@ class Loop:
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
         self._counts_at_start = (self.state.frames, self.state.updates)  # this session's speeds
+        self.recent_returns: deque[float] = deque(maxlen=1000)
+        """returns of the training episodes finished in this session, newest last (for triggers)"""
+        self.first_block_unix: float | None = None
+        """``time.time()`` when this session's first block of env steps arrived"""
+        self.finished_early: str | None = None
+        """why a trigger ended the run before its last iteration (``finish_early``), else None"""
         self.bar = tqdm(total=self.config.num_iterations, initial=self.state.iteration, unit="it", disable=not progress,
                         desc=f"{pipeline.algo} {self.config.env}", dynamic_ncols=True)
 
@@ -167,7 +175,11 @@ class Loop:
         self.collection = SupervisedCollector(self._make_collector, self.supervisor, self.watchdog)
         try:
             for batch in self.collection:
+                if self.first_block_unix is None:
+                    self.first_block_unix = time.time()
                 yield batch
+                if self.finished_early is not None:
+                    break
                 fault_point("collected", state.iteration)  # the learner, once the block's work is done
                 fault_point("collector_worker", state.iteration,
                             worker=lambda: next(iter(self.collection.pids()), None))
@@ -195,7 +207,10 @@ class Loop:
         batch = batch.reshape(-1)[: cfg.total_frames - self.state.frames]
         keys = pipeline.replay_keys
         pipeline.replay_buffer.extend(batch if keys is None else batch.select(*keys))
-        self.state.episodes += self.interval_stats.add_frames(batch)
+        ended = self.interval_stats.add_frames(batch)
+        if ended:
+            self.recent_returns.extend(self.interval_stats.episode_returns[-ended:])
+        self.state.episodes += ended
         pipeline.on_frames(batch.numel())
         before, now = self.state.insert(batch.numel(), cfg)
         self.state.owed = [t.name for t in self.triggers.values() if t.due(before, now, cfg.num_iterations)]
@@ -241,6 +256,11 @@ class Loop:
                 self.logger.log_scalar(key, value, step=row["step"])
         for callback in self.callbacks:
             callback(row)
+
+    def finish_early(self, why: str) -> None:
+        """End the run after this block's work, as if its last iteration had come: the triggers' final
+        firing follows (the last evaluation, export and checkpoint)."""
+        self.finished_early = why
 
     def echo(self, line: str) -> None:
         """A line of the live log (``LIVE_LOG``): above the progress bar when there is one."""

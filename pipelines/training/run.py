@@ -85,6 +85,8 @@ class Run:
     def finish(self, loop: Loop) -> TrainResult:
         """summary.json and the report page of the finished run; what ``train`` hands back."""
         summary = self.summary(loop.state, loop.evaluations, loop.clock)
+        for trigger in loop.triggers.values():
+            summary.update(getattr(trigger, "summary", lambda _: {})(loop))  # a trigger not made from ``Trigger``: none
         write_json_atomic(loop.run_dir.summary_path, summary)
         write_report(loop.run_dir.path)
         return TrainResult(policy=self.pipeline.policy, run_dir=loop.run_dir.path, metrics=loop.metrics.rows(),

@@ -16,7 +16,7 @@ from tensordict import TensorDict, TensorDictBase
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.training.rate_limiter import SampleToInsertRatio
 
-__all__ = ["EVAL", "EXPORT", "LOG", "SAVE", "VIDEO", "RunState"]
+__all__ = ["EVAL", "EXPORT", "LOG", "SAVE", "TARGET", "VIDEO", "RunState"]
 
 # The built-in triggers' names. Checkpoints record the triggers an iteration still owes by name
 # (``counters.triggers``), so these never change: a run directory saved by an older rlpipe resumes.
@@ -25,6 +25,7 @@ EVAL = "eval"
 EXPORT = "export"
 SAVE = "save"
 VIDEO = "video"
+TARGET = "target"
 
 
 @dataclass

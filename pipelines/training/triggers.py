@@ -36,6 +36,7 @@ overridden), called on every trigger in the order given to ``train``:
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -43,7 +44,8 @@ from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.export import export_policy
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.training.evaluations import Evaluations, eval_line
-from rlpipe.pipelines.training.state import EVAL, EXPORT, LOG, SAVE, VIDEO
+from rlpipe.pipelines.training.state import EVAL, EXPORT, LOG, SAVE, TARGET, VIDEO
+from rlpipe.pipelines.workers.evaluation import evaluate
 from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 if TYPE_CHECKING:
@@ -51,8 +53,9 @@ if TYPE_CHECKING:
     from rlpipe.pipelines.workers.supervision import NoRestartLeft
 
 __all__ = [
-    "EVAL", "EXPORT", "LOG", "SAVE", "VIDEO",
-    "CheckpointTrigger", "EvalTrigger", "ExportTrigger", "IntervalTrigger", "LogTrigger", "Trigger", "VideoTrigger",
+    "EVAL", "EXPORT", "LOG", "SAVE", "TARGET", "VIDEO",
+    "CheckpointTrigger", "EvalTrigger", "ExportTrigger", "IntervalTrigger", "LogTrigger", "TargetTrigger", "Trigger",
+    "VideoTrigger",
     "crossed", "default_triggers", "eval_line", "log_line",
 ]
 
@@ -102,6 +105,10 @@ class Trigger:
 
     def close(self, loop: Loop) -> None:
         """However the run ends."""
+
+    def summary(self, loop: Loop) -> dict[str, Any]:
+        """Keys this trigger adds to summary.json (none by default)."""
+        return {}
 
 
 class IntervalTrigger(Trigger):
@@ -242,6 +249,85 @@ class VideoTrigger(Trigger):
         self(loop)
 
 
+class TargetTrigger(Trigger):
+    """``target_return``: ends the run once the mean return of the last ``target_window`` finished
+    training episodes reaches the target and a greedy evaluation of ``target_eval_episodes`` episodes,
+    made there and then, confirms it; one that does not confirm it is tried again after
+    ``target_recheck_episodes`` more finished episodes. Checked after every block (``poll``), so no
+    interval; summary.json's ``"target"`` says whether and when (``rlpipe bench time-to-return``
+    times a run with it: ``time_unix`` minus the launch, less ``eval_seconds``).
+
+    The training episodes' returns are the env's own undiscounted rewards (``RewardSum``), as gymnasium's
+    ``RecordEpisodeStatistics`` and SB3's ``Monitor`` count them for the peers.
+    """
+
+    name = TARGET
+
+    def __init__(self, target: float, window: int = 5, eval_episodes: int = 10, recheck_episodes: int = 5):
+        super().__init__(0)  # never by interval: after each block
+        self.target, self.window, self.eval_episodes = float(target), int(window), int(eval_episodes)
+        self.recheck_episodes = int(recheck_episodes)
+        self.episodes = 0  # finished training episodes seen by ``poll`` in this session
+        self.counted: int | None = None  # ``loop.state.episodes`` at the last ``poll``
+        self.next_check = self.window  # ``episodes`` from which the next check may be made
+        self.eval_seconds = 0.0  # spent in confirmations that did not confirm (before ``time_unix``)
+        self.confirm_seconds = 0.0  # the one that did
+        self.checks = 0
+        self.reached: dict[str, Any] | None = None
+        self.train_mean: float | None = None
+        self.eval_return: float | None = None
+        self.last_block_unix: float | None = None
+
+    def __call__(self, loop: Loop) -> None:
+        self.poll(loop)
+
+    def poll(self, loop: Loop) -> None:
+        self.last_block_unix = time.time()
+        returns = loop.recent_returns
+        if self.counted is not None:
+            self.episodes += loop.state.episodes - self.counted
+        else:  # this session's first block: those it finished are all in ``returns``
+            self.episodes = len(returns)
+        self.counted = loop.state.episodes
+        if self.reached is not None or len(returns) < self.window or self.episodes < self.next_check:
+            return
+        recent = list(returns)[-self.window:]
+        mean = sum(recent) / len(recent)
+        self.train_mean = mean
+        if mean < self.target:
+            return
+        met_unix = time.time()
+        state = loop.state
+        with loop.clock.paused():
+            result = evaluate(loop.pipeline.eval_env, loop.pipeline.policy, self.eval_episodes, interrupt=loop.stop.check)
+        seconds = time.time() - met_unix
+        self.checks += 1
+        self.eval_return = result["average_return"]
+        if self.eval_return < self.target:
+            self.eval_seconds += seconds
+            self.next_check = self.episodes + self.recheck_episodes
+            loop.echo(f"step = {state.iteration}: target {self.target:g} not confirmed: training episodes' mean "
+                      f"{mean:.6g}, greedy evaluation {self.eval_return:.6g}; training goes on")
+            return
+        self.confirm_seconds = seconds
+        self.reached = {"iteration": state.iteration, "env_steps": state.frames, "updates": state.updates,
+                        "train_mean": mean, "eval_return": self.eval_return, "time_unix": met_unix}
+        loop.echo(f"step = {state.iteration}: target {self.target:g} reached: training episodes' mean {mean:.6g}, "
+                  f"greedy evaluation {self.eval_return:.6g} over {self.eval_episodes} episodes; training stops")
+        loop.finish_early("target")
+
+    def summary(self, loop: Loop) -> dict[str, Any]:
+        state = loop.state
+        at = self.reached or {"iteration": state.iteration, "env_steps": state.frames, "updates": state.updates,
+                              "train_mean": self.train_mean, "eval_return": self.eval_return, "time_unix": None}
+        return {"target": {
+            "return": self.target, "reached": self.reached is not None, **at,
+            "window": self.window, "eval_episodes": self.eval_episodes, "confirmations": self.checks,
+            "eval_seconds": self.eval_seconds, "confirm_seconds": self.confirm_seconds,
+            "first_step_unix": loop.first_block_unix, "last_block_unix": self.last_block_unix,
+        }}
+
+
 def default_triggers(cfg: TrainConfig) -> list[Trigger]:
     """The tutorials' triggers, in the order they run within an iteration (and in the final firing)."""
     triggers = [
@@ -252,6 +338,9 @@ def default_triggers(cfg: TrainConfig) -> list[Trigger]:
     ]
     if cfg.video:
         triggers.append(VideoTrigger())
+    if cfg.target_return is not None:
+        triggers.append(TargetTrigger(cfg.target_return, cfg.target_window, cfg.target_eval_episodes,
+                                      cfg.target_recheck_episodes))
     return triggers
 
 
