@@ -425,3 +425,36 @@ def test_a_collect_policy_with_an_action_mask_goes_through_torchrls_modules():
     assert masked._lean_parts() is None
     td = TensorDict({"observation": torch.randn(8, 4), "action_mask": torch.tensor([[False, True]] * 8)}, [8])
     assert (masked(td)["action"] == 1).all()  # the mask is honoured: only action 1 is allowed
+
+
+# --- target_return: training stops once the target is reached and confirmed -----------------------
+
+
+def test_a_reachable_target_stops_training_early_and_the_summary_says_when(tmp_path):
+    cfg = apply_overrides(preset("dqn"), ["num_iterations=5000", "target_return=30", "eval_interval=0",
+                                          "log_interval=200", "checkpoint_interval=5000", "policy_save_interval=5000"])
+    result = DQN(cfg).train(tmp_path / "run", progress=False)
+    target = json.loads((result.run_dir / "summary.json").read_text())["target"]
+    assert target["reached"] is True and target["return"] == 30.0
+    assert target["train_mean"] >= 30 and target["eval_return"] >= 30
+    assert target["iteration"] == result.summary["iterations"] < 5000  # stopped at that block, long before the end
+    assert target["env_steps"] == result.summary["frames"] and target["updates"] == result.summary["updates"]
+    assert target["first_step_unix"] <= target["last_block_unix"] <= target["time_unix"]
+    assert target["confirmations"] >= 1 and target["eval_seconds"] >= 0
+    assert result.evaluations[-1]["step"] == target["iteration"]  # the final evaluation, at the stop
+
+
+def test_an_unreachable_target_trains_to_the_end_and_says_not_reached(tmp_path):
+    cfg = tiny("target_return=1000", "target_recheck_episodes=1")
+    result = DQN(cfg).train(tmp_path / "run", progress=False)
+    target = result.summary["target"]
+    assert target["reached"] is False and target["time_unix"] is None
+    assert result.summary["iterations"] == 300 and target["confirmations"] == 0  # never worth an evaluation
+    assert target["train_mean"] is not None and target["train_mean"] < 1000
+
+
+def test_the_target_keys_are_checked():
+    with pytest.raises(InputError, match=r"^target_window=0: expected a positive integer$"):
+        tiny("target_window=0")
+    with pytest.raises(InputError, match=r"^target_return='x': expected a number or null$"):
+        tiny("target_return=x")
