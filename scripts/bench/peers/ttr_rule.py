@@ -1,0 +1,113 @@
+"""The stopping rule of ``rlpipe bench time-to-return``, for the peers' runners (``ttr_sb3.py``, ``ttr_cleanrl.py``).
+
+The runners run inside the peers' own venvs, where rlpipe is not installed: this file is imported from
+beside them (a script's folder is on ``sys.path``), and holds nothing but the standard library. It is
+rlpipe's ``target_return`` rule (``pipelines/training/triggers.py`` ``TargetTrigger``) written again:
+the mean return of the last ``window`` finished training episodes reaches ``target``, then a greedy
+evaluation of ``eval_episodes`` episodes on an env of its own confirms it; one that does not is tried
+again after ``recheck`` more finished episodes. Evaluation time is recorded to be left out.
+
+The result is one line on stdout, ``TTR {json}``, with the fields of rlpipe's summary.json ``"target"``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+
+PREFIX = "TTR "
+
+
+class Rule:
+    def __init__(self, target: float, window: int = 5, eval_episodes: int = 10, recheck: int = 5):
+        self.target, self.window, self.eval_episodes, self.recheck = float(target), int(window), int(eval_episodes), int(recheck)
+        self.returns: list[float] = []
+        self.next_check = self.window
+        self.eval_seconds = 0.0
+        self.confirm_seconds = 0.0
+        self.confirmations = 0
+        self.reached: dict | None = None
+        self.train_mean: float | None = None
+        self.eval_return: float | None = None
+        self.first_step_unix: float | None = None
+        self.last_step_unix: float | None = None
+
+    def step(self) -> None:
+        """Call after each env step (or batch of them)."""
+        now = time.time()
+        if self.first_step_unix is None:
+            self.first_step_unix = now
+        self.last_step_unix = now
+
+    def episode(self, ret: float) -> None:
+        """A finished training episode's undiscounted return (the peer's Monitor / RecordEpisodeStatistics)."""
+        self.returns.append(float(ret))
+
+    def check(self, evaluate: Callable[[int], list[float]], env_steps: int, updates: int) -> bool:
+        """After a step's episodes: True once the target is reached and confirmed (the run should stop)."""
+        if self.reached is not None:
+            return True
+        if len(self.returns) < self.window or len(self.returns) < self.next_check:
+            return False
+        mean = sum(self.returns[-self.window:]) / self.window
+        self.train_mean = mean
+        if mean < self.target:
+            return False
+        met = time.time()
+        returns = evaluate(self.eval_episodes)
+        seconds = time.time() - met
+        self.confirmations += 1
+        self.eval_return = sum(returns) / len(returns)
+        if self.eval_return < self.target:
+            self.eval_seconds += seconds
+            self.next_check = len(self.returns) + self.recheck
+            return False
+        self.confirm_seconds = seconds
+        self.reached = {"env_steps": int(env_steps), "updates": int(updates), "train_mean": mean,
+                        "eval_return": self.eval_return, "time_unix": met}
+        return True
+
+    def result(self, env_steps: int, updates: int, **extra) -> dict:
+        at = self.reached or {"env_steps": int(env_steps), "updates": int(updates), "train_mean": self.train_mean,
+                              "eval_return": self.eval_return, "time_unix": None}
+        return {"return": self.target, "reached": self.reached is not None, **at, "window": self.window,
+                "eval_episodes": self.eval_episodes, "confirmations": self.confirmations,
+                "eval_seconds": self.eval_seconds, "confirm_seconds": self.confirm_seconds,
+                "first_step_unix": self.first_step_unix, "last_block_unix": self.last_step_unix,
+                "episodes": len(self.returns), **extra}
+
+    def emit(self, env_steps: int, updates: int, **extra) -> None:
+        print(PREFIX + json.dumps(self.result(env_steps, updates, **extra)), flush=True)
+        sys.stderr.flush()
+
+
+def versions(*names: str) -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    found = {"python": sys.version.split()[0]}
+    for name in names:
+        try:
+            found[name] = version(name)
+        except PackageNotFoundError:
+            pass
+    return found
+
+
+def register_minitaur(path: str | None) -> None:
+    """Register rlpipe's gymnasium Minitaur (``envs/minitaur.py``, standard packages only) as
+    ``MinitaurBulletEnv-v0`` in this venv's gymnasium, loaded from its file."""
+    if not path:
+        return
+    import importlib.util
+
+    import gymnasium
+
+    spec = importlib.util.spec_from_file_location("rlpipe_minitaur", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["rlpipe_minitaur"] = module
+    spec.loader.exec_module(module)
+    if "MinitaurBulletEnv-v0" not in gymnasium.registry:
+        gymnasium.register(id="MinitaurBulletEnv-v0", entry_point="rlpipe_minitaur:MinitaurBulletEnv",
+                           max_episode_steps=1000)

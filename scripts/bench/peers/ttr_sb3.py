@@ -1,0 +1,116 @@
+"""``rlpipe bench time-to-return``'s Stable-Baselines3 / SBX side: run inside the peer's venv.
+
+    python ttr_sb3.py '{"lib": "sb3", "algo": "sac", "env": "Pendulum-v1", "target": -200, "cap": 30000,
+                        "seed": 0, "hyperparams": {...}, "threads": 1, ...}'
+
+``hyperparams`` are RL-Zoo's for the env as the harness read them from the zoo's yml (``n_timesteps`` and
+``policy`` dropped; ``policy_kwargs`` a string as in the yml; ``noise_type``/``noise_std`` turned into
+the action noise as the zoo does). A callback applies the shared rule (``ttr_rule.Rule``) to the
+Monitor's episode returns after every env step and stops ``learn`` once the target is confirmed by a
+deterministic evaluation (``model.predict(obs, deterministic=True)``) on an env of its own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+
+import numpy as np
+from ttr_rule import Rule, register_minitaur, versions
+
+EVAL_SEED_OFFSET = 10_000
+
+
+def _policy_kwargs(text):
+    if not isinstance(text, str):
+        return text
+    from torch import nn  # the zoo's strings name torch's activations (nn.ReLU) for SB3
+
+    return eval(text, {"dict": dict, "nn": nn, "__builtins__": {}})  # noqa: S307 - RL-Zoo's own yml strings
+
+
+def main(spec: dict) -> None:
+    launch_import = time.time()
+    lib, algo = spec["lib"], spec["algo"]
+    threads = spec.get("threads")
+    if lib == "sb3":
+        import torch
+
+        if threads:
+            torch.set_num_threads(int(threads))
+        from stable_baselines3 import DQN, SAC, TD3
+        from stable_baselines3.common.callbacks import BaseCallback
+        from stable_baselines3.common.noise import NormalActionNoise
+        classes = {"sac": SAC, "td3": TD3, "dqn": DQN}
+        names = ("stable-baselines3", "rl-zoo3", "torch", "gymnasium", "numpy", "mujoco", "pybullet")
+    else:
+        from sbx import DQN, SAC, TD3
+        from stable_baselines3.common.callbacks import BaseCallback
+        from stable_baselines3.common.noise import NormalActionNoise
+        classes = {"sac": SAC, "td3": TD3, "dqn": DQN}
+        names = ("sbx-rl", "stable-baselines3", "rl-zoo3", "jax", "jaxlib", "flax", "gymnasium", "numpy", "mujoco",
+                 "pybullet")
+    import gymnasium
+    from stable_baselines3.common.env_util import make_vec_env
+
+    register_minitaur(spec.get("minitaur_module"))
+    env_id, seed = spec["env"], int(spec["seed"])
+    hp = dict(spec.get("hyperparams") or {})
+    n_envs = int(hp.pop("n_envs", 1))
+    for unsupported in ("normalize", "env_wrapper", "frame_stack", "callback", "vec_env_wrapper"):
+        if hp.get(unsupported):
+            raise SystemExit(f"ttr_sb3: hyperparameter {unsupported} is not supported by this runner")
+        hp.pop(unsupported, None)
+    if "policy_kwargs" in hp:
+        hp["policy_kwargs"] = _policy_kwargs(hp["policy_kwargs"])
+    noise_type, noise_std = hp.pop("noise_type", None), hp.pop("noise_std", None)
+    env = make_vec_env(env_id, n_envs=n_envs, seed=seed)
+    if noise_type == "normal":
+        dim = env.action_space.shape[0]
+        hp["action_noise"] = NormalActionNoise(mean=np.zeros(dim), sigma=float(noise_std) * np.ones(dim))
+    elif noise_type is not None:
+        raise SystemExit(f"ttr_sb3: noise_type={noise_type} is not supported by this runner")
+    eval_env = gymnasium.make(env_id)
+    eval_seed = [seed + EVAL_SEED_OFFSET]
+
+    rule = Rule(spec["target"], spec.get("window", 5), spec.get("eval_episodes", 10), spec.get("recheck", 5))
+
+    def evaluate(n: int) -> list[float]:
+        returns = []
+        for _ in range(n):
+            obs, _ = eval_env.reset(seed=eval_seed[0])
+            eval_seed[0] += 1
+            total, done = 0.0, False
+            while not done:
+                action, _ = model.predict(obs, deterministic=True)
+                obs, reward, terminated, truncated, _ = eval_env.step(action)
+                total += float(reward)
+                done = terminated or truncated
+            returns.append(total)
+        return returns
+
+    class Target(BaseCallback):
+        def _on_step(self) -> bool:
+            rule.step()
+            ended = False
+            for info in self.locals.get("infos", ()):
+                if "episode" in info:
+                    rule.episode(info["episode"]["r"])
+                    ended = True
+            if not ended:
+                return True
+            return not rule.check(evaluate, self.num_timesteps, getattr(self.model, "_n_updates", 0))
+
+    model = classes[algo]("MlpPolicy", env, seed=seed, verbose=0, **{k: v for k, v in hp.items() if k != "policy"})
+    imported = time.time() - launch_import
+    model.learn(total_timesteps=int(spec["cap"]), callback=Target())
+    rule.emit(model.num_timesteps, getattr(model, "_n_updates", 0), versions=versions(*names), lib=lib,
+              hyperparams=spec.get("hyperparams"), hyperparams_source=spec.get("hyperparams_source"),
+              threads=threads or "default", setup_s=imported)
+    os._exit(0)  # nothing left to save: the benchmark times to here
+
+
+if __name__ == "__main__":
+    main(json.loads(sys.argv[1]))
