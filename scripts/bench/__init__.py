@@ -9,6 +9,8 @@
     rlpipe bench profile PRESET [key=value ...] [--steps N] [--duration 20] [--rate 100]
     rlpipe bench collect [--envs CartPole-v1 ...] [--envs-per-worker 1 8 32] [--frames 3000]
     rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
+    rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
+                                [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [key=value ...]
 
 ``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
 started and prints the share of each part (replay sample, update forward/backward, optimiser,
@@ -18,6 +20,9 @@ collection policy, ``collector.envs_per_worker`` envs as one batch), in-process 
 collector process, against the raw gymnasium env (issue 9's target: at least half of it).
 ``ray``: Ray actors against local collector processes, collect-only and training the ``sac``
 preset, with the arithmetic of how many actors the learner can use (issue 10).
+``time-to-return``: seconds from launching a command to a trained agent (a target return, judged
+the same way for every side), rlpipe's presets against CleanRL, SB3 and SBX, interleaved over seeds
+(``scripts/bench/time_to_return.py``; issue 21).
 
 Each prints a Markdown table (paste it into BENCHMARKS.md with the command) and, with ``--json``,
 writes the raw figures. These machines are shared and noisy: compare the ratios within one run.
@@ -38,9 +43,9 @@ from pathlib import Path
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
     bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu", "profile",
-                                          "collect", "ray"])
+                                          "collect", "ray", "time-to-return"])
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs (profile: PRESET first)")
-    bench.add_argument("--seeds", type=int, default=3)
+    bench.add_argument("--seeds", type=int, help="seeds per side (default 3; time-to-return: 5)")
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
     bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac, profile: default 100000; "
                        "ray: the shorter timed run)")
@@ -63,14 +68,29 @@ def add_parser(sub) -> None:
     bench.add_argument("--parts", nargs="+", choices=["updates", "training"], default=["updates", "training"],
                        help="gpu: which tables to measure (default: both)")
     bench.add_argument("--seed", type=int, default=0, help="cleanrl: seed of both sides")
+    bench.add_argument("--tasks", nargs="+", help="time-to-return: tasks to run (default: all; see "
+                       "scripts/bench/time_to_return.py TASKS)")
+    bench.add_argument("--peers", nargs="+", help="time-to-return: peers beside rlpipe (cleanrl sb3 sbx tfagents; "
+                       "default: cleanrl sb3 sbx; none: rlpipe only)")
+    bench.add_argument("--threads", nargs="+", metavar="SIDE=N", help="time-to-return: a side's thread count "
+                       "(default: rlpipe the preset's, cleanrl and sb3 1, sbx JAX's)")
+    bench.add_argument("--target-return", type=float, help="time-to-return: one target return for every task chosen "
+                       "instead of the task's (a quick check)")
+    bench.add_argument("--cap-scale", type=float, help="time-to-return: scale every task's env-step cap")
     bench.set_defaults(func=run)
 
 
 def run(args) -> int:
     from rlpipe.pipelines.errors import InputError
 
+    if args.seeds is None:
+        args.seeds = 5 if args.target == "time-to-return" else 3
     if args.seeds <= 0:
         raise InputError(f"--seeds={args.seeds}: expected a positive integer")
+    if args.target == "time-to-return":  # refused before anything is built or written
+        from rlpipe.scripts.bench.time_to_return import check_args as check_ttr_args
+
+        check_ttr_args(args)
     if args.target == "profile":  # its preset and overrides, refused before any folder is made
         from rlpipe.scripts.bench.profile import check_args
 
@@ -83,7 +103,8 @@ def run(args) -> int:
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise InputError(f"--out {args.out}: not empty; expected a new or empty directory for the benchmark runs")
     # each target is scripts/bench/TARGET.py's bench_TARGET, imported when asked for
-    figures = getattr(importlib.import_module(f"{__name__}.{args.target}"), f"bench_{args.target}")(args, out)
+    name = args.target.replace("-", "_")
+    figures = getattr(importlib.import_module(f"{__name__}.{name}"), f"bench_{name}")(args, out)
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")

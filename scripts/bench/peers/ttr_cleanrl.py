@@ -21,7 +21,6 @@ import sys
 import time
 
 import numpy as np
-
 from ttr_rule import Rule, versions
 
 EVAL_SEED_OFFSET = 10_000

@@ -1,0 +1,481 @@
+"""``rlpipe bench time-to-return``: seconds from launching a command to a trained agent, rlpipe and its peers.
+
+    rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
+                                [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [key=value ...]
+                                [--out DIR] [--json FILE]
+
+Every side is judged by one rule (rlpipe's ``target_return``, ``pipelines/training/triggers.py``
+``TargetTrigger``; the peers' runners apply the same rule, ``peers/ttr_rule.py``): the mean return of
+the last 5 finished training episodes reaches the task's target, and a greedy (deterministic)
+evaluation of 10 episodes on an env of its own, made there and then, confirms it; one that does not
+is tried again after 5 more episodes. A side's time is from just before its command is launched
+(``time.time()``, so imports count) to the moment the training episodes met the target, less the
+seconds its unconfirmed evaluations took. A run that reaches its step cap is reported as not reached
+and counts (as never) in the median; none is dropped. The fixed cost is reported beside it: launch to
+the first env step (rlpipe: to its first block of env steps), and the end of training to exit.
+
+Sides, interleaved per seed (for each seed, every side once, in order): ``rlpipe`` (the preset sized
+for the task; the tutorial preset with the env set where that preset does not exist yet), ``crossq``
+(the task's CrossQ preset, where the task has one and it exists), and the peers, each in a venv of
+its own built on first use: ``cleanrl`` (CleanRL 1.2.0's scripts on their defaults, ``peers/cleanrl.py``),
+``sb3`` and ``sbx`` (RL-Zoo's hyperparameters for the env, ``peers/sb3.py``), ``tfagents`` (its
+tutorials' tasks only). Each side runs on the thread count ``--threads`` names for it; by default
+rlpipe's preset chooses its own (``num_threads``) and the peers built on torch run on 1 thread (small
+networks on a 2-core machine: a second thread only contends with the env), SBX on JAX's default.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rlpipe.pipelines.errors import InputError
+
+PEERS = ("cleanrl", "sb3", "sbx", "tfagents")
+SIDES = ("rlpipe", "crossq", *PEERS)
+DEFAULT_PEERS = ("cleanrl", "sb3", "sbx")
+TORCH_PEER_THREADS = 1
+RUN_TIMEOUT_S = 4 * 3600  # the Minitaur runs to 5.0 take hours on this machine; a hung run is cut here
+
+
+@dataclass(frozen=True)
+class Task:
+    env: str
+    algo: str
+    target: float
+    cap: int
+    """env steps after which a run stops, not reached"""
+    preset: str
+    """the rlpipe preset sized for the task"""
+    fallback: tuple[str, tuple[str, ...]]
+    """while ``preset`` does not exist: a tutorial preset and the overrides that point it at the task"""
+    crossq: str | None = None
+    peers: tuple[str, ...] = ("cleanrl", "sb3", "sbx")
+    """the peers that play the task"""
+    why: str = ""
+
+
+# The issue's targets (issue 21). Caps: a few times what the peers need on their tuned settings, so that
+# a slow side is shown slow rather than cut off early; --cap-scale scales them.
+TASKS: dict[str, Task] = {
+    "pendulum-sac": Task("Pendulum-v1", "sac", -200.0, 30_000, "sac-pendulum", ("sac", ("env=Pendulum-v1",)),
+                         crossq="crossq-pendulum"),
+    "pendulum-td3": Task("Pendulum-v1", "td3", -200.0, 30_000, "td3-pendulum", ("td3", ()), crossq="crossq-pendulum"),
+    "cartpole-v1-dqn": Task("CartPole-v1", "dqn", 475.0, 100_000, "dqn-cartpole-v1", ("dqn", ("env=CartPole-v1",))),
+    "cartpole-v0-dqn": Task("CartPole-v0", "dqn", 195.0, 50_000, "dqn-cartpole-v0", ("dqn", ()),
+                            peers=("cleanrl", "sb3", "sbx", "tfagents"), why="the DQN tutorial's task"),
+    "invpendulum-sac": Task("InvertedPendulum-v5", "sac", 950.0, 50_000, "sac-invpendulum",
+                            ("sac", ("env=InvertedPendulum-v5",)), crossq="crossq-invpendulum"),
+    "invpendulum-td3": Task("InvertedPendulum-v5", "td3", 950.0, 50_000, "td3-invpendulum",
+                            ("td3", ("env=InvertedPendulum-v5",)), crossq="crossq-invpendulum"),
+    # 3000 on HalfCheetah-v5: below the return that the peers' published SAC curves show by 100k env steps
+    # (CleanRL's benchmark of sac_continuous_action.py on HalfCheetah-v4, docs.cleanrl.dev/rl-algorithms/sac/,
+    # and Spinning Up's SAC HalfCheetah-v3 benchmark, spinningup.openai.com/en/latest/spinningup/bench.html,
+    # both above 3000 there); v5 has v4's dynamics and reward. Cap 200k: twice that budget.
+    "halfcheetah-sac": Task("HalfCheetah-v5", "sac", 3000.0, 200_000, "sac-halfcheetah",
+                            ("sac", ("env=HalfCheetah-v5",)), crossq="crossq-halfcheetah"),
+    # 1.0: above the best evaluation (0.85) that TF-Agents' SAC Minitaur tutorial printed in its 100,000
+    # iterations; 5.0: a gait (issue 21's main job). The peers' CleanRL venv has no pybullet.
+    "minitaur-sac-1": Task("MinitaurBulletEnv-v0", "sac", 1.0, 300_000, "sac-minitaur", ("sac", ()),
+                           crossq="crossq-minitaur", peers=("sb3", "sbx", "tfagents"), why="the SAC tutorial's task"),
+    "minitaur-sac-5": Task("MinitaurBulletEnv-v0", "sac", 5.0, 1_000_000, "sac-minitaur", ("sac", ()),
+                           crossq="crossq-minitaur", peers=("sb3", "sbx"), why="the main job"),
+}
+
+
+# --- input --------------------------------------------------------------------------------------------
+
+
+def check_args(args) -> None:
+    """Refuse bad input in one line before anything is built or written."""
+    from difflib import get_close_matches
+
+    for name in args.tasks or ():
+        if name not in TASKS:
+            close = get_close_matches(name, list(TASKS), n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise InputError(f"--tasks: unknown task {name!r}; {hint}expected some of {', '.join(TASKS)}")
+    peers = args.peers or list(DEFAULT_PEERS)
+    if peers != ["none"]:
+        for name in peers:
+            if name not in PEERS:
+                raise InputError(f"--peers: unknown peer {name!r}; expected some of {', '.join(PEERS)}, or none")
+    for item in args.threads or ():
+        side, eq, n = item.partition("=")
+        if not eq or side not in SIDES or not n.isdigit() or int(n) < 0:
+            raise InputError(f"--threads {item}: expected SIDE=N with SIDE one of {', '.join(SIDES)} and N a count "
+                             "(0: the side's default)")
+    if args.cap_scale is not None and not args.cap_scale > 0:
+        raise InputError(f"--cap-scale={args.cap_scale}: expected a positive factor")
+    if args.preset is not None:
+        from rlpipe.pipelines import resolve_preset
+
+        resolve_preset(args.preset)  # an unknown one: its own line
+
+
+def _threads(args) -> dict[str, int | None]:
+    chosen: dict[str, int | None] = {"rlpipe": None, "crossq": None, "cleanrl": TORCH_PEER_THREADS,
+                                     "sb3": TORCH_PEER_THREADS, "sbx": None, "tfagents": None}
+    for item in args.threads or ():
+        side, _, n = item.partition("=")
+        chosen[side] = int(n) or None
+    return chosen
+
+
+# --- the sides' commands ------------------------------------------------------------------------------
+
+
+@dataclass
+class Launch:
+    cmd: list[str]
+    env: dict[str, str]
+    cwd: Path
+    settings: str
+    read: Any  # (log path) -> the side's target dict, or None
+    versions: dict[str, str] | None = None
+
+
+def _rlpipe_exe() -> list[str]:
+    exe = Path(sys.executable).with_name("rlpipe")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "rlpipe.scripts.cli"]
+
+
+def _read_summary(run_dir: Path):
+    def read(_log: Path):
+        path = run_dir / "summary.json"
+        return json.loads(path.read_text()).get("target") if path.exists() else None
+    return read
+
+
+def _read_ttr_line(log: Path):
+    found = None
+    for line in log.read_text(errors="replace").splitlines():
+        if line.startswith("TTR "):
+            found = json.loads(line[4:])
+    return found
+
+
+def rlpipe_launch(task: Task, side: str, seed: int, target: float, cap: int, run_dir: Path, threads: int | None,
+                  overrides: list[str], preset: str | None = None) -> Launch | str:
+    """The rlpipe side (``rlpipe``: the task's preset; ``crossq``: its CrossQ preset), or why it is not run."""
+    from rlpipe.pipelines import presets, resolve_preset
+
+    known = presets()
+    extra: tuple[str, ...] = ()
+    note = ""
+    if side == "crossq":
+        if task.crossq is None:
+            return "no CrossQ preset for this task"
+        if task.crossq not in known:
+            return f"preset missing ({task.crossq})"
+        name = task.crossq
+    elif preset is not None:
+        name = preset
+        extra = () if resolve_preset(preset)[1].env == task.env else (f"env={task.env}",)
+    elif task.preset in known:
+        name = task.preset
+    else:
+        name, extra = task.fallback
+        note = f" (preset {task.preset} missing)"
+    cfg = resolve_preset(name)[1]
+    from rlpipe.pipelines.config import apply_overrides
+
+    cfg = apply_overrides(cfg, [*extra, *overrides])  # bad user overrides: their own line, before any launch
+    iterations = max(1, math.ceil((cap - cfg.initial_collect_steps) / cfg.collect_steps_per_iteration))
+    keys = [*extra, *overrides, f"target_return={target:g}", f"num_iterations={iterations}", f"seed={seed}"]
+    if threads:
+        keys.append(f"num_threads={threads}")
+    cmd = [*_rlpipe_exe(), "train", name, *keys, "--out", str(run_dir), "--no-progress"]
+    settings = f"`rlpipe train {name}{''.join(' ' + k for k in [*extra, *overrides])}`{note}"
+    return Launch(cmd, dict(os.environ), run_dir.parent, settings, _read_summary(run_dir), {"rlpipe": _version()})
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("rlpipe")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _base_env(threads: int | None) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "PYTHONPATH",
+                                                            "PYTHONHOME", "XLA_FLAGS", "VIRTUAL_ENV")}
+    env["PYTHONUNBUFFERED"] = "1"
+    env.setdefault("MUJOCO_GL", "egl")
+    if threads:
+        env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
+    return env
+
+
+def _minitaur_module() -> str:
+    import importlib.util
+
+    return importlib.util.find_spec("rlpipe.envs.minitaur").origin
+
+
+def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work: Path, threads: int | None) -> Launch | str:
+    """A peer's command, building its venv on first use, or why it is not run."""
+    if side not in task.peers:
+        return "does not play this task"
+    rule = {"target": target, "cap": cap, "seed": seed, "window": 5, "eval_episodes": 10, "recheck": 5,
+            "threads": threads}
+    peers = Path(__file__).with_name("peers")
+    if side == "cleanrl":
+        from rlpipe.scripts.bench.peers import cleanrl
+
+        python = cleanrl.ensure_venv()
+        hp = cleanrl.defaults(task.algo)
+        script = str(cleanrl._script(task.algo))
+        spec = {**rule, "algo": task.algo, "script": script, "env": task.env,
+                "script_env": cleanrl._script_env_id(task.algo, task.env)}
+        shown = {k: hp[k] for k in ("learning_starts", "batch_size", "buffer_size", "train_frequency",
+                                    "policy_lr", "q_lr", "learning_rate", "policy_frequency") if k in hp}
+        settings = (f"CleanRL {cleanrl.CLEANRL.split('==')[1]} `{Path(script).name}` defaults "
+                    f"({', '.join(f'{k}={v}' for k, v in shown.items())}), env {spec['script_env']}")
+        return Launch([str(python), str(peers / "ttr_cleanrl.py"), json.dumps(spec)], _base_env(threads), work,
+                      settings, _read_ttr_line)
+    if side in ("sb3", "sbx"):
+        from rlpipe.scripts.bench.peers import sb3
+
+        python = sb3.ensure_venv(side)
+        hp, source = sb3.zoo_hyperparams(side, task.algo, task.env)
+        spec = {**rule, "lib": side, "algo": task.algo, "env": task.env, "hyperparams": hp, "hyperparams_source": source}
+        if task.env == "MinitaurBulletEnv-v0":
+            spec["minitaur_module"] = _minitaur_module()
+        env = _base_env(threads if side == "sb3" else None)
+        if side == "sbx" and threads:
+            env["XLA_FLAGS"] = f"--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads={threads}"
+        lib = "SB3 2.9.2" if side == "sb3" else "SBX 0.28.0"
+        settings = f"{lib} {task.algo.upper()}, {source}: " + (", ".join(f"{k}={v}" for k, v in hp.items()) or "none")
+        return Launch([str(python), str(peers / "ttr_sb3.py"), json.dumps(spec)], env, work, settings, _read_ttr_line)
+    return "no time-to-return runner for TF-Agents' tutorials yet"
+
+
+# --- one run ------------------------------------------------------------------------------------------
+
+
+def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict[str, Any]:
+    """Launch, wait, and time it: seconds to the target (less unconfirmed evaluations), fixed costs."""
+    launch.cwd.mkdir(parents=True, exist_ok=True)
+    with log.open("w") as out:
+        out.write(f"$ {shlex.join(launch.cmd)}\n")
+        out.flush()
+        start = time.time()
+        proc = subprocess.Popen(launch.cmd, stdout=out, stderr=subprocess.STDOUT, env=launch.env, cwd=launch.cwd,
+                                start_new_session=True)
+        try:
+            rc = proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            rc = proc.wait()
+        end = time.time()
+    result: dict[str, Any] = {"rc": rc, "wall_s": end - start, "log": str(log)}
+    try:
+        target = launch.read(log)
+    except (OSError, ValueError) as exc:
+        target = None
+        result["error"] = f"{type(exc).__name__}: {exc}"
+    if target is None:
+        lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
+        result.update(reached=False, failed=True, error=result.get("error") or (lines[-1] if lines else "no output"))
+        return result
+    reached = bool(target["reached"])
+    first = target.get("first_step_unix")
+    stop = (target["time_unix"] + target.get("confirm_seconds", 0.0)) if reached else target.get("last_block_unix")
+    result.update(
+        reached=reached, failed=rc != 0,
+        seconds=target["time_unix"] - start - target.get("eval_seconds", 0.0) if reached else None,
+        env_steps=target.get("env_steps"), updates=target.get("updates"),
+        start_s=first - start if first else None, tail_s=end - stop if stop else None,
+        eval_seconds=target.get("eval_seconds"), confirmations=target.get("confirmations"),
+        train_mean=target.get("train_mean"), eval_return=target.get("eval_return"),
+        versions=target.get("versions") or launch.versions,
+    )
+    return result
+
+
+# --- the benchmark ------------------------------------------------------------------------------------
+
+
+def bench_time_to_return(args, out: Path) -> dict[str, Any]:
+    check_args(args)
+    tasks = args.tasks or list(TASKS)
+    peers = [] if args.peers == ["none"] else list(args.peers or DEFAULT_PEERS)
+    threads = _threads(args)
+    scale = args.cap_scale or 1.0
+    runs: list[dict[str, Any]] = []
+    settings: dict[str, dict[str, str]] = {}
+    total = sum(len(task_sides(TASKS[name], peers)) for name in tasks) * args.seeds
+    n = 0
+    for name in tasks:
+        task = TASKS[name]
+        sides = task_sides(task, peers)
+        target = task.target if args.target_return is None else float(args.target_return)
+        cap = max(1, int(task.cap * scale))
+        settings[name] = {}
+        for seed in range(args.seeds):
+            for side in sides:
+                n += 1
+                work = out / name / f"{side}-seed{seed}"
+                try:
+                    if side in ("rlpipe", "crossq"):
+                        launch = rlpipe_launch(task, side, seed, target, cap, work / "run", threads[side],
+                                               list(args.overrides), args.preset if side == "rlpipe" else None)
+                    else:
+                        launch = peer_launch(task, side, seed, target, cap, work, threads[side])
+                except (RuntimeError, OSError) as exc:  # a peer venv that will not build: said, not fatal
+                    launch = f"could not be set up: {exc}"
+                if isinstance(launch, str):
+                    settings[name].setdefault(side, f"not run: {launch}")
+                    if seed == 0:
+                        print(f"[{n}/{total}] {name} {side}: not run ({launch})", flush=True)
+                    continue
+                settings[name][side] = launch.settings + f"; threads {threads[side] or 'default'}"
+                work.mkdir(parents=True, exist_ok=True)
+                result = run_one(launch, work / "output.log")
+                result.update(task=name, side=side, seed=seed, target=target, cap=cap)
+                runs.append(result)
+                print(progress_line(n, total, result), flush=True)
+    figures = {"tasks": {name: {"env": TASKS[name].env, "algo": TASKS[name].algo,
+                                "target": TASKS[name].target if args.target_return is None else float(args.target_return),
+                                "cap": max(1, int(TASKS[name].cap * scale)), "settings": settings[name]}
+                         for name in tasks},
+               "runs": runs, "seeds": args.seeds, "threads": threads, "machine": _machine()}
+    figures["summary"] = summarise(runs)
+    png = (args.json.with_suffix(".png") if args.json else out / "time-to-return.png")
+    figures["png"] = str(plot(figures, png))
+    figures["table"] = tables(figures)
+    return figures
+
+
+def task_sides(task: Task, peers: list[str]) -> list[str]:
+    """The sides that play ``task``: rlpipe, CrossQ where the task has a CrossQ preset, the peers chosen that play it."""
+    return ["rlpipe", *(["crossq"] if task.crossq else []), *(p for p in peers if p in task.peers)]
+
+
+def progress_line(n: int, total: int, r: dict[str, Any]) -> str:
+    head = f"[{n}/{total}] {r['task']} seed {r['seed']} {r['side']}: "
+    if r.get("failed") and not r.get("reached"):
+        return head + f"FAILED (exit {r['rc']}): {r.get('error', '')[:200]} (log: {r['log']})"
+    if not r["reached"]:
+        return head + f"not reached by the cap ({r.get('env_steps')} env steps, {r['wall_s']:.0f} s)"
+    return (head + f"{r['seconds']:.1f} s ({r['env_steps']} env steps, {r['updates']} updates; "
+            f"start {_s(r.get('start_s'))}, tail {_s(r.get('tail_s'))})")
+
+
+def _s(x: float | None) -> str:
+    return "?" if x is None else f"{x:.1f} s"
+
+
+def _machine() -> dict[str, Any]:
+    import platform
+
+    return {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg_1min": os.getloadavg()[0],
+            "time_unix": time.time()}
+
+
+def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per task and side: median seconds over every seed (a run not reached counts as never), min–max of
+    those reached, reached n/N, medians of env steps and updates at the target, and of the fixed costs."""
+    out: dict[str, dict[str, Any]] = {}
+    for r in runs:
+        out.setdefault(r["task"], {}).setdefault(r["side"], []).append(r)
+    summary: dict[str, dict[str, Any]] = {}
+    for task, by_side in out.items():
+        summary[task] = {}
+        for side, rs in by_side.items():
+            reached = [r for r in rs if r.get("reached")]
+            times = sorted(r["seconds"] if r.get("reached") else math.inf for r in rs)
+            med = statistics.median(times) if times else math.inf
+
+            def median_of(key, rows=reached):
+                values = [r[key] for r in rows if r.get(key) is not None]
+                return statistics.median(values) if values else None
+
+            summary[task][side] = {
+                "median_s": None if math.isinf(med) else med,
+                "min_s": min((r["seconds"] for r in reached), default=None),
+                "max_s": max((r["seconds"] for r in reached), default=None),
+                "reached": len(reached), "runs": len(rs), "failed": sum(bool(r.get("failed")) for r in rs),
+                "env_steps": median_of("env_steps"), "updates": median_of("updates"),
+                "start_s": median_of("start_s", rs), "tail_s": median_of("tail_s", rs),
+                "versions": next((r["versions"] for r in rs if r.get("versions")), None),
+            }
+    return summary
+
+
+def tables(figures: dict[str, Any]) -> str:
+    lines = [f"Time to return: {figures['seeds']} seeds, interleaved; a side's time runs from its launch to the "
+             "moment its last 5 training episodes' mean reached the target (confirmed by a 10-episode greedy "
+             "evaluation, whose time is left out). Machine: "
+             f"{figures['machine']['cpus']} CPUs, load {figures['machine']['load_avg_1min']:.2f} at the start. "
+             "Threads: " + ", ".join(f"{k} {v or 'default'}" for k, v in figures["threads"].items()) + "."]
+    for name, task in figures["tasks"].items():
+        lines += ["", f"### {name}: {task['env']} {task['algo'].upper()}, target {task['target']:g}, "
+                      f"cap {task['cap']:,} env steps", "",
+                  "| side | settings, version | median s (min–max) | reached | env steps at target | updates at target "
+                  "| start s | tail s |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for side, shown in task["settings"].items():
+            s = figures["summary"].get(name, {}).get(side)
+            if s is None:
+                lines.append(f"| {side} | {shown} | — | — | — | — | — | — |")
+                continue
+            versions = ", ".join(f"{k} {v}" for k, v in (s["versions"] or {}).items() if k != "python")
+            med = "not reached" if s["median_s"] is None else f"{s['median_s']:.1f}"
+            spread = f" ({s['min_s']:.1f}–{s['max_s']:.1f})" if s["reached"] else ""
+            failed = f", {s['failed']} failed" if s["failed"] else ""
+            lines.append(f"| {side} | {shown}; {versions} | {med}{spread} | {s['reached']}/{s['runs']}{failed} | "
+                         f"{_n(s['env_steps'])} | {_n(s['updates'])} | {_f(s['start_s'])} | {_f(s['tail_s'])} |")
+    lines += ["", f"Seeds as dots: {figures['png']}"]
+    return "\n".join(lines)
+
+
+def _n(x) -> str:
+    return "—" if x is None else f"{x:,.0f}"
+
+
+def _f(x) -> str:
+    return "—" if x is None else f"{x:.1f}"
+
+
+def plot(figures: dict[str, Any], path: Path) -> Path:
+    """Time to target per task and side, each seed a dot; a run not reached is an x at the top."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(figures["tasks"])
+    fig, axes = plt.subplots(1, max(1, len(names)), figsize=(3.2 * max(1, len(names)), 3.6), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        rows = [r for r in figures["runs"] if r["task"] == name]
+        sides = list(dict.fromkeys(r["side"] for r in rows))
+        top = max([r["seconds"] for r in rows if r.get("reached")] + [1.0]) * 1.15
+        for i, side in enumerate(sides):
+            got = [r["seconds"] for r in rows if r["side"] == side and r.get("reached")]
+            missed = sum(1 for r in rows if r["side"] == side and not r.get("reached"))
+            ax.scatter([i] * len(got), got, s=18, zorder=3)
+            if missed:
+                ax.scatter([i] * missed, [top] * missed, marker="x", color="black", zorder=3)
+        ax.set_xticks(range(len(sides)), sides, rotation=45, ha="right")
+        ax.set_title(f"{name}\n{figures['tasks'][name]['env']} ≥ {figures['tasks'][name]['target']:g}", fontsize=9)
+        ax.set_ylim(bottom=0)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][0].set_ylabel("seconds from launch to target (x: not reached)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
