@@ -265,6 +265,15 @@ BAD_INPUTS = {
     "out-under-a-file": (["train", "dqn", "--out", "RUN/config.json/new"], ["config.json", "is a file"], None),
     "out-in-sys": (["train", "dqn", "--out", "/sys/rlpipe-test/run"], ["/sys", "cannot write"], None),
     "out-in-proc": (["train", "dqn", "--out", "/proc/rlpipe-test"], ["/proc", "cannot write"], None),
+    # issue 21: the stopping rule's keys, and rlpipe bench time-to-return's options
+    "zero-target-window": (["train", "dqn", "target_return=100", "target_window=0", "--out", "new"],
+                           ["target_window=0", "positive"], None),
+    "ttr-unknown-task": (["bench", "time-to-return", "--tasks", "pendulum-sax", "--peers", "none"],
+                         ["pendulum-sax", "pendulum-sac"], None),
+    "ttr-unknown-peer": (["bench", "time-to-return", "--peers", "stable"], ["stable", "sb3"], None),
+    "ttr-bad-threads": (["bench", "time-to-return", "--threads", "sb3=x"], ["--threads sb3=x", "SIDE=N"], None),
+    "ttr-bad-override": (["bench", "time-to-return", "batchsize=3", "--tasks", "pendulum-sac"],
+                         ["batchsize", "batch_size"], None),
 }
 SUBPROCESS_CASES = ["unknown-key", "continuous-env", "out-holds-a-run", "eval-corrupt-policy", "video-not-a-run",
                     "huge-seed", "huge-replay", "meta-device", "atari-extra", "out-under-a-file", "out-in-sys",

@@ -103,6 +103,8 @@ def check_args(args) -> None:
         if name not in TASKS:
             close = get_close_matches(name, list(TASKS), n=1)
             hint = f"did you mean {close[0]!r}? " if close else ""
+            if "=" in name:
+                hint = "key=value overrides go before the options; "
             raise InputError(f"--tasks: unknown task {name!r}; {hint}expected some of {', '.join(TASKS)}")
     peers = args.peers or list(DEFAULT_PEERS)
     if peers != ["none"]:
@@ -120,6 +122,8 @@ def check_args(args) -> None:
         from rlpipe.pipelines import resolve_preset
 
         resolve_preset(args.preset)  # an unknown one: its own line
+    for name in args.tasks or list(TASKS):  # the rlpipe side's overrides: a bad key is refused before any run
+        rlpipe_config(TASKS[name], list(args.overrides), args.preset)
 
 
 def _threads(args) -> dict[str, int | None]:
@@ -164,32 +168,40 @@ def _read_ttr_line(log: Path):
     return found
 
 
-def rlpipe_launch(task: Task, side: str, seed: int, target: float, cap: int, run_dir: Path, threads: int | None,
-                  overrides: list[str], preset: str | None = None) -> Launch | str:
-    """The rlpipe side (``rlpipe``: the task's preset; ``crossq``: its CrossQ preset), or why it is not run."""
+def rlpipe_config(task: Task, overrides: list[str], preset: str | None = None):
+    """(preset name, the overrides that point it at the task, a note, the config with ``overrides``) of the
+    rlpipe side: ``preset`` if given, the task's own preset, or while that does not exist the fallback."""
     from rlpipe.pipelines import presets, resolve_preset
+    from rlpipe.pipelines.config import apply_overrides
 
-    known = presets()
     extra: tuple[str, ...] = ()
     note = ""
-    if side == "crossq":
-        if task.crossq is None:
-            return "no CrossQ preset for this task"
-        if task.crossq not in known:
-            return f"preset missing ({task.crossq})"
-        name = task.crossq
-    elif preset is not None:
+    if preset is not None:
         name = preset
         extra = () if resolve_preset(preset)[1].env == task.env else (f"env={task.env}",)
-    elif task.preset in known:
+    elif task.preset in presets():
         name = task.preset
     else:
         name, extra = task.fallback
         note = f" (preset {task.preset} missing)"
-    cfg = resolve_preset(name)[1]
+    return name, extra, note, apply_overrides(resolve_preset(name)[1], [*extra, *overrides])
+
+
+def rlpipe_launch(task: Task, side: str, seed: int, target: float, cap: int, run_dir: Path, threads: int | None,
+                  overrides: list[str], preset: str | None = None) -> Launch | str:
+    """The rlpipe side (``rlpipe``: the task's preset; ``crossq``: its CrossQ preset), or why it is not run."""
+    from rlpipe.pipelines import presets, resolve_preset
     from rlpipe.pipelines.config import apply_overrides
 
-    cfg = apply_overrides(cfg, [*extra, *overrides])  # bad user overrides: their own line, before any launch
+    if side == "crossq":
+        if task.crossq is None:
+            return "no CrossQ preset for this task"
+        if task.crossq not in presets():
+            return f"preset missing ({task.crossq})"
+        name, extra, note = task.crossq, (), ""
+        cfg = apply_overrides(resolve_preset(name)[1], list(overrides))
+    else:
+        name, extra, note, cfg = rlpipe_config(task, overrides, preset)
     iterations = max(1, math.ceil((cap - cfg.initial_collect_steps) / cfg.collect_steps_per_iteration))
     keys = [*extra, *overrides, f"target_return={target:g}", f"num_iterations={iterations}", f"seed={seed}"]
     if threads:
@@ -334,7 +346,7 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                                                list(args.overrides), args.preset if side == "rlpipe" else None)
                     else:
                         launch = peer_launch(task, side, seed, target, cap, work, threads[side])
-                except (RuntimeError, OSError) as exc:  # a peer venv that will not build: said, not fatal
+                except (RuntimeError, OSError, InputError) as exc:  # a peer venv that will not build: said, not fatal
                     launch = f"could not be set up: {exc}"
                 if isinstance(launch, str):
                     settings[name].setdefault(side, f"not run: {launch}")

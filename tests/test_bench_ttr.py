@@ -1,0 +1,104 @@
+"""``rlpipe bench time-to-return``: its task table, its arithmetic, the peers' rule, and one tiny real run
+(rlpipe's side only: the peers' venvs download gigabytes)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from rlpipe.pipelines import presets, resolve_preset
+from rlpipe.pipelines.config import apply_overrides
+from rlpipe.scripts.bench import time_to_return as ttr
+
+PEERS_DIR = Path(ttr.__file__).with_name("peers")
+
+
+@pytest.mark.parametrize("name", list(ttr.TASKS))
+def test_each_task_runs_a_preset_of_its_algorithm_on_its_env(name):
+    task = ttr.TASKS[name]
+    known = presets()
+    if task.preset in known:  # the preset sized for the task, once it exists
+        algo, cfg = resolve_preset(task.preset)
+        assert (algo, cfg.env) == (task.algo, task.env)
+    fallback, extra = task.fallback  # until then: the tutorial preset pointed at the task
+    algo, cfg = resolve_preset(fallback)
+    assert algo == task.algo
+    assert apply_overrides(cfg, list(extra)).env == task.env
+    if task.crossq in known:
+        assert resolve_preset(task.crossq)[1].env == task.env
+    assert set(task.peers) <= set(ttr.PEERS)
+    assert task.cap > 0 and math.isfinite(task.target)
+
+
+def test_the_issues_targets():
+    targets = {name: (t.env, t.algo, t.target) for name, t in ttr.TASKS.items()}
+    assert targets["pendulum-sac"] == ("Pendulum-v1", "sac", -200)
+    assert targets["cartpole-v1-dqn"] == ("CartPole-v1", "dqn", 475)
+    assert targets["cartpole-v0-dqn"] == ("CartPole-v0", "dqn", 195)
+    assert targets["invpendulum-td3"] == ("InvertedPendulum-v5", "td3", 950)
+    assert {targets["minitaur-sac-1"][2], targets["minitaur-sac-5"][2]} == {1.0, 5.0}
+
+
+def _run(side, seconds=None, steps=100):
+    reached = seconds is not None
+    return {"task": "t", "side": side, "seed": 0, "reached": reached, "seconds": seconds, "env_steps": steps,
+            "updates": steps, "start_s": 1.0, "tail_s": 0.5, "failed": False}
+
+
+def test_a_run_not_reached_counts_as_never_in_the_median_and_is_never_dropped():
+    runs = [_run("a", 10.0), _run("a", 30.0), _run("a"), _run("b", 5.0), _run("b"), _run("b")]
+    s = ttr.summarise(runs)["t"]
+    assert s["a"]["median_s"] == 30.0 and (s["a"]["min_s"], s["a"]["max_s"]) == (10.0, 30.0)
+    assert (s["a"]["reached"], s["a"]["runs"]) == (2, 3)
+    assert s["b"]["median_s"] is None and (s["b"]["reached"], s["b"]["runs"]) == (1, 3)
+
+
+def test_the_peers_rule_is_rlpipes_rule():
+    spec = importlib.util.spec_from_file_location("ttr_rule", PEERS_DIR / "ttr_rule.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    rule = module.Rule(target=10, window=2, eval_episodes=3, recheck=2)
+    evaluations = []
+
+    def evaluate(n, value):
+        evaluations.append(n)
+        return [value] * n
+
+    for ret in (0, 12):
+        rule.episode(ret)
+    assert not rule.check(lambda n: evaluate(n, 20), 50, 10)  # mean 6: no evaluation
+    rule.episode(12)
+    assert not rule.check(lambda n: evaluate(n, 5), 60, 20)  # mean 12, greedy 5: not confirmed
+    rule.episode(12)
+    assert not rule.check(lambda n: evaluate(n, 20), 70, 30)  # one episode since: no new evaluation yet
+    rule.episode(12)
+    assert rule.check(lambda n: evaluate(n, 20), 80, 40)
+    assert evaluations == [3, 3]
+    result = rule.result(80, 40)
+    assert result["reached"] and (result["env_steps"], result["updates"], result["eval_return"]) == (80, 40, 20)
+    assert result["confirmations"] == 2 and result["eval_seconds"] >= 0
+
+
+def test_a_tiny_run_of_the_harness_times_rlpipe_to_a_low_target(tmp_path, capsys):
+    from rlpipe.scripts.cli import main
+
+    out, figures = tmp_path / "bench", tmp_path / "ttr.json"
+    code = main(["bench", "time-to-return", "eval_interval=0", "baseline_episodes=0", "num_eval_episodes=2",
+                 "--tasks", "cartpole-v0-dqn", "--seeds", "1", "--peers", "none", "--target-return", "30",
+                 "--out", str(out), "--json", str(figures)])
+    assert code == 0
+    printed = capsys.readouterr().out
+    data = json.loads(figures.read_text())
+    (run,) = data["runs"]
+    assert run["side"] == "rlpipe" and run["reached"] and run["rc"] == 0
+    assert 0 < run["start_s"] < run["seconds"] < run["wall_s"]  # launch -> first step -> target -> exit
+    assert 0 < run["env_steps"] < data["tasks"]["cartpole-v0-dqn"]["cap"]
+    summary = json.loads((out / "cartpole-v0-dqn" / "rlpipe-seed0" / "run" / "summary.json").read_text())
+    assert summary["target"]["return"] == 30 and summary["frames"] == run["env_steps"]
+    assert "[1/1] cartpole-v0-dqn seed 0 rlpipe: " in printed
+    assert "| rlpipe | `rlpipe train dqn" in printed and "| 1/1 |" in printed
+    assert Path(data["png"]).stat().st_size > 0
