@@ -8,7 +8,7 @@
     rlpipe report RUN_DIR [RUN_DIR ...] [--out FILE]
     rlpipe presets
     rlpipe ablate td3 --envs A,B --seeds N --steps S [--workers W] [--out DIR]
-    rlpipe bench {dqn,td3,sac,minitaur,floor,cleanrl,gpu,profile,collect,ray} [...]   (scripts/bench/)
+    rlpipe bench {dqn,td3,sac,minitaur,floor,cleanrl,gpu,profile,collect,ray,time-to-return} [...]   (scripts/bench/)
 
 Bad input ends with one line on stderr naming what is wrong and what is expected, and exit status 2.
 Any other failure ends with one line naming the error and the file holding its full traceback
