@@ -30,6 +30,7 @@ import json
 import math
 import os
 import shlex
+import signal
 import statistics
 import subprocess
 import sys
@@ -291,6 +292,13 @@ def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict
         except subprocess.TimeoutExpired:
             proc.kill()
             rc = proc.wait()
+        except BaseException:  # Ctrl-C: the run is in a session of its own (no terminal signal), so end it here
+            os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+            raise
         end = time.time()
     result: dict[str, Any] = {"rc": rc, "wall_s": end - start, "log": str(log)}
     try:
