@@ -290,7 +290,7 @@ def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict
         try:
             rc = proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
-            proc.kill()
+            os.killpg(proc.pid, signal.SIGKILL)  # with the collector processes it started
             rc = proc.wait()
         except BaseException:  # Ctrl-C: the run is in a session of its own (no terminal signal), so end it here
             os.killpg(proc.pid, signal.SIGTERM)
