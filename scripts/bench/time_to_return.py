@@ -272,7 +272,19 @@ def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work:
         lib = "SB3 2.9.2" if side == "sb3" else "SBX 0.28.0"
         settings = f"{lib} {task.algo.upper()}, {source}: " + (", ".join(f"{k}={v}" for k, v in hp.items()) or "none")
         return Launch([str(python), str(peers / "ttr_sb3.py"), json.dumps(spec)], env, work, settings, _read_ttr_line)
-    return "no time-to-return runner for TF-Agents' tutorials yet"
+    if side == "tfagents":
+        if task.env != "CartPole-v0":  # the Minitaur tutorial's run is about two hours here: timed apart, by hand
+            return "no time-to-return runner for TF-Agents' Minitaur tutorial (about two hours a run here)"
+        from rlpipe.scripts.bench.peers import tfagents
+
+        python = tfagents.ensure_venv()
+        tutorial = peers / "tfagents_tutorials" / "tfagents_dqn_cartpole.py"
+        spec = {**rule, "tutorial": str(tutorial)}
+        settings = ("TF-Agents 0.19 DQN tutorial (1_dqn_tutorial.ipynb) as written: QNetwork (100,), Adam 1e-3, "
+                    "batch 64, 100 random steps, 1 env step per update; TensorFlow's default threads")
+        return Launch([str(python), str(peers / "ttr_tfagents.py"), json.dumps(spec)], _base_env(None), work,
+                      settings, _read_ttr_line)
+    raise ValueError(f"unknown peer {side!r}")
 
 
 # --- one run ------------------------------------------------------------------------------------------
