@@ -281,9 +281,12 @@ def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work:
         tutorial = peers / "tfagents_tutorials" / "tfagents_dqn_cartpole.py"
         spec = {**rule, "tutorial": str(tutorial)}
         settings = ("TF-Agents 0.19 DQN tutorial (1_dqn_tutorial.ipynb) as written: QNetwork (100,), Adam 1e-3, "
-                    "batch 64, 100 random steps, 1 env step per update; TensorFlow's default threads")
-        return Launch([str(python), str(peers / "ttr_tfagents.py"), json.dumps(spec)], _base_env(None), work,
-                      settings, _read_ttr_line)
+                    "batch 64, 100 random steps, 1 env step per update")
+        env = _base_env(None)
+        if threads:
+            env["TF_NUM_INTRAOP_THREADS"] = env["TF_NUM_INTEROP_THREADS"] = str(threads)
+        return Launch([str(python), str(peers / "ttr_tfagents.py"), json.dumps(spec)], env, work, settings,
+                      _read_ttr_line)
     raise ValueError(f"unknown peer {side!r}")
 
 
