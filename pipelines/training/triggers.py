@@ -30,7 +30,11 @@ overridden), called on every trigger in the order given to ``train``:
   keeps their interval firing off the last iteration);
 * ``stopped(loop, lost)``: the run stops early, on a stop signal (``lost`` None) or on lost workers
   (``lost``: the ``NoRestartLeft``); the checkpoint trigger saves what the iteration still owes;
-* ``close(loop)``: however the run ends (processes a trigger started are stopped here).
+* ``close(loop)``: however the run ends (processes a trigger started are stopped here);
+* ``summary(loop)``: keys it adds to summary.json (``TargetTrigger``'s ``"target"``).
+
+``TargetTrigger`` (``target_return``) ends a run early: ``loop.finish_early(why)`` stops collecting
+after the current block, and the final firing follows as at the last iteration.
 """
 
 from __future__ import annotations

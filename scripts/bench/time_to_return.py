@@ -457,7 +457,8 @@ def tables(figures: dict[str, Any]) -> str:
              f"{figures['machine']['cpus']} CPUs, load {figures['machine']['load_avg_1min']:.2f} at the start. "
              "Threads: " + ", ".join(f"{k} {v or 'default'}" for k, v in figures["threads"].items()) + "."]
     for name, task in figures["tasks"].items():
-        lines += ["", f"### {name}: {task['env']} {task['algo'].upper()}, target {task['target']:g}, "
+        why = f" ({TASKS[name].why})" if name in TASKS and TASKS[name].why else ""
+        lines += ["", f"### {name}: {task['env']} {task['algo'].upper()}{why}, target {task['target']:g}, "
                       f"cap {task['cap']:,} env steps", "",
                   "| side | settings, version | median s (min–max) | reached | env steps at target | updates at target "
                   "| start s | tail s |",
