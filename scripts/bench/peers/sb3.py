@@ -75,16 +75,19 @@ def zoo_file(lib: str, algo: str) -> Path:
 
 
 def zoo_hyperparams(lib: str, algo: str, env_id: str) -> tuple[dict, str]:
-    """RL-Zoo's hyperparameters for ``env_id`` and where they came from: the env's own entry; for a
-    MuJoCo ``-v5`` id, the zoo's ``-v4`` entry (v5 changed no dynamics or reward of the tasks here, only
-    constructor options); else the zoo's ``default`` entry. ``n_timesteps`` and ``policy`` are left out
+    """RL-Zoo's hyperparameters for ``env_id`` and where they came from: the env's own entry; else the
+    entry of another version of the same env (MuJoCo ``-v5`` -> the zoo's ``-v4``: v5 changed no dynamics
+    or reward of the tasks here, only constructor options; ``CartPole-v0`` -> ``CartPole-v1``: the same
+    dynamics, episodes cut at 200 steps instead of 500); else the zoo's ``default`` entry. ``n_timesteps`` and ``policy`` are left out
     (the benchmark sets the step cap; every entry here is ``MlpPolicy``)."""
     import yaml
 
     table = yaml.safe_load(zoo_file(lib, algo).read_text())
-    name, _, version = env_id.rpartition("-v")
+    name = env_id.rpartition("-v")[0]
+    twins = sorted((k for k in table if k.rpartition("-v")[0] == name and k != env_id), reverse=True)
+    twin = twins[0] if twins else None
     for key, source in ((env_id, f"RL-Zoo {algo}.yml {env_id}"),
-                        (f"{name}-v4" if version == "5" else None, f"RL-Zoo {algo}.yml {name}-v4 (no v5 entry)"),
+                        (twin, f"RL-Zoo {algo}.yml {twin} (no {env_id} entry; same dynamics and reward)"),
                         ("default", f"RL-Zoo {algo}.yml default (no {env_id} entry)")):
         if key and key in table:
             hp = {k: v for k, v in table[key].items() if k not in ("n_timesteps", "policy")}
