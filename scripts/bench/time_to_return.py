@@ -81,7 +81,8 @@ TASKS: dict[str, Task] = {
     # 3000 on HalfCheetah-v5: below the return that the peers' published SAC curves show by 100k env steps
     # (CleanRL's benchmark of sac_continuous_action.py on HalfCheetah-v4, docs.cleanrl.dev/rl-algorithms/sac/,
     # and Spinning Up's SAC HalfCheetah-v3 benchmark, spinningup.openai.com/en/latest/spinningup/bench.html,
-    # both above 3000 there); v5 has v4's dynamics and reward. Cap 200k: twice that budget.
+    # both above 3000 there, as read off their plots: neither page tabulates the 100k value, so re-read them
+    # before publishing); v5 has v4's dynamics and reward. Cap 200k: twice that budget.
     "halfcheetah-sac": Task("HalfCheetah-v5", "sac", 3000.0, 200_000, "sac-halfcheetah",
                             ("sac", ("env=HalfCheetah-v5",)), crossq="crossq-halfcheetah"),
     # 1.0: above the best evaluation (0.85) that TF-Agents' SAC Minitaur tutorial printed in its 100,000
