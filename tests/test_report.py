@@ -282,6 +282,29 @@ def test_comparison_pools_seeds_of_one_config_and_names_variants_by_what_differs
     assert run_labels(runs[:2]) == {runs[0]: "td3", runs[1]: "td3"}  # nothing differs but the seed
 
 
+@pytest.mark.unit
+def test_comparison_of_several_algorithms_pools_only_runs_whose_configs_agree(tmp_path):
+    """`rlpipe report run-td3 run-td3-nocdq run-dqn` once pooled both TD3 runs into "td3 (n=2)"."""
+    from rlpipe.pipelines.analysis.pages import run_labels
+
+    def run(name, algo, **config):
+        folder = tmp_path / name
+        folder.mkdir()
+        base = {"env": "Pendulum-v1", "seed": 0, "num_iterations": 1000}
+        if algo == "td3":
+            base["clipped_double_q"] = True
+        (folder / "config.json").write_text(json.dumps({"algo": algo, "config": {**base, **config}}))
+        return str(folder)
+
+    td3_a, td3_b = run("td3-0", "td3"), run("td3-1", "td3", seed=1, checkpoint_keep=5)
+    nocdq, dqn = run("td3-nocdq", "td3", clipped_double_q=False), run("dqn", "dqn", env="CartPole-v0")
+    labels = run_labels([td3_a, td3_b, nocdq, dqn])
+    assert labels[td3_a] == labels[td3_b] == "td3 clipped_double_q=true"  # seeds of one config: one variant
+    assert labels[nocdq] == "td3 clipped_double_q=false"
+    assert labels[dqn] == "dqn"
+    assert len(set(run_labels([td3_a, nocdq, dqn]).values())) == 3
+
+
 # --- bad input ---------------------------------------------------------------------------------------------
 
 

@@ -192,31 +192,49 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
 # --- the comparison page ---------------------------------------------------------------------------------
 
 
-_NOT_VARIANT = {"seed", "video", "num_threads", "log_interval", "checkpoint_interval", "policy_save_interval"}
-"""config keys that say how a run is recorded or seeded, not what it learns: runs differing only here are one variant"""
+_NOT_VARIANT = {"seed", "video", "num_threads", "log_interval", "checkpoint_interval", "policy_save_interval",
+                "checkpoint_keep", "policy_keep", "eval_timeout", "collector.max_restarts", "collector.timeout",
+                "ray.address"}
+"""config keys that say how a run is recorded, seeded or supervised, not what it learns: runs differing only here
+are one variant"""
+_MAX_LABEL_KEYS = 4
+"""more differing keys than this make a label too long to read: the run's directory name stands for them"""
 
 
 def run_labels(run_dirs: Sequence[str | os.PathLike]) -> dict[str, str]:
-    """A variant name per run directory: runs whose configs differ only in the seed (or in how they are
-    recorded: ``video``, intervals of logs, checkpoints and exports, threads) share one.
+    """A variant name per run directory. Runs share a name (and pool into one variant, with a confidence
+    interval over them) only when their algorithm and configs agree on every key but the seed and the keys of
+    how a run is recorded (``video``, intervals of logs, checkpoints and exports, threads, ...).
 
-    The name lists the keys in which the run's config differs from the others' (``clipped_double_q=false``),
-    or is the algorithm and env when every run has the same config.
+    The name lists the keys in which the config differs from the other runs' of its algorithm
+    (``clipped_double_q=false``), after the algorithm's name when the runs span several (``td3
+    clipped_double_q=false``); it is the algorithm's name alone for a config that is its algorithm's only one.
     """
-    configs = {}
+    configs: dict[str, tuple[str, dict[str, str]]] = {}
     for run in run_dirs:
         saved = _read_json(Path(run) / "config.json") or {}
         flat = {k: v for k, v in _flatten(saved.get("config", {})) if k not in _NOT_VARIANT}
-        configs[str(run)] = (saved.get("algo", "?"), flat)
-    keys = sorted({k for _, flat in configs.values() for k in flat} - {"env"})  # env is a section of its own
-    varying = [k for k in keys if len({flat.get(k) for _, flat in configs.values()}) > 1]
+        configs[str(run)] = (str(saved.get("algo", "?")), flat)
     several_algos = len({algo for algo, _ in configs.values()}) > 1
-    labels = {}
+    by_algo: dict[str, list[dict[str, str]]] = {}
+    for algo, flat in configs.values():
+        by_algo.setdefault(algo, []).append(flat)
+    labels: dict[str, str] = {}
+    by_config: dict[tuple, str] = {}
     for run, (algo, flat) in configs.items():
-        parts = [f"{k}={flat[k]}" for k in varying if k in flat]
-        if len(parts) > 4 and not several_algos:  # too many to read: the run's own name says more
-            parts = [Path(run).name]
-        labels[run] = algo if several_algos or not parts else ", ".join(parts)
+        config = (algo, tuple(sorted((k, v) for k, v in flat.items() if k != "env")))  # env: a section of its own
+        if config not in by_config:
+            others = by_algo[algo]
+            keys = sorted({k for f in others for k in f} - {"env"})
+            varying = [k for k in keys if len({f.get(k) for f in others}) > 1]
+            parts = [f"{k}={flat[k]}" if k in flat else f"{k} unset" for k in varying]
+            if len(parts) > _MAX_LABEL_KEYS:
+                parts = [Path(run).name]
+            label = " ".join([algo] * (several_algos or not parts) + [", ".join(parts)] * bool(parts))
+            if label in by_config.values():  # cut short to a directory name another config's run has too
+                label = f"{label} ({Path(run).resolve().parent.name})"
+            by_config[config] = label
+        labels[run] = by_config[config]
     return labels
 
 
