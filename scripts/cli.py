@@ -291,12 +291,15 @@ def cmd_video(args) -> int:
 
 def cmd_plot(args) -> int:
     from rlpipe.pipelines.analysis import plot_return_curves
+    from rlpipe.pipelines.analysis.runs import read_run_info
     from rlpipe.pipelines.artifacts.rundir import RunDir
 
     for run_dir in args.run_dirs:
         RunDir.open(run_dir)
     check_output_file(args.out)
-    print(f"plot: {plot_return_curves(list(args.run_dirs), args.out)}")
+    path = plot_return_curves(list(args.run_dirs), args.out)
+    envs = list(dict.fromkeys(str(read_run_info(run).get("env") or "env unknown") for run in args.run_dirs))
+    print(f"plot: {path}" + (f" (one axis per env: {', '.join(envs)})" if len(envs) > 1 else ""))
     return 0
 
 
