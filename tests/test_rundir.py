@@ -318,3 +318,50 @@ def test_an_unwritable_out_is_one_line_and_leaves_nothing(tmp_path, where):
     line = error_line(err)
     assert line.startswith("rlpipe: error:") and str(out) in line and REFUSED(line), line
     assert sorted(cwd.rglob("*")) == before
+
+
+# --- resuming: what the run's figures and files say --------------------------------------------------------
+
+
+def files_of(run: Path) -> dict[str, tuple[int, int]]:
+    return {str(p.relative_to(run)): (p.stat().st_mtime_ns, p.stat().st_size) for p in run.rglob("*") if p.is_file()}
+
+
+def test_a_finished_run_resumed_with_nothing_owed_changes_nothing_and_says_so(trained, tmp_path, monkeypatch, capsys):
+    """It once exited 0 having rewritten summary.json ("wall time 1.3 s" of a 9.1 s run), the page and the checkpoint."""
+    from rlpipe.scripts.cli import main
+
+    run = copy_of(trained, tmp_path / "run")
+    before = files_of(run)
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    code = main(["train", "dqn", "--resume", "run", "--no-progress"])
+    out, err = capsys.readouterr()
+    assert code == 0
+    assert error_line(err).startswith(f"rlpipe: run finished all {N} iterations and owes nothing: nothing changed")
+    assert files_of(run) == before
+    summary = json.loads((run / "summary.json").read_text())
+    assert f"in {summary['wall_time_s']:.0f} s" in out  # the run's own figures, as its first stretch wrote them
+
+
+def test_a_resumed_runs_figures_add_up_its_stretches_and_it_says_where_it_resumed(tmp_path):
+    """After a resume, summary.json's wall time and speeds and metrics.csv's wall_time once covered only the
+    stretch since the resume, while saying "whole run"; and nothing said where the run resumed."""
+    code, _, err = rlpipe(["train", "dqn", *TINY, "--no-progress", "--out", "run"], tmp_path, fault="collected@50:SIGINT")
+    assert code == 130, err
+    run = tmp_path / "run"
+    saved = ckpt.load_checkpoint(ckpt.latest_checkpoint(run / "checkpoints"), "dqn", "CartPole-v0")["counters"]
+    first = metric_rows(run)
+    stopped_at = saved["iteration"]
+    assert 0 < stopped_at < N and saved["wall_time_s"] >= max(float(r["wall_time"]) for r in first) > 0
+    assert 0 < saved["train_time_s"] < saved["wall_time_s"]
+    code, out, err = rlpipe(["train", "dqn", "--resume", "run", "--no-progress"], tmp_path)
+    assert code == 0, err
+    assert out.splitlines()[0].startswith(f"resumed at iteration {stopped_at} of {N} (")
+    assert_whole_run(run)
+    rows = metric_rows(run)
+    resumed = [float(r["wall_time"]) for r in rows if int(r["step"]) > stopped_at]
+    assert resumed and min(resumed) >= saved["wall_time_s"]  # the clock went on from where the checkpoint left it
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["wall_time_s"] >= max(resumed) and summary["train_time_s"] > saved["train_time_s"]
+    assert summary["env_steps_per_s"] == pytest.approx(summary["frames"] / summary["train_time_s"])

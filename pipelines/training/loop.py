@@ -87,7 +87,8 @@ class Loop:
         self.run_dir, self.metrics, self.fresh, self.evaluations = run, metrics, fresh, evaluations
         self.triggers = {t.name: t for t in triggers}
         self.logger, self.callbacks = logger, list(callbacks)
-        self.clock, self.interval_stats, self.stop = Clock(), IntervalStats(), DeferredInterrupt()
+        self.clock = Clock(self.state.wall_time_s, self.state.train_time_s)  # a resumed run's earlier stretches
+        self.interval_stats, self.stop = IntervalStats(), DeferredInterrupt()
         self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
@@ -142,6 +143,10 @@ class Loop:
     def start(self) -> None:
         if self.fresh:
             self.save()  # iteration 0: a run stopped at any point from here on can be resumed
+        else:
+            state = self.state
+            self.echo(f"resumed at iteration {state.iteration:,} of {self.config.num_iterations:,} "
+                      f"({state.frames:,} env steps, {state.updates:,} updates, {self.clock.wall():.1f} s so far)")
         self.watchdog = Watchdog()
         self.fire("start")
         self.clock.start()
@@ -248,7 +253,7 @@ class Loop:
 
     def speeds(self) -> tuple[float, float]:
         """Env steps and updates per second of training time in this session (evaluations and saving left out)."""
-        seconds = self.clock.train_seconds()
+        seconds = self.clock.session_train_seconds()
         if seconds <= 0:
             return math.nan, math.nan
         frames, updates = self._counts_at_start

@@ -8,6 +8,7 @@ refuses a write (disk full, permissions), after saving what can be saved.
 from __future__ import annotations
 
 import dataclasses
+import json
 import random
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -64,6 +65,11 @@ class Run:
         backend_class(pipeline.config).preflight(pipeline.config)  # e.g. no Ray at ray.address: one line, nothing written
         run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
         self.run_dir = pipeline.run_dir = run
+        if metrics is None:  # a finished run, resumed with nothing owed
+            try:
+                return self._unchanged(run)
+            finally:
+                run.close()
         loop = None
         try:
             with FileWriteError.on_failure(run.path / "tb"):
@@ -148,6 +154,8 @@ class Run:
             raise InputError(f"{path / 'state.pt'}: {exc}{hint}") from exc
         if skipped:
             notice(f"{run.checkpoints}: {'; '.join(skipped)}; resuming from {path.name}")
+        if self._nothing_owed(run):
+            return None, [], False  # nothing to write: not the config, the metrics, a checkpoint, a page
         metrics = MetricsCSV(run.metrics_path, list(pipeline.loss_names), resume_after_step=pipeline.state.iteration,
                              extra_columns=pipeline.metrics_columns())
         run.write_config(pipeline.algo, config_to_dict(pipeline.config))  # keys changed on resume are recorded
@@ -156,8 +164,27 @@ class Run:
         evaluations = [evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
         return metrics, evaluations, False
 
+    def _nothing_owed(self, run: RunDir) -> bool:
+        """Whether the run as loaded is finished, its summary written, and owes nothing (no update, trigger
+        or evaluation; the config asks for no more iterations)."""
+        state, cfg = self.pipeline.state, self.pipeline.config
+        return (run.summary_path.is_file() and state.iteration >= cfg.num_iterations
+                and state.frames >= cfg.total_frames and not state.owed and not state.pending_evals
+                and not state.limiter.owed)
+
+    def _unchanged(self, run: RunDir) -> TrainResult:
+        """What ``train`` hands back for a finished run resumed with nothing owed, after saying so: its own files."""
+        cfg = self.pipeline.config
+        notice(f"{run.path} finished all {cfg.num_iterations:,} iterations and owes nothing: nothing changed "
+               f"(to train on, resume with a larger num_iterations=N)")
+        rows = MetricsCSV.read_rows(run.metrics_path)
+        summary = json.loads(run.summary_path.read_text())
+        evaluations = [evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
+        return TrainResult(policy=self.pipeline.policy, run_dir=run.path, metrics=rows, summary=summary,
+                           evaluations=evaluations)
+
     def summary(self, state: RunState, evaluations: list[dict], clock: Clock) -> dict[str, Any]:
-        """summary.json: the run's final figures, counters and speeds."""
+        """summary.json: the run's final figures, counters and speeds, of the whole run (every stretch of a resumed one)."""
         pipeline = self.pipeline
         last = evaluations[-1] if evaluations else {}
         train_s = clock.train_seconds()

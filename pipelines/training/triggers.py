@@ -214,6 +214,7 @@ class CheckpointTrigger(Trigger):
 
     def __call__(self, loop: Loop) -> None:
         loop.check_finite()  # every checkpoint is a finite state (TrainingDiverged otherwise)
+        loop.state.wall_time_s, loop.state.train_time_s = loop.clock.wall(), loop.clock.train_seconds()
         with loop.clock.paused():
             loop.metrics.sync()  # the rows this checkpoint counts reach the disk before it does
             ckpt.save_checkpoint(loop.run_dir.checkpoints, loop.state.iteration, loop.pipeline.state_dict(),
