@@ -365,3 +365,43 @@ def test_a_resumed_runs_figures_add_up_its_stretches_and_it_says_where_it_resume
     summary = json.loads((run / "summary.json").read_text())
     assert summary["wall_time_s"] >= max(resumed) and summary["train_time_s"] > saved["train_time_s"]
     assert summary["env_steps_per_s"] == pytest.approx(summary["frames"] / summary["train_time_s"])
+
+
+def facts_of(page: str) -> dict[str, str]:
+    """The report page's facts table, name -> text."""
+    import html
+    import re
+
+    table = page.split('<table id="facts">', 1)[1].split("</table>", 1)[0]
+    return {html.unescape(k): html.unescape(v) for k, v in
+            re.findall(r'<th class="text">(.*?)</th><td class="text">(.*?)</td>', table, re.S)}
+
+
+def test_the_report_page_shows_log_rows_between_evaluations_and_says_how_to_continue_a_stopped_run(tmp_path):
+    """The page once stayed at "at iteration 0" with empty losses until the next evaluation, said nothing of a
+    stopped run, and offered `rlpipe video RUN` before there was a policy to film."""
+    from rlpipe.pipelines.analysis.pages import write_run_report
+
+    args = ["train", "dqn", *TINY, "eval_interval=0", "log_interval=50", "policy_save_interval=1000",
+            "--no-progress", "--out", "run"]
+    run = tmp_path / "run"
+    with held(args, tmp_path, "collected@150") as proc:
+        page = (run / "report.html").read_text()
+        status = facts_of(page)["status"]
+        assert status.startswith("at iteration ") and status != f"at iteration 0 of {N}", status
+        assert '<table id="log">' in page  # the losses and speeds so far, with no evaluation since iteration 0
+        assert "no policy to film" in page and "every 1,000 iterations" in page  # not exported yet: said so
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C, while held: it lands when the run goes on
+        resume_go_on(proc)
+        code, _, err = finish(proc)
+    assert code == 130, err
+    facts = facts_of((run / "report.html").read_text())
+    assert facts["status"].startswith("stopped at iteration ") and "its last checkpoint is at iteration" in facts["status"]
+    assert facts["to continue it"] == f"rlpipe train dqn --resume {run.resolve()}"
+    write_run_report(run)  # `rlpipe report run` later, from the files alone: no process writes the run
+    assert facts_of((run / "report.html").read_text())["to continue it"] == f"rlpipe train dqn --resume {run.resolve()}"
+    code, _, err = rlpipe(["train", "dqn", "--resume", "run", "--no-progress"], tmp_path)
+    assert code == 0, err
+    page = (run / "report.html").read_text()
+    assert facts_of(page)["status"] == "finished" and "to continue it" not in facts_of(page)
+    assert "no policy to film" not in page and "makes one" in page  # exported at the end: `rlpipe video run` works

@@ -48,7 +48,9 @@ from rlpipe.pipelines.analysis.plots import (
 )
 from rlpipe.pipelines.analysis.runs import RECORD_COLUMNS, collect_runs, read_metrics
 from rlpipe.pipelines.analysis.stats import aggregate_curves, summarise_runs
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.files import write_text_atomic
+from rlpipe.pipelines.artifacts.rundir import RunDir
 
 __all__ = ["BASELINE_FILE", "REPORT_FILE", "VIDEO_FILE", "read_baseline", "run_labels",
            "write_baseline", "write_comparison_page", "write_comparison_report", "write_run_report"]
@@ -129,12 +131,15 @@ def _csv_rows(path: Path) -> list[dict[str, str]]:
         return []
 
 
-def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
+def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = None, *,
+                     running: bool | None = None) -> Path:
     """Write ``RUN/report.html`` (or ``out``) from what the run directory holds now; returns its path.
 
-    Works on a run in progress (the page says where it is), a stopped one and a finished one. The
-    tables show ``metrics.csv``'s figures as written there; the video is linked when
-    ``trained-agent.mp4`` exists.
+    Works on a run in progress (the page says where it is), a stopped one (it says so, and how to
+    continue it) and a finished one. ``running``: whether the run is training now (the run's own
+    writes say); None: a run without ``summary.json`` is running while a process holds its writer
+    lock, else stopped. The tables show ``metrics.csv``'s figures as written there; the video is
+    linked when ``trained-agent.mp4`` exists.
     """
     run = Path(run_dir)
     out = Path(out) if out is not None else run / REPORT_FILE
@@ -164,12 +169,19 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
     }
     last_log = log_rows[-1] if log_rows else {}
     iteration = max((int(float(r["step"])) for r in rows), default=0)  # background evaluations land late
+    of = f"{iteration:,} of {config.get('num_iterations', 0):,}"
+    if running is None and not summary:
+        running = RunDir(run).being_written()
+    stopped = not summary and not running
     facts = [
-        ("status", "finished" if summary else f"at iteration {iteration:,} of {config.get('num_iterations', 0):,}"),
+        ("status", "finished" if summary else f"at iteration {of}" if running else
+         f"stopped at iteration {of} (interrupted, or killed){_last_checkpoint(run)}"),
         ("final AverageReturn" if summary else "last AverageReturn", eval_rows[-1]["average_return"] if eval_rows else "n/a"),
         ("random agent's AverageReturn",
          f"{_fmt(baseline['average_return'])} ({baseline['episodes']} episodes)" if baseline else "n/a"),
     ]
+    if stopped:
+        facts.append(("to continue it", f"rlpipe train {algo} --resume {run.resolve()}"))
     if summary:
         facts += [
             ("iterations / env steps / updates", f"{summary['iterations']:,} / {summary['frames']:,} / {summary['updates']:,}"),
@@ -183,10 +195,21 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
     video_src = os.path.relpath(video, out.parent) if video.is_file() else None
     return _render(
         "run.html.j2", out, title=title, run_name=run.resolve().name, algo=algo, env=env, facts=facts,
-        figures=figures, video=video_src, config=_flatten(config), eval_columns=_EVAL_COLUMNS,
+        figures=figures, video=video_src, exported=_has_policy(run), policy_save_interval=config.get(
+            "policy_save_interval"), config=_flatten(config), eval_columns=_EVAL_COLUMNS,
         eval_rows=eval_rows, log_columns=["step", *loss_columns, "train_episode_return", *_SPEED_COLUMNS],
         log_rows=log_rows,
     )
+
+
+def _last_checkpoint(run: Path) -> str:
+    steps = ckpt.checkpoint_steps(run / "checkpoints")
+    return f"; its last checkpoint is at iteration {max(steps):,}, where it continues" if steps else ""
+
+
+def _has_policy(run: Path) -> bool:
+    """Whether ``rlpipe video RUN`` has a policy to film: the run exported one (``RUN/policy``)."""
+    return any((run / "policy" / name).is_file() for name in ("policy.onnx", "policy.pt2"))
 
 
 # --- the comparison page ---------------------------------------------------------------------------------

@@ -137,7 +137,7 @@ class Evaluations:
         with loop.clock.paused():  # from the evaluations in memory: metrics.csv is not read again
             plot_training_returns(loop.evaluations, loop.run_dir.returns_png,
                                   title=f"{loop.pipeline.algo} on {loop.config.env}")
-            write_report(loop.run_dir.path)
+            loop.page.write()
         loop.bar.set_postfix(avg_return=f"{loop.last_return:.1f}", refresh=False)
 
     def measure_random_baseline(self) -> None:

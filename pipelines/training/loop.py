@@ -35,6 +35,7 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from rlpipe.pipelines.artifacts.files import FileWriteError
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir
 from rlpipe.pipelines.system.runtime import (
     DeferredInterrupt,
@@ -47,6 +48,7 @@ from rlpipe.pipelines.system.runtime import (
 )
 from rlpipe.pipelines.training.divergence import check_finite
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
+from rlpipe.pipelines.training.page import ReportPage
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
 from rlpipe.pipelines.workers.supervision import NoRestartLeft, SupervisedCollector, Supervisor, Watchdog
 
@@ -89,6 +91,7 @@ class Loop:
         self.logger, self.callbacks = logger, list(callbacks)
         self.clock = Clock(self.state.wall_time_s, self.state.train_time_s)  # a resumed run's earlier stretches
         self.interval_stats, self.stop = IntervalStats(), DeferredInterrupt()
+        self.page = ReportPage(run.path)
         self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
@@ -132,10 +135,12 @@ class Loop:
                 self.fire("final")
             except Stopped as stop:
                 self.fire("stopped")  # the checkpoint trigger saves what this iteration still owes
+                self.page_stopped()
                 raise Interrupted(stop.signum) from None
             except NoRestartLeft as lost:
                 self.fire("stopped", lost)  # the collector's blocks handed out so far are in the replay buffer
                 lost.saved_at = self.state.iteration
+                self.page_stopped()
                 raise
 
     # --- the steps of a run ---------------------------------------------------------------------
@@ -150,6 +155,14 @@ class Loop:
         self.watchdog = Watchdog()
         self.fire("start")
         self.clock.start()
+
+    def page_stopped(self) -> None:
+        """The report page of a run stopping early: it says so, and how to continue (its checkpoint is saved)."""
+        try:
+            with self.clock.paused():
+                self.page.write(running=False)
+        except (OSError, FileWriteError) as exc:  # the checkpoint is what counts; the stop goes on
+            LIVE_LOG.warning(f"report.html not rewritten: {exc}")
 
     def fire(self, moment: str, *args) -> None:
         """Every trigger's ``moment`` (``start``, ``poll``, ``final``, ``stopped``, ``close``), in order."""
