@@ -344,29 +344,6 @@ def test_a_finished_run_resumed_with_nothing_owed_changes_nothing_and_says_so(tr
     assert f"in {summary['wall_time_s']:.0f} s" in out  # the run's own figures, as its first stretch wrote them
 
 
-def test_a_resumed_runs_figures_add_up_its_stretches_and_it_says_where_it_resumed(tmp_path):
-    """After a resume, summary.json's wall time and speeds and metrics.csv's wall_time once covered only the
-    stretch since the resume, while saying "whole run"; and nothing said where the run resumed."""
-    code, _, err = rlpipe(["train", "dqn", *TINY, "--no-progress", "--out", "run"], tmp_path, fault="collected@50:SIGINT")
-    assert code == 130, err
-    run = tmp_path / "run"
-    saved = ckpt.load_checkpoint(ckpt.latest_checkpoint(run / "checkpoints"), "dqn", "CartPole-v0")["counters"]
-    first = metric_rows(run)
-    stopped_at = saved["iteration"]
-    assert 0 < stopped_at < N and saved["wall_time_s"] >= max(float(r["wall_time"]) for r in first) > 0
-    assert 0 < saved["train_time_s"] < saved["wall_time_s"]
-    code, out, err = rlpipe(["train", "dqn", "--resume", "run", "--no-progress"], tmp_path)
-    assert code == 0, err
-    assert out.splitlines()[0].startswith(f"resumed at iteration {stopped_at} of {N} (")
-    assert_whole_run(run)
-    rows = metric_rows(run)
-    resumed = [float(r["wall_time"]) for r in rows if int(r["step"]) > stopped_at]
-    assert resumed and min(resumed) >= saved["wall_time_s"]  # the clock went on from where the checkpoint left it
-    summary = json.loads((run / "summary.json").read_text())
-    assert summary["wall_time_s"] >= max(resumed) and summary["train_time_s"] > saved["train_time_s"]
-    assert summary["env_steps_per_s"] == pytest.approx(summary["frames"] / summary["train_time_s"])
-
-
 def facts_of(page: str) -> dict[str, str]:
     """The report page's facts table, name -> text."""
     import html
@@ -377,18 +354,19 @@ def facts_of(page: str) -> dict[str, str]:
             re.findall(r'<th class="text">(.*?)</th><td class="text">(.*?)</td>', table, re.S)}
 
 
-def test_the_report_page_shows_log_rows_between_evaluations_and_says_how_to_continue_a_stopped_run(tmp_path):
-    """The page once stayed at "at iteration 0" with empty losses until the next evaluation, said nothing of a
-    stopped run, and offered `rlpipe video RUN` before there was a policy to film."""
+def test_a_stopped_runs_page_and_figures_tell_the_truth_through_its_resume(tmp_path):
+    """Once: the page stayed at "at iteration 0" with empty losses until the next evaluation, said nothing of a
+    stopped run, and offered `rlpipe video RUN` before there was a policy to film; after a resume, summary.json's
+    wall time and speeds and metrics.csv's wall_time covered only the stretch since the resume while saying
+    "whole run"; and nothing said where the run resumed."""
     from rlpipe.pipelines.analysis.pages import write_run_report
 
     args = ["train", "dqn", *TINY, "eval_interval=0", "log_interval=50", "policy_save_interval=1000",
             "--no-progress", "--out", "run"]
     run = tmp_path / "run"
-    with held(args, tmp_path, "collected@150") as proc:
+    with held(args, tmp_path, "collected@50") as proc:
         page = (run / "report.html").read_text()
-        status = facts_of(page)["status"]
-        assert status.startswith("at iteration ") and status != f"at iteration 0 of {N}", status
+        assert facts_of(page)["status"] == f"at iteration 50 of {N}"  # refreshed by the first log row
         assert '<table id="log">' in page  # the losses and speeds so far, with no evaluation since iteration 0
         assert "no policy to film" in page and "every 1,000 iterations" in page  # not exported yet: said so
         os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C, while held: it lands when the run goes on
@@ -400,8 +378,22 @@ def test_the_report_page_shows_log_rows_between_evaluations_and_says_how_to_cont
     assert facts["to continue it"] == f"rlpipe train dqn --resume {run.resolve()}"
     write_run_report(run)  # `rlpipe report run` later, from the files alone: no process writes the run
     assert facts_of((run / "report.html").read_text())["to continue it"] == f"rlpipe train dqn --resume {run.resolve()}"
-    code, _, err = rlpipe(["train", "dqn", "--resume", "run", "--no-progress"], tmp_path)
+
+    saved = ckpt.load_checkpoint(ckpt.latest_checkpoint(run / "checkpoints"), "dqn", "CartPole-v0")["counters"]
+    stopped_at = saved["iteration"]
+    assert 0 < stopped_at < N and saved["wall_time_s"] >= max(float(r["wall_time"]) for r in metric_rows(run)) > 0
+    assert 0 < saved["train_time_s"] < saved["wall_time_s"]
+    code, out, err = rlpipe(["train", "dqn", "--resume", "run", "--no-progress"], tmp_path)
     assert code == 0, err
+    assert out.splitlines()[0].startswith(f"resumed at iteration {stopped_at} of {N} (")
+    rows = metric_rows(run)
+    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, N]
+    assert [int(r["step"]) for r in rows if r["steps_per_s"]] == list(range(50, N + 1, 50))
+    resumed = [float(r["wall_time"]) for r in rows if int(r["step"]) > stopped_at]
+    assert resumed and min(resumed) >= saved["wall_time_s"]  # the clock went on from where the checkpoint left it
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["wall_time_s"] >= max(resumed) and summary["train_time_s"] > saved["train_time_s"]
+    assert summary["env_steps_per_s"] == pytest.approx(summary["frames"] / summary["train_time_s"])
     page = (run / "report.html").read_text()
     assert facts_of(page)["status"] == "finished" and "to continue it" not in facts_of(page)
     assert "no policy to film" not in page and "makes one" in page  # exported at the end: `rlpipe video run` works
