@@ -136,9 +136,9 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
     """Write ``RUN/report.html`` (or ``out``) from what the run directory holds now; returns its path.
 
     Works on a run in progress (the page says where it is), a stopped one (it says so, and how to
-    continue it) and a finished one. ``running``: whether the run is training now (the run's own
-    writes say); None: a run without ``summary.json`` is running while a process holds its writer
-    lock, else stopped. The tables show ``metrics.csv``'s figures as written there; the video is
+    continue it) and a finished one (its ``summary.json`` is of its last iteration: a finished run
+    trained on with a larger ``num_iterations`` is not finished any more). ``running``: whether the run
+    is training now (the run's own writes say); None: while a process holds its writer lock. The tables show ``metrics.csv``'s figures as written there; the video is
     linked when ``trained-agent.mp4`` exists.
     """
     run = Path(run_dir)
@@ -170,8 +170,10 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
     last_log = log_rows[-1] if log_rows else {}
     iteration = max((int(float(r["step"])) for r in rows), default=0)  # background evaluations land late
     of = f"{iteration:,} of {config.get('num_iterations', 0):,}"
-    if running is None and not summary:
+    if running is None:
         running = RunDir(run).being_written()
+    if running or (summary or {}).get("iterations") != iteration:
+        summary = None  # not finished (any more): its figures are not the run's
     stopped = not summary and not running
     facts = [
         ("status", "finished" if summary else f"at iteration {of}" if running else

@@ -92,7 +92,7 @@ class Run:
         """summary.json and the report page of the finished run; what ``train`` hands back."""
         summary = self.summary(loop.state, loop.evaluations, loop.clock)
         write_json_atomic(loop.run_dir.summary_path, summary)
-        write_report(loop.run_dir.path)
+        write_report(loop.run_dir.path, running=False)  # it still holds the run's lock: done, all the same
         return TrainResult(policy=self.pipeline.policy, run_dir=loop.run_dir.path, metrics=loop.metrics.rows(),
                            summary=summary, evaluations=loop.evaluations)
 
@@ -165,18 +165,27 @@ class Run:
         return metrics, evaluations, False
 
     def _nothing_owed(self, run: RunDir) -> bool:
-        """Whether the run as loaded is finished, its summary written, and owes nothing (no update, trigger
-        or evaluation; the config asks for no more iterations)."""
+        """Whether the run as loaded is finished (its summary is of this checkpoint's iteration) and owes
+        nothing: no update, trigger or evaluation, and no more iterations (the config reaches no further, or,
+        for a run that ended before its last iteration by a rule of its own, is the one it ended by)."""
         state, cfg = self.pipeline.state, self.pipeline.config
-        return (run.summary_path.is_file() and state.iteration >= cfg.num_iterations
-                and state.frames >= cfg.total_frames and not state.owed and not state.pending_evals
-                and not state.limiter.owed)
+        try:
+            summary = json.loads(run.summary_path.read_text())
+        except (OSError, ValueError):
+            return False
+        if not isinstance(summary, dict) or summary.get("iterations") != state.iteration:
+            return False
+        if state.owed or state.pending_evals or state.limiter.owed:
+            return False
+        return state.iteration >= cfg.num_iterations or not changed_keys(run.read_config()[1], config_to_dict(cfg))
 
     def _unchanged(self, run: RunDir) -> TrainResult:
         """What ``train`` hands back for a finished run resumed with nothing owed, after saying so: its own files."""
-        cfg = self.pipeline.config
-        notice(f"{run.path} finished all {cfg.num_iterations:,} iterations and owes nothing: nothing changed "
-               f"(to train on, resume with a larger num_iterations=N)")
+        cfg, iteration = self.pipeline.config, self.pipeline.state.iteration
+        done = (f"finished all {cfg.num_iterations:,} iterations" if iteration >= cfg.num_iterations
+                else f"finished at iteration {iteration:,} of {cfg.num_iterations:,}")
+        notice(f"{run.path} {done} and owes nothing: nothing changed (to train on, resume with a larger "
+               f"num_iterations=N)")
         rows = MetricsCSV.read_rows(run.metrics_path)
         summary = json.loads(run.summary_path.read_text())
         evaluations = [evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
