@@ -305,6 +305,24 @@ def test_comparison_of_several_algorithms_pools_only_runs_whose_configs_agree(tm
     assert len(set(run_labels([td3_a, nocdq, dqn]).values())) == 3
 
 
+@pytest.mark.unit
+def test_a_finished_run_trained_on_further_is_not_shown_as_finished(tmp_path):
+    """Its old summary.json (of iteration 200) once made the page of a run stopped at 300 say "finished"."""
+    from rlpipe.pipelines.analysis.pages import write_run_report
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"algo": "dqn", "config": {"env": "CartPole-v0", "seed": 0,
+                                                                           "num_iterations": 400}}))
+    (run / "summary.json").write_text(json.dumps({"algo": "dqn", "env": "CartPole-v0", "iterations": 200,
+                                                  "frames": 300, "updates": 200, "wall_time_s": 9.1}))
+    (run / "metrics.csv").write_text("step,frames,updates,average_return,average_episode_length,wall_time\n"
+                                     "0,100,0,20,20,1\n200,300,200,50,50,9\n300,400,300,60,60,12\n")
+    page = write_run_report(run).read_text()
+    assert "stopped at iteration 300 of 400" in page and "rlpipe train dqn --resume" in page
+    assert ">finished<" not in page and "9.1 s" not in page  # the first stretch's figures are not the run's
+
+
 # --- bad input ---------------------------------------------------------------------------------------------
 
 
