@@ -33,7 +33,7 @@ from torchrl.envs import (
 from torchrl.envs.batched_envs import BatchedEnvBase
 
 __all__ = [
-    "EnvError", "MINITAUR_ID", "describe_action_space", "env_label", "is_discrete", "make_env", "resolve_env_id",
+    "EnvError", "MINITAUR_ID", "describe_action_space", "env_id_of", "env_label", "is_discrete", "make_env", "resolve_env_id",
     "with_episode_return",
 ]
 
@@ -209,18 +209,31 @@ def describe_action_space(env_or_spec: EnvBase | TensorSpec) -> str:
     return f"continuous Box of shape {tuple(spec.shape)}"
 
 
-def env_label(env: EnvBase) -> str:
-    """The name of the world an env steps: its gymnasium id if it wraps one, else its class name."""
+def env_id_of(env: EnvBase) -> str | None:
+    """The gymnasium id of the world an env steps, where it wraps one made from an id; else None."""
     while isinstance(env, TransformedEnv):
         env = env.base_env
     if isinstance(env, BatchedEnvBase):
         # SerialEnv/ParallelEnv describe their sub-env only as its repr, "GymEnv(env=ID, ...)"
         found = re.search(r"GymEnv\(env=([^,)\s]+)", env.meta_data.env_str)
-        return found.group(1) if found else type(env).__name__
+        return found.group(1) if found else None
     name = getattr(env, "env_name", None) if isinstance(env, GymEnv) else None
-    if name is None and isinstance(env, GymWrapper):  # a gymnasium env wrapped here (flattened observations)
+    if name is None and isinstance(env, GymWrapper):  # a gymnasium env wrapped here, or made without an id
         name = getattr(getattr(env._env, "spec", None), "id", None)
-    return name if isinstance(name, str) else type(env).__name__
+    return name if isinstance(name, str) else None
+
+
+def env_label(env: EnvBase) -> str:
+    """The name of the world an env steps: its gymnasium id if it wraps one, else the class name of the
+    gymnasium env it wraps (a user's own, made without an id), else its own class name."""
+    found = env_id_of(env)
+    if found is not None:
+        return found
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    inner = getattr(env, "_env", None) if isinstance(env, GymWrapper) else None
+    unwrapped = getattr(inner, "unwrapped", inner)
+    return type(unwrapped).__name__ if unwrapped is not None else type(env).__name__
 
 
 def with_episode_return(env: EnvBase) -> EnvBase:

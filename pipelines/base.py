@@ -29,10 +29,11 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 
-from rlpipe.envs import env_label, is_discrete, make_env
+from rlpipe.envs import EnvError, env_id_of, env_label, is_discrete, make_env, resolve_env_id
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
@@ -57,7 +58,21 @@ from rlpipe.pipelines.workers.backend import CollectorBackend
 from rlpipe.pipelines.workers.factory import backend_class, make_backend
 from rlpipe.pipelines.workers.local import push_weights as push_collector_weights
 
-__all__ = ["Agent", "OffPolicyPipeline", "observation_key_of", "seed_everything"]
+__all__ = ["Agent", "OffPolicyPipeline", "observation_key_of", "own_env_label", "seed_everything"]
+
+
+def own_env_label(env: EnvBase, configured: str) -> str:
+    """The env a run on a user's own ``env`` is labelled with: its gymnasium id where it was made from one;
+    else the config's ``env`` when that names no gymnasium id (the user's own name for it); else (the
+    config still names its preset's env, which this is not) the wrapped env's class name."""
+    found = env_id_of(env)
+    if found is not None:
+        return found
+    try:
+        resolve_env_id(configured)
+    except EnvError:
+        return configured if configured else env_label(env)
+    return env_label(env)
 
 
 
@@ -109,7 +124,7 @@ class OffPolicyPipeline:
         self.env.set_seed(cfg.seed)
         self.eval_env.set_seed(cfg.seed + EVAL_SEED_OFFSET)
         # Runs are labelled (config.json, checkpoints, plots) with the env actually used.
-        self.config = cfg if env is None else dataclasses.replace(cfg, env=env_label(self.env))
+        self.config = cfg if env is None else dataclasses.replace(cfg, env=own_env_label(self.env, cfg.env))
         self.action_spec = self.env.action_spec_unbatched
         check_action_space(self.algo, self.action_space, self.action_spec, self.config.env)
         self.observation_key = observation_key_in(self.env, observation_key, self.config.env)

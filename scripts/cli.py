@@ -187,6 +187,25 @@ def _run_config(run_dir: Path):
     return run, config_from_dict(pipeline_class(algo).Config, saved)
 
 
+def _run_env(run, cfg) -> str:
+    """A run's ``env`` (checked to name a gymnasium id), or one line saying why `rlpipe eval`/`video` cannot make its env:
+    a run on a user's own env (``env=`` from Python) is labelled with a name no id answers to."""
+    from rlpipe.envs import EnvError, resolve_env_id
+    from rlpipe.pipelines.errors import InputError
+
+    try:
+        resolve_env_id(cfg.env)
+        return cfg.env
+    except EnvError as exc:
+        if "extra" in str(exc):  # a known namespace whose package is missing: that line says what to install
+            raise
+        raise InputError(
+            f"{run.path} was trained on env {cfg.env!r}, which is no gymnasium id rlpipe can make (an env given from "
+            f"Python, env=...); expected a run on a gymnasium id, or its policy evaluated from Python on your env: "
+            f"evaluate(env, TensorDictModule(load_policy('{run.policy_dir}')[0], ['observation'], ['action']), 10) "
+            f"(rlpipe.pipelines.workers.evaluation, rlpipe.pipelines.artifacts.export)") from None
+
+
 def cmd_eval(args) -> int:
     from tensordict.nn import TensorDictModule
 
@@ -207,7 +226,7 @@ def cmd_eval(args) -> int:
     run, env_id = None, args.env
     if args.run_dir is not None:
         run, cfg = _run_config(args.run_dir)
-        env_id = cfg.env
+        env_id = _run_env(run, cfg)
     if args.random:
         module, source = None, "random"
     else:
@@ -260,9 +279,10 @@ def cmd_video(args) -> int:
     if args.out is not None:
         check_output_file(args.out)
     run, cfg = _run_config(args.run_dir)
+    env_id = _run_env(run, cfg)
     policy = None if args.random else load_policy(run.policy_dir, step=args.step, trust=args.trust)[0]
     name = "random-agent.mp4" if args.random else "trained-agent.mp4" if args.step is None else f"trained-agent-step_{args.step}.mp4"
-    path = record_video(cfg.env, policy, args.out or run.path / name, episodes=args.episodes, seed=args.seed)
+    path = record_video(env_id, policy, args.out or run.path / name, episodes=args.episodes, seed=args.seed)
     print(f"video: {path}")
     if not args.random and path == run.path / VIDEO_FILE:  # the page shows the trained agent's video
         print(f"report: {write_run_report(run.path)}")
@@ -271,12 +291,15 @@ def cmd_video(args) -> int:
 
 def cmd_plot(args) -> int:
     from rlpipe.pipelines.analysis import plot_return_curves
+    from rlpipe.pipelines.analysis.runs import read_run_info
     from rlpipe.pipelines.artifacts.rundir import RunDir
 
     for run_dir in args.run_dirs:
         RunDir.open(run_dir)
     check_output_file(args.out)
-    print(f"plot: {plot_return_curves(list(args.run_dirs), args.out)}")
+    path = plot_return_curves(list(args.run_dirs), args.out)
+    envs = list(dict.fromkeys(str(read_run_info(run).get("env") or "env unknown") for run in args.run_dirs))
+    print(f"plot: {path}" + (f" (one axis per env: {', '.join(envs)})" if len(envs) > 1 else ""))
     return 0
 
 

@@ -257,6 +257,23 @@ def test_plot_return_curves_two_runs(tmp_path):
         A.plot_return_curves([tmp_path / "missing"], tmp_path / "x.png")
 
 
+def test_plot_gives_each_env_its_own_axis_and_says_so(tmp_path, capsys):
+    """`rlpipe plot` once drew CartPole's and Minitaur's returns on one axis without a word."""
+    from rlpipe.pipelines.analysis.plots import return_curves_figure
+    from rlpipe.scripts.cli import main
+
+    cart = [write_run(tmp_path, f"dqn_seed{i}", "CartPole-v0", i, [(0, 10.0), (100, 150.0 + i)]) for i in (0, 1)]
+    minitaur = write_run(tmp_path, "sac_seed0", "rlpipe/MinitaurBullet-v0", 0, [(0, 0.1), (100, 0.4)])
+    fig = return_curves_figure([cart[0], minitaur, cart[1]])
+    axes = {ax.get_title(): sorted(line.get_label() for line in ax.get_lines()) for ax in fig.axes}
+    assert axes == {"CartPole-v0": ["dqn_seed0", "dqn_seed1"], "rlpipe/MinitaurBullet-v0": ["sac_seed0"]}
+    assert [ax.get_title() for ax in return_curves_figure(cart).axes] == ["CartPole-v0"]
+    assert main(["plot", str(cart[0]), str(minitaur), "--out", str(tmp_path / "both.png")]) == 0
+    out = capsys.readouterr().out
+    assert "one axis per env: CartPole-v0, rlpipe/MinitaurBullet-v0" in out
+    check_png(tmp_path / "both.png")
+
+
 def test_plot_ecdf(tmp_path):
     returns = np.random.default_rng(0).normal(-200, 50, size=50)
     out = A.plot_ecdf(returns, tmp_path / "eval" / "ecdf.png", title="TD3 on Pendulum-v1")

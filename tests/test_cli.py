@@ -507,3 +507,52 @@ def test_metrics_hold_training_episode_length_and_count(cli_run):
     assert counts == sorted(counts) and counts[0] > 0
     # 400 env steps of CartPole episodes: about 400 / mean length of them
     assert counts[-1] >= 400 // max(float(r["train_episode_length"]) for r in rows) - 1
+
+
+class _Corridor(gymnasium.Env):
+    """A user's own env, made without a gymnasium id (no ``spec``): ten steps, paid 1 for action 1."""
+
+    observation_space = gymnasium.spaces.Box(-1, 1, (2,), np.float32)
+    action_space = gymnasium.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        return np.zeros(2, np.float32), float(action), self.t >= 10, False, {}
+
+
+def _corridor():
+    from torchrl.envs import GymWrapper
+
+    return GymWrapper(_Corridor(), categorical_action_encoding=True)
+
+
+@pytest.mark.parametrize("configured, label", [("my-corridor", "my-corridor"), ("CartPole-v0", "_Corridor")])
+def test_a_run_on_a_users_own_env_is_labelled_by_its_config_and_eval_says_what_to_do(configured, label, tmp_path,
+                                                                                      monkeypatch, capfd):
+    """Such a run was labelled "GymWrapper", and `rlpipe eval` on it said "unknown env id 'GymWrapper'"."""
+    from rlpipe.pipelines import dqn
+    from rlpipe.pipelines.config import apply_overrides
+    from rlpipe.scripts.cli import main
+
+    cfg = apply_overrides(dqn.DQN.preset(), [
+        f"env={configured}", "fc_layer_params=[8]", "batch_size=8", "num_iterations=20", "initial_collect_steps=20",
+        "eval_interval=0", "num_eval_episodes=1", "collector.sync=true", "collector.frames_per_batch=10",
+        "eval_in_background=false", "log_interval=10"])
+    result = dqn.DQN(cfg, env=_corridor).train(tmp_path / "run", progress=False)
+    # the user's own name for it; a preset's gymnasium id left in the config is not this env: its class then
+    assert result.summary["env"] == label
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["config"]["env"] == label
+    monkeypatch.chdir(tmp_path)
+    capfd.readouterr()
+    for command in ("eval", "video"):
+        code = main([command, "run"])
+        err = capfd.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, err
+        assert f"trained on env {label!r}, which is no gymnasium id" in err[0] and "GymWrapper" not in err[0]
+        assert "load_policy('run/policy')" in err[0]  # how to evaluate it: from Python, on the user's env
+    assert not (tmp_path / "run" / "trained-agent.mp4").exists()

@@ -297,6 +297,22 @@ def test_a_key_a_users_trigger_logs_lands_in_metrics_csv_and_stays_there_on_resu
     assert [r["my_metric"] for r in result.metrics if r["my_metric"]] == ["100", "200"]
 
 
+@pytest.mark.parametrize("eval_interval", [50, 30])
+def test_a_users_trigger_at_the_last_iteration_sees_that_iterations_evaluation(eval_interval, tmp_path):
+    """README: user triggers run after the built-in ones; at the last iteration one once saw the evaluation before."""
+    seen = []
+
+    def note(loop):
+        seen.append((loop.state.iteration, loop.evaluations[-1]["step"], loop.last_return))
+
+    result = dqn.DQN(config("dqn", f"eval_interval={eval_interval}")).train(
+        tmp_path / "run", progress=False, triggers=[IntervalTrigger(50, note, name="note")])
+    last = result.evaluations[-1]
+    assert last["step"] == 100 and [e["step"] for e in result.evaluations].count(100) == 1
+    assert seen[-1] == (100, 100, last["average_return"])
+    assert seen[0][:2] == (50, 50)  # blocks of 50 steps: an interval of 30 evaluates at 50 too
+
+
 class _Moments(Trigger):
     """A user's trigger that records every moment of the run it is fired at."""
 

@@ -282,6 +282,47 @@ def test_comparison_pools_seeds_of_one_config_and_names_variants_by_what_differs
     assert run_labels(runs[:2]) == {runs[0]: "td3", runs[1]: "td3"}  # nothing differs but the seed
 
 
+@pytest.mark.unit
+def test_comparison_of_several_algorithms_pools_only_runs_whose_configs_agree(tmp_path):
+    """`rlpipe report run-td3 run-td3-nocdq run-dqn` once pooled both TD3 runs into "td3 (n=2)"."""
+    from rlpipe.pipelines.analysis.pages import run_labels
+
+    def run(name, algo, **config):
+        folder = tmp_path / name
+        folder.mkdir()
+        base = {"env": "Pendulum-v1", "seed": 0, "num_iterations": 1000}
+        if algo == "td3":
+            base["clipped_double_q"] = True
+        (folder / "config.json").write_text(json.dumps({"algo": algo, "config": {**base, **config}}))
+        return str(folder)
+
+    td3_a, td3_b = run("td3-0", "td3"), run("td3-1", "td3", seed=1, checkpoint_keep=5)
+    nocdq, dqn = run("td3-nocdq", "td3", clipped_double_q=False), run("dqn", "dqn", env="CartPole-v0")
+    labels = run_labels([td3_a, td3_b, nocdq, dqn])
+    assert labels[td3_a] == labels[td3_b] == "td3 clipped_double_q=true"  # seeds of one config: one variant
+    assert labels[nocdq] == "td3 clipped_double_q=false"
+    assert labels[dqn] == "dqn"
+    assert len(set(run_labels([td3_a, nocdq, dqn]).values())) == 3
+
+
+@pytest.mark.unit
+def test_a_finished_run_trained_on_further_is_not_shown_as_finished(tmp_path):
+    """Its old summary.json (of iteration 200) once made the page of a run stopped at 300 say "finished"."""
+    from rlpipe.pipelines.analysis.pages import write_run_report
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"algo": "dqn", "config": {"env": "CartPole-v0", "seed": 0,
+                                                                           "num_iterations": 400}}))
+    (run / "summary.json").write_text(json.dumps({"algo": "dqn", "env": "CartPole-v0", "iterations": 200,
+                                                  "frames": 300, "updates": 200, "wall_time_s": 9.1}))
+    (run / "metrics.csv").write_text("step,frames,updates,average_return,average_episode_length,wall_time\n"
+                                     "0,100,0,20,20,1\n200,300,200,50,50,9\n300,400,300,60,60,12\n")
+    page = write_run_report(run).read_text()
+    assert "stopped at iteration 300 of 400" in page and "rlpipe train dqn --resume" in page
+    assert ">finished<" not in page and "9.1 s" not in page  # the first stretch's figures are not the run's
+
+
 # --- bad input ---------------------------------------------------------------------------------------------
 
 

@@ -318,3 +318,82 @@ def test_an_unwritable_out_is_one_line_and_leaves_nothing(tmp_path, where):
     line = error_line(err)
     assert line.startswith("rlpipe: error:") and str(out) in line and REFUSED(line), line
     assert sorted(cwd.rglob("*")) == before
+
+
+# --- resuming: what the run's figures and files say --------------------------------------------------------
+
+
+def files_of(run: Path) -> dict[str, tuple[int, int]]:
+    return {str(p.relative_to(run)): (p.stat().st_mtime_ns, p.stat().st_size) for p in run.rglob("*") if p.is_file()}
+
+
+def test_a_finished_run_resumed_with_nothing_owed_changes_nothing_and_says_so(trained, tmp_path, monkeypatch, capsys):
+    """It once exited 0 having rewritten summary.json ("wall time 1.3 s" of a 9.1 s run), the page and the checkpoint."""
+    from rlpipe.scripts.cli import main
+
+    run = copy_of(trained, tmp_path / "run")
+    before = files_of(run)
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    code = main(["train", "dqn", "--resume", "run", "--no-progress"])
+    out, err = capsys.readouterr()
+    assert code == 0
+    assert error_line(err).startswith(f"rlpipe: run finished all {N} iterations and owes nothing: nothing changed")
+    assert files_of(run) == before
+    summary = json.loads((run / "summary.json").read_text())
+    assert f"in {summary['wall_time_s']:.0f} s" in out  # the run's own figures, as its first stretch wrote them
+
+
+def facts_of(page: str) -> dict[str, str]:
+    """The report page's facts table, name -> text."""
+    import html
+    import re
+
+    table = page.split('<table id="facts">', 1)[1].split("</table>", 1)[0]
+    return {html.unescape(k): html.unescape(v) for k, v in
+            re.findall(r'<th class="text">(.*?)</th><td class="text">(.*?)</td>', table, re.S)}
+
+
+def test_a_stopped_runs_page_and_figures_tell_the_truth_through_its_resume(tmp_path):
+    """Once: the page stayed at "at iteration 0" with empty losses until the next evaluation, said nothing of a
+    stopped run, and offered `rlpipe video RUN` before there was a policy to film; after a resume, summary.json's
+    wall time and speeds and metrics.csv's wall_time covered only the stretch since the resume while saying
+    "whole run"; and nothing said where the run resumed."""
+    from rlpipe.pipelines.analysis.pages import write_run_report
+
+    args = ["train", "dqn", *TINY, "eval_interval=0", "log_interval=50", "policy_save_interval=1000",
+            "--no-progress", "--out", "run"]
+    run = tmp_path / "run"
+    with held(args, tmp_path, "collected@50") as proc:
+        page = (run / "report.html").read_text()
+        assert facts_of(page)["status"] == f"at iteration 50 of {N}"  # refreshed by the first log row
+        assert '<table id="log">' in page  # the losses and speeds so far, with no evaluation since iteration 0
+        assert "no policy to film" in page and "every 1,000 iterations" in page  # not exported yet: said so
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C, while held: it lands when the run goes on
+        resume_go_on(proc)
+        code, _, err = finish(proc)
+    assert code == 130, err
+    facts = facts_of((run / "report.html").read_text())
+    assert facts["status"].startswith("stopped at iteration ") and "its last checkpoint is at iteration" in facts["status"]
+    assert facts["to continue it"] == f"rlpipe train dqn --resume {run.resolve()}"
+    write_run_report(run)  # `rlpipe report run` later, from the files alone: no process writes the run
+    assert facts_of((run / "report.html").read_text())["to continue it"] == f"rlpipe train dqn --resume {run.resolve()}"
+
+    saved = ckpt.load_checkpoint(ckpt.latest_checkpoint(run / "checkpoints"), "dqn", "CartPole-v0")["counters"]
+    stopped_at = saved["iteration"]
+    assert 0 < stopped_at < N and saved["wall_time_s"] >= max(float(r["wall_time"]) for r in metric_rows(run)) > 0
+    assert 0 < saved["train_time_s"] < saved["wall_time_s"]
+    code, out, err = rlpipe(["train", "dqn", "--resume", "run", "--no-progress"], tmp_path)
+    assert code == 0, err
+    assert out.splitlines()[0].startswith(f"resumed at iteration {stopped_at} of {N} (")
+    rows = metric_rows(run)
+    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, N]
+    assert [int(r["step"]) for r in rows if r["steps_per_s"]] == list(range(50, N + 1, 50))
+    resumed = [float(r["wall_time"]) for r in rows if int(r["step"]) > stopped_at]
+    assert resumed and min(resumed) >= saved["wall_time_s"]  # the clock went on from where the checkpoint left it
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["wall_time_s"] >= max(resumed) and summary["train_time_s"] > saved["train_time_s"]
+    assert summary["env_steps_per_s"] == pytest.approx(summary["frames"] / summary["train_time_s"])
+    page = (run / "report.html").read_text()
+    assert facts_of(page)["status"] == "finished" and "to continue it" not in facts_of(page)
+    assert "no policy to film" not in page and "makes one" in page  # exported at the end: `rlpipe video run` works

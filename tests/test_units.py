@@ -55,11 +55,13 @@ def test_default_triggers_run_in_the_tutorials_order():
     assert names_due(triggers, 150, 250, 1000) == [LOG, EVAL]
 
 
-def test_the_last_iteration_leaves_evaluation_and_checkpoint_to_the_end_of_the_run():
+def test_the_last_iteration_is_evaluated_in_its_own_triggers_and_leaves_the_checkpoint_to_the_end():
     triggers = default_triggers(TrainConfig(num_iterations=1000, log_interval=100, eval_interval=200,
                                             policy_save_interval=500, checkpoint_interval=500))
-    # the final firing evaluates and saves after the last block: not twice
-    assert names_due(triggers, 950, 1000, 1000) == [LOG, EXPORT]
+    # the final firing saves after the last block: not twice; the evaluation is the iteration's, whatever
+    # the interval, so that a user's triggers after it see its return
+    assert names_due(triggers, 950, 1000, 1000) == [LOG, EVAL, EXPORT]
+    assert EVAL in names_due(default_triggers(TrainConfig(num_iterations=1000, eval_interval=300)), 950, 1000, 1000)
 
 
 def test_the_built_in_trigger_names_are_those_old_checkpoints_hold():
@@ -75,7 +77,8 @@ def test_the_video_is_a_final_firing_only_and_only_when_asked_for():
 
 def test_an_interval_of_zero_never_triggers():
     triggers = default_triggers(TrainConfig(num_iterations=1000, eval_interval=0))
-    assert EVAL not in names_due(triggers, 0, 1000, 1000)
+    assert EVAL not in names_due(triggers, 0, 999, 1000)
+    assert EVAL in names_due(triggers, 999, 1000, 1000)  # 0: only before and after training
 
 
 def test_a_block_crossing_several_multiples_runs_a_trigger_once():

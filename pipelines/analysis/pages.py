@@ -48,7 +48,9 @@ from rlpipe.pipelines.analysis.plots import (
 )
 from rlpipe.pipelines.analysis.runs import RECORD_COLUMNS, collect_runs, read_metrics
 from rlpipe.pipelines.analysis.stats import aggregate_curves, summarise_runs
+from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.files import write_text_atomic
+from rlpipe.pipelines.artifacts.rundir import RunDir
 
 __all__ = ["BASELINE_FILE", "REPORT_FILE", "VIDEO_FILE", "read_baseline", "run_labels",
            "write_baseline", "write_comparison_page", "write_comparison_report", "write_run_report"]
@@ -129,12 +131,15 @@ def _csv_rows(path: Path) -> list[dict[str, str]]:
         return []
 
 
-def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
+def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = None, *,
+                     running: bool | None = None) -> Path:
     """Write ``RUN/report.html`` (or ``out``) from what the run directory holds now; returns its path.
 
-    Works on a run in progress (the page says where it is), a stopped one and a finished one. The
-    tables show ``metrics.csv``'s figures as written there; the video is linked when
-    ``trained-agent.mp4`` exists.
+    Works on a run in progress (the page says where it is), a stopped one (it says so, and how to
+    continue it) and a finished one (its ``summary.json`` is of its last iteration: a finished run
+    trained on with a larger ``num_iterations`` is not finished any more). ``running``: whether the run
+    is training now (the run's own writes say); None: while a process holds its writer lock. The tables show ``metrics.csv``'s figures as written there; the video is
+    linked when ``trained-agent.mp4`` exists.
     """
     run = Path(run_dir)
     out = Path(out) if out is not None else run / REPORT_FILE
@@ -164,12 +169,21 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
     }
     last_log = log_rows[-1] if log_rows else {}
     iteration = max((int(float(r["step"])) for r in rows), default=0)  # background evaluations land late
+    of = f"{iteration:,} of {config.get('num_iterations', 0):,}"
+    if running is None:
+        running = RunDir(run).being_written()
+    if running or (summary or {}).get("iterations") != iteration:
+        summary = None  # not finished (any more): its figures are not the run's
+    stopped = not summary and not running
     facts = [
-        ("status", "finished" if summary else f"at iteration {iteration:,} of {config.get('num_iterations', 0):,}"),
+        ("status", "finished" if summary else f"at iteration {of}" if running else
+         f"stopped at iteration {of} (interrupted, or killed){_last_checkpoint(run)}"),
         ("final AverageReturn" if summary else "last AverageReturn", eval_rows[-1]["average_return"] if eval_rows else "n/a"),
         ("random agent's AverageReturn",
          f"{_fmt(baseline['average_return'])} ({baseline['episodes']} episodes)" if baseline else "n/a"),
     ]
+    if stopped:
+        facts.append(("to continue it", f"rlpipe train {algo} --resume {run.resolve()}"))
     if summary:
         facts += [
             ("iterations / env steps / updates", f"{summary['iterations']:,} / {summary['frames']:,} / {summary['updates']:,}"),
@@ -183,40 +197,69 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
     video_src = os.path.relpath(video, out.parent) if video.is_file() else None
     return _render(
         "run.html.j2", out, title=title, run_name=run.resolve().name, algo=algo, env=env, facts=facts,
-        figures=figures, video=video_src, config=_flatten(config), eval_columns=_EVAL_COLUMNS,
+        figures=figures, video=video_src, exported=_has_policy(run), policy_save_interval=config.get(
+            "policy_save_interval"), config=_flatten(config), eval_columns=_EVAL_COLUMNS,
         eval_rows=eval_rows, log_columns=["step", *loss_columns, "train_episode_return", *_SPEED_COLUMNS],
         log_rows=log_rows,
     )
 
 
+def _last_checkpoint(run: Path) -> str:
+    steps = ckpt.checkpoint_steps(run / "checkpoints")
+    return f"; its last checkpoint is at iteration {max(steps):,}, where it continues" if steps else ""
+
+
+def _has_policy(run: Path) -> bool:
+    """Whether ``rlpipe video RUN`` has a policy to film: the run exported one (``RUN/policy``)."""
+    return any((run / "policy" / name).is_file() for name in ("policy.onnx", "policy.pt2"))
+
+
 # --- the comparison page ---------------------------------------------------------------------------------
 
 
-_NOT_VARIANT = {"seed", "video", "num_threads", "log_interval", "checkpoint_interval", "policy_save_interval"}
-"""config keys that say how a run is recorded or seeded, not what it learns: runs differing only here are one variant"""
+_NOT_VARIANT = {"seed", "video", "num_threads", "log_interval", "checkpoint_interval", "policy_save_interval",
+                "checkpoint_keep", "policy_keep", "eval_timeout", "collector.max_restarts", "collector.timeout",
+                "ray.address"}
+"""config keys that say how a run is recorded, seeded or supervised, not what it learns: runs differing only here
+are one variant"""
+_MAX_LABEL_KEYS = 4
+"""more differing keys than this make a label too long to read: the run's directory name stands for them"""
 
 
 def run_labels(run_dirs: Sequence[str | os.PathLike]) -> dict[str, str]:
-    """A variant name per run directory: runs whose configs differ only in the seed (or in how they are
-    recorded: ``video``, intervals of logs, checkpoints and exports, threads) share one.
+    """A variant name per run directory. Runs share a name (and pool into one variant, with a confidence
+    interval over them) only when their algorithm and configs agree on every key but the seed and the keys of
+    how a run is recorded (``video``, intervals of logs, checkpoints and exports, threads, ...).
 
-    The name lists the keys in which the run's config differs from the others' (``clipped_double_q=false``),
-    or is the algorithm and env when every run has the same config.
+    The name lists the keys in which the config differs from the other runs' of its algorithm
+    (``clipped_double_q=false``), after the algorithm's name when the runs span several (``td3
+    clipped_double_q=false``); it is the algorithm's name alone for a config that is its algorithm's only one.
     """
-    configs = {}
+    configs: dict[str, tuple[str, dict[str, str]]] = {}
     for run in run_dirs:
         saved = _read_json(Path(run) / "config.json") or {}
         flat = {k: v for k, v in _flatten(saved.get("config", {})) if k not in _NOT_VARIANT}
-        configs[str(run)] = (saved.get("algo", "?"), flat)
-    keys = sorted({k for _, flat in configs.values() for k in flat} - {"env"})  # env is a section of its own
-    varying = [k for k in keys if len({flat.get(k) for _, flat in configs.values()}) > 1]
+        configs[str(run)] = (str(saved.get("algo", "?")), flat)
     several_algos = len({algo for algo, _ in configs.values()}) > 1
-    labels = {}
+    by_algo: dict[str, list[dict[str, str]]] = {}
+    for algo, flat in configs.values():
+        by_algo.setdefault(algo, []).append(flat)
+    labels: dict[str, str] = {}
+    by_config: dict[tuple, str] = {}
     for run, (algo, flat) in configs.items():
-        parts = [f"{k}={flat[k]}" for k in varying if k in flat]
-        if len(parts) > 4 and not several_algos:  # too many to read: the run's own name says more
-            parts = [Path(run).name]
-        labels[run] = algo if several_algos or not parts else ", ".join(parts)
+        config = (algo, tuple(sorted((k, v) for k, v in flat.items() if k != "env")))  # env: a section of its own
+        if config not in by_config:
+            others = by_algo[algo]
+            keys = sorted({k for f in others for k in f} - {"env"})
+            varying = [k for k in keys if len({f.get(k) for f in others}) > 1]
+            parts = [f"{k}={flat[k]}" if k in flat else f"{k} unset" for k in varying]
+            if len(parts) > _MAX_LABEL_KEYS:
+                parts = [Path(run).name]
+            label = " ".join([algo] * (several_algos or not parts) + [", ".join(parts)] * bool(parts))
+            if label in by_config.values():  # cut short to a directory name another config's run has too
+                label = f"{label} ({Path(run).resolve().parent.name})"
+            by_config[config] = label
+        labels[run] = by_config[config]
     return labels
 
 

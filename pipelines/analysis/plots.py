@@ -37,8 +37,8 @@ from rlpipe.pipelines.analysis.runs import (
 from rlpipe.pipelines.artifacts.files import atomic_path
 
 __all__ = [
-    "figure_svg", "plot_ecdf", "plot_return_curves", "plot_training_returns", "run_returns_figure",
-    "run_series_figure", "runs_returns_figure",
+    "figure_svg", "plot_ecdf", "plot_return_curves", "plot_training_returns", "return_curves_figure",
+    "run_returns_figure", "run_series_figure", "runs_returns_figure",
 ]
 
 _DPI = 100
@@ -127,7 +127,8 @@ def plot_return_curves(
     x: str = STEP_COL,
     title: str | None = None,
 ) -> Path:
-    """Average return vs iteration of one or more runs in one PNG (``rlpipe plot RUN_DIR...``).
+    """Average return vs iteration of one or more runs in one PNG (``rlpipe plot RUN_DIR...``): one axis
+    per env (returns of different envs share no scale), runs of one env on the same axis.
 
     Args:
         run_dirs: run directories (or their ``metrics.csv`` paths).
@@ -135,12 +136,19 @@ def plot_return_curves(
         labels: legend labels, one per run; default: each run directory's name.
         x: ``"step"`` (x label "Iterations", the TF-Agents tutorials' plot) or ``"frames"``
             (x label "Environment steps").
-        title: figure title; default: the runs' env id(s) from ``summary.json``/``config.json``.
+        title: figure title; default: each axis is titled with its env id (from
+            ``summary.json``/``config.json``).
 
     Raises:
         ValueError: if a run has no ``metrics.csv`` / no evaluation rows, no runs are given, or
             ``labels`` does not match ``run_dirs`` in length.
     """
+    return _save_figure(return_curves_figure(run_dirs, labels, x=x, title=title), out_png)
+
+
+def return_curves_figure(run_dirs: Sequence[str | os.PathLike], labels: Sequence[str] | None = None, *,
+                         x: str = STEP_COL, title: str | None = None) -> Figure:
+    """:func:`plot_return_curves`' figure: one axis per env, in the order the envs first come."""
     run_dirs = list(run_dirs)
     if not run_dirs:
         raise ValueError("plot_return_curves needs at least one run directory")
@@ -148,27 +156,28 @@ def plot_return_curves(
         raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
     if x not in (STEP_COL, "frames"):
         raise ValueError(f"x must be 'step' or 'frames', not {x!r}")
-    series, envs = [], []
+    by_env: dict[str, list[tuple[str, Any, Any]]] = {}
     for i, run in enumerate(run_dirs):
         metrics = read_metrics(run)
         xs, ys = _xy(metrics, x)
         if xs.size == 0:
             raise ValueError(f"{_metrics_path(run)}: no evaluation rows with a '{x}' value")
         label = labels[i] if labels is not None else _run_dir(run).name
-        series.append((label, xs, ys))
-        env = read_run_info(run).get("env")
-        if env and str(env) not in envs:
-            envs.append(str(env))
-    fig = _new_figure()
-    ax = fig.add_subplot()
-    for label, xs, ys in series:
-        ax.plot(xs, ys, marker=_marker(xs.size), markersize=3, linewidth=1.6, label=label)
-    ax.set_xlabel("Iterations" if x == STEP_COL else "Environment steps")
-    ax.set_ylabel("Average Return")
-    ax.set_title(title if title is not None else (", ".join(envs) or "Average return"))
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize="small")
-    return _save_figure(fig, out_png)
+        env = str(read_run_info(run).get("env") or "env unknown")
+        by_env.setdefault(env, []).append((label, xs, ys))
+    fig = _new_figure((7.0, 1.0 + 3.5 * len(by_env)))
+    axes = fig.subplots(len(by_env), 1, squeeze=False)[:, 0]
+    for ax, (env, series) in zip(axes, by_env.items()):
+        for label, xs, ys in series:
+            ax.plot(xs, ys, marker=_marker(xs.size), markersize=3, linewidth=1.6, label=label)
+        ax.set_xlabel("Iterations" if x == STEP_COL else "Environment steps")
+        ax.set_ylabel("Average Return")
+        ax.set_title(env if title is None or len(by_env) > 1 else title)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize="small")
+    if title is not None and len(by_env) > 1:
+        fig.suptitle(title)
+    return fig
 
 
 def plot_training_returns(

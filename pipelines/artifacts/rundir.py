@@ -179,6 +179,22 @@ class RunDir:
         self._lock = fd
         _LOCKED.add(fd)
 
+    def being_written(self) -> bool:
+        """Whether a process holds the run's writer lock now (a run training, or resumed, in it)."""
+        try:
+            fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            return False
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        except OSError:  # no flock here (some network file systems): no writer can be seen
+            return False
+        finally:
+            os.close(fd)  # the shared lock, if taken, goes with it
+        return False
+
     # --- config ----------------------------------------------------------------------------------------
 
     def write_config(self, algo: str, config: dict) -> None:

@@ -137,7 +137,7 @@ class Evaluations:
         with loop.clock.paused():  # from the evaluations in memory: metrics.csv is not read again
             plot_training_returns(loop.evaluations, loop.run_dir.returns_png,
                                   title=f"{loop.pipeline.algo} on {loop.config.env}")
-            write_report(loop.run_dir.path)
+            loop.page.write()
         loop.bar.set_postfix(avg_return=f"{loop.last_return:.1f}", refresh=False)
 
     def measure_random_baseline(self) -> None:
@@ -169,11 +169,11 @@ class Evaluations:
                   f"({episodes} episodes)")
 
 
-def write_report(path) -> None:
-    """RUN/report.html from what the run directory at ``path`` holds now."""
+def write_report(path, running: bool | None = None) -> None:
+    """RUN/report.html from what the run directory at ``path`` holds now (``running``: see ``write_run_report``)."""
     from rlpipe.pipelines.analysis.pages import write_run_report
 
-    write_run_report(path)
+    write_run_report(path, running=running)
 
 
 def eval_line(step: int, result: Mapping[str, Any], steps_per_s: float, updates_per_s: float) -> str:

@@ -37,6 +37,7 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from rlpipe.pipelines.artifacts.files import FileWriteError
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir
 from rlpipe.pipelines.system.runtime import (
     DeferredInterrupt,
@@ -49,6 +50,7 @@ from rlpipe.pipelines.system.runtime import (
 )
 from rlpipe.pipelines.training.divergence import check_finite
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
+from rlpipe.pipelines.training.page import ReportPage
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
 from rlpipe.pipelines.workers.supervision import NoRestartLeft, SupervisedCollector, Supervisor, Watchdog
 
@@ -89,7 +91,9 @@ class Loop:
         self.run_dir, self.metrics, self.fresh, self.evaluations = run, metrics, fresh, evaluations
         self.triggers = {t.name: t for t in triggers}
         self.logger, self.callbacks = logger, list(callbacks)
-        self.clock, self.interval_stats, self.stop = Clock(), IntervalStats(), DeferredInterrupt()
+        self.clock = Clock(self.state.wall_time_s, self.state.train_time_s)  # a resumed run's earlier stretches
+        self.interval_stats, self.stop = IntervalStats(), DeferredInterrupt()
+        self.page = ReportPage(run.path)
         self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
@@ -139,10 +143,12 @@ class Loop:
                 self.fire("final")
             except Stopped as stop:
                 self.fire("stopped")  # the checkpoint trigger saves what this iteration still owes
+                self.page_stopped()
                 raise Interrupted(stop.signum) from None
             except NoRestartLeft as lost:
                 self.fire("stopped", lost)  # the collector's blocks handed out so far are in the replay buffer
                 lost.saved_at = self.state.iteration
+                self.page_stopped()
                 raise
 
     # --- the steps of a run ---------------------------------------------------------------------
@@ -150,9 +156,21 @@ class Loop:
     def start(self) -> None:
         if self.fresh:
             self.save()  # iteration 0: a run stopped at any point from here on can be resumed
+        else:
+            state = self.state
+            self.echo(f"resumed at iteration {state.iteration:,} of {self.config.num_iterations:,} "
+                      f"({state.frames:,} env steps, {state.updates:,} updates, {self.clock.wall():.1f} s so far)")
         self.watchdog = Watchdog()
         self.fire("start")
         self.clock.start()
+
+    def page_stopped(self) -> None:
+        """The report page of a run stopping early: it says so, and how to continue (its checkpoint is saved)."""
+        try:
+            with self.clock.paused():
+                self.page.write(running=False)
+        except (OSError, FileWriteError) as exc:  # the checkpoint is what counts; the stop goes on
+            LIVE_LOG.warning(f"report.html not rewritten: {exc}")
 
     def fire(self, moment: str, *args) -> None:
         """Every trigger's ``moment`` (``start``, ``poll``, ``final``, ``stopped``, ``close``), in order."""
@@ -268,7 +286,7 @@ class Loop:
 
     def speeds(self) -> tuple[float, float]:
         """Env steps and updates per second of training time in this session (evaluations and saving left out)."""
-        seconds = self.clock.train_seconds()
+        seconds = self.clock.session_train_seconds()
         if seconds <= 0:
             return math.nan, math.nan
         frames, updates = self._counts_at_start

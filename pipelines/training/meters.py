@@ -13,21 +13,29 @@ __all__ = ["Clock", "IntervalStats"]
 
 
 class Clock:
-    """Wall time, and training time with evaluations and saving taken out (for steps per second)."""
+    """Wall time, and training time with evaluations and saving taken out (for steps per second), of the
+    whole run: a resumed run's clock starts from the times its checkpoint recorded (``wall``, ``train``)."""
 
-    def __init__(self):
+    def __init__(self, wall: float = 0.0, train: float = 0.0):
         self._t0 = time.perf_counter()
         self._paused = 0.0
         self._train_start: float | None = None
+        self._wall_before, self._train_before = float(wall), float(train)
 
     def start(self) -> None:
         self._train_start = time.perf_counter()
         self._paused = 0.0
 
     def wall(self) -> float:
-        return time.perf_counter() - self._t0
+        """Seconds of the whole run: earlier stretches (to their last checkpoint) and this one."""
+        return self._wall_before + time.perf_counter() - self._t0
 
     def train_seconds(self) -> float:
+        """Training seconds of the whole run."""
+        return self._train_before + self.session_train_seconds()
+
+    def session_train_seconds(self) -> float:
+        """Training seconds since this stretch (this process's ``train`` call) started."""
         if self._train_start is None:
             return 0.0
         return time.perf_counter() - self._train_start - self._paused
@@ -80,7 +88,7 @@ class IntervalStats:
 
     def flush(self, clock: Clock) -> dict[str, Any]:
         """The row of means and speeds since the last flush; starts the next interval."""
-        now = clock.train_seconds()
+        now = clock.session_train_seconds()
         dt = max(now - self.t, 1e-9)
         row: dict[str, Any] = {f"loss_{k}": float(v) / self.loss_counts[k] for k, v in self.loss_sums.items()}
         if self.episode_returns:

@@ -8,6 +8,7 @@ refuses a write (disk full, permissions), after saving what can be saved.
 from __future__ import annotations
 
 import dataclasses
+import json
 import random
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -64,6 +65,11 @@ class Run:
         backend_class(pipeline.config).preflight(pipeline.config)  # e.g. no Ray at ray.address: one line, nothing written
         run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
         self.run_dir = pipeline.run_dir = run
+        if metrics is None:  # a finished run, resumed with nothing owed
+            try:
+                return self._unchanged(run)
+            finally:
+                run.close()
         loop = None
         try:
             with FileWriteError.on_failure(run.path / "tb"):
@@ -88,7 +94,7 @@ class Run:
         for trigger in loop.triggers.values():
             summary.update(getattr(trigger, "summary", lambda _: {})(loop))  # a trigger not made from ``Trigger``: none
         write_json_atomic(loop.run_dir.summary_path, summary)
-        write_report(loop.run_dir.path)
+        write_report(loop.run_dir.path, running=False)  # it still holds the run's lock: done, all the same
         return TrainResult(policy=self.pipeline.policy, run_dir=loop.run_dir.path, metrics=loop.metrics.rows(),
                            summary=summary, evaluations=loop.evaluations)
 
@@ -150,6 +156,8 @@ class Run:
             raise InputError(f"{path / 'state.pt'}: {exc}{hint}") from exc
         if skipped:
             notice(f"{run.checkpoints}: {'; '.join(skipped)}; resuming from {path.name}")
+        if self._nothing_owed(run):
+            return None, [], False  # nothing to write: not the config, the metrics, a checkpoint, a page
         metrics = MetricsCSV(run.metrics_path, list(pipeline.loss_names), resume_after_step=pipeline.state.iteration,
                              extra_columns=pipeline.metrics_columns())
         run.write_config(pipeline.algo, config_to_dict(pipeline.config))  # keys changed on resume are recorded
@@ -158,8 +166,36 @@ class Run:
         evaluations = [evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
         return metrics, evaluations, False
 
+    def _nothing_owed(self, run: RunDir) -> bool:
+        """Whether the run as loaded is finished (its summary is of this checkpoint's iteration) and owes
+        nothing: no update, trigger or evaluation, and no more iterations (the config reaches no further, or,
+        for a run that ended before its last iteration by a rule of its own, is the one it ended by)."""
+        state, cfg = self.pipeline.state, self.pipeline.config
+        try:
+            summary = json.loads(run.summary_path.read_text())
+        except (OSError, ValueError):
+            return False
+        if not isinstance(summary, dict) or summary.get("iterations") != state.iteration:
+            return False
+        if state.owed or state.pending_evals or state.limiter.owed:
+            return False
+        return state.iteration >= cfg.num_iterations or not changed_keys(run.read_config()[1], config_to_dict(cfg))
+
+    def _unchanged(self, run: RunDir) -> TrainResult:
+        """What ``train`` hands back for a finished run resumed with nothing owed, after saying so: its own files."""
+        cfg, iteration = self.pipeline.config, self.pipeline.state.iteration
+        done = (f"finished all {cfg.num_iterations:,} iterations" if iteration >= cfg.num_iterations
+                else f"finished at iteration {iteration:,} of {cfg.num_iterations:,}")
+        notice(f"{run.path} {done} and owes nothing: nothing changed (to train on, resume with a larger "
+               f"num_iterations=N)")
+        rows = MetricsCSV.read_rows(run.metrics_path)
+        summary = json.loads(run.summary_path.read_text())
+        evaluations = [evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
+        return TrainResult(policy=self.pipeline.policy, run_dir=run.path, metrics=rows, summary=summary,
+                           evaluations=evaluations)
+
     def summary(self, state: RunState, evaluations: list[dict], clock: Clock) -> dict[str, Any]:
-        """summary.json: the run's final figures, counters and speeds."""
+        """summary.json: the run's final figures, counters and speeds, of the whole run (every stretch of a resumed one)."""
         pipeline = self.pipeline
         last = evaluations[-1] if evaluations else {}
         train_s = clock.train_seconds()

@@ -43,6 +43,10 @@ class RunState:
     """names of the triggers still to run at ``iteration``, in order"""
     pending_evals: deque[tuple[dict, TensorDictBase]] = field(default_factory=deque)
     """background evaluations asked for and not back yet: (position, policy weights), oldest first"""
+    wall_time_s: float = 0.0
+    """the run's wall time when this state was saved (all its stretches so far): a resumed run adds to it"""
+    train_time_s: float = 0.0
+    """the run's training time (evaluations and saving left out) when this state was saved"""
 
     @classmethod
     def fresh(cls, cfg: TrainConfig) -> RunState:
@@ -81,7 +85,8 @@ class RunState:
     def state_dict(self) -> dict[str, Any]:
         return {
             "counters": {"frames": self.frames, "updates": self.updates, "iteration": self.iteration,
-                         "episodes": self.episodes, "triggers": list(self.owed)},
+                         "episodes": self.episodes, "triggers": list(self.owed),
+                         "wall_time_s": self.wall_time_s, "train_time_s": self.train_time_s},
             "limiter": self.limiter.state_dict(),
             "background_evals": [{"at": dict(at), "weights": dict(w.flatten_keys("/").items())}
                                  for at, w in self.pending_evals],
@@ -91,6 +96,9 @@ class RunState:
         counters = state["counters"]
         self.frames, self.updates, self.iteration = (int(counters[k]) for k in ("frames", "updates", "iteration"))
         self.episodes = int(counters.get("episodes", 0))  # a checkpoint from before it was counted: 0
+        # a checkpoint from before the times were kept: the run's figures count from this stretch
+        self.wall_time_s = float(counters.get("wall_time_s", 0.0))
+        self.train_time_s = float(counters.get("train_time_s", 0.0))
         self.owed = list(counters.get("triggers", []))
         self.limiter.load_state_dict(state["limiter"])
         self.pending_evals = deque((dict(e["at"]), TensorDict(e["weights"]).unflatten_keys("/"))

@@ -25,9 +25,10 @@ overridden), called on every trigger in the order given to ``train``:
 
 * ``start(loop)``: before the first block (after the checkpoint of a fresh run's iteration 0);
 * ``poll(loop)``: after each block's triggers (the eval trigger takes background results);
-* ``final(loop)``: once, at the run's end: the "final" firing (the last evaluation, export,
-  checkpoint and video are the built-in triggers' final firings, which is why ``at_last_iteration``
-  keeps their interval firing off the last iteration);
+* ``final(loop)``: once, at the run's end: the "final" firing (the last export, checkpoint and video
+  are the built-in triggers' final firings, which is why ``at_last_iteration`` keeps the checkpoint's
+  interval firing off the last iteration; the last evaluation is the last iteration's own, before a
+  user's triggers of that iteration, so that they see its return);
 * ``stopped(loop, lost)``: the run stops early, on a stop signal (``lost`` None) or on lost workers
   (``lost``: the ``NoRestartLeft``); the checkpoint trigger saves what the iteration still owes;
 * ``close(loop)``: however the run ends (processes a trigger started are stopped here);
@@ -141,21 +142,29 @@ class LogTrigger(Trigger):
         loop.log(row)
         if any(k.startswith("loss_") for k in row):  # nothing to say before the first update
             loop.echo(log_line(loop.state.iteration, row))
+        with loop.clock.paused():
+            loop.page.refresh()  # the page's losses and speeds between evaluations, at a bounded cost
 
 
 class EvalTrigger(Trigger):
     """An evaluation of the deterministic policy, here or in the background (``Evaluations``); the
-    random baseline at the start, and the last iteration's evaluation at the end."""
+    random baseline at the start. The last iteration is always evaluated, whatever the interval, within
+    that iteration's triggers and waited for: the triggers after it (a user's) see its return."""
 
     name = EVAL
-    at_last_iteration = False
 
     def __init__(self, interval: int):
         super().__init__(interval)
         self.evaluations: Evaluations | None = None
 
+    def due(self, previous: int, now: int, last: int) -> bool:
+        return now >= last > previous or super().due(previous, now, last)
+
     def __call__(self, loop: Loop) -> None:
-        self.evaluations.ask()
+        if loop.state.iteration >= loop.config.num_iterations:
+            self.evaluations.finish()  # the background ones still out, then this one, here
+        else:
+            self.evaluations.ask()
 
     def start(self, loop: Loop) -> None:
         self.evaluations = Evaluations(loop)
@@ -218,6 +227,7 @@ class CheckpointTrigger(Trigger):
 
     def __call__(self, loop: Loop) -> None:
         loop.check_finite()  # every checkpoint is a finite state (TrainingDiverged otherwise)
+        loop.state.wall_time_s, loop.state.train_time_s = loop.clock.wall(), loop.clock.train_seconds()
         with loop.clock.paused():
             loop.metrics.sync()  # the rows this checkpoint counts reach the disk before it does
             ckpt.save_checkpoint(loop.run_dir.checkpoints, loop.state.iteration, loop.pipeline.state_dict(),
