@@ -102,7 +102,16 @@ def _inverted_pendulum() -> CrossQConfig:
                         collector=CollectorConfig(workers=1, sync=True))
 
 
-PRESETS = {"crossq": _minitaur, "crossq-pendulum": _pendulum, "crossq-invpendulum": _inverted_pendulum}
+def _halfcheetah() -> CrossQConfig:
+    # sb3-contrib's defaults on a MuJoCo task (the paper's), with the CPU-sized critics; untuned here.
+    return CrossQConfig(env="HalfCheetah-v5", num_iterations=1_000_000, initial_collect_steps=5000,
+                        eval_interval=10_000, num_eval_episodes=10, checkpoint_interval=50_000,
+                        policy_save_interval=50_000)
+
+
+# "crossq-minitaur" is "crossq" under the name `rlpipe bench time-to-return` looks for (task-named presets)
+PRESETS = {"crossq": _minitaur, "crossq-minitaur": _minitaur, "crossq-pendulum": _pendulum,
+           "crossq-invpendulum": _inverted_pendulum, "crossq-halfcheetah": _halfcheetah}
 
 
 class CrossQ(OffPolicyPipeline):

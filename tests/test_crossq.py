@@ -54,6 +54,8 @@ def test_crossq_presets_are_sb3_contribs_settings_with_cpu_sized_critics():
     assert cfg.batch_renorm_momentum == 0.01 and cfg.batch_size == 256
     assert cfg.critic_fc_layer_params == [256, 256]  # not the paper's 2048: see the config's docstring
     assert cfg.collector.sync is False and cfg.eval_in_background  # the sac preset's collection path
+    assert crossq.preset("crossq-minitaur") == cfg  # the name the time-to-return bench looks for
+    assert crossq.preset("crossq-halfcheetah").env == "HalfCheetah-v5"
     for name, env in (("crossq-pendulum", "Pendulum-v1"), ("crossq-invpendulum", "InvertedPendulum-v5")):
         algo, small_cfg = resolve_preset(name)
         assert algo == "crossq" and small_cfg.env == env
