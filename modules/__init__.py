@@ -2,7 +2,8 @@
 
 This package never imports ``rlpipe.pipelines``: everything here is a plain TorchRL/torch object.
 
-    actors, critics, qnetworks, exploration   policies and value networks (TensorDict modules)
+    actors, critics, qnetworks, exploration   policies and value networks (TensorDict modules); critics
+                      also holds CrossQ's batch-renormalised critic and a faster BatchRenorm1d
     plain_policy      any TensorDict policy as a plain module on observation tensors (what torch.export takes)
     td3_loss          TorchRL's TD3Loss with TD3's six ingredients as switches, and one TD3 step
     sac_loss          TorchRL's SACLoss terms on plain tensors (LeanSACLoss), importance weights included
@@ -21,7 +22,7 @@ from rlpipe.modules.actors import (
     make_gaussian_actor,
     make_tanh_normal_actor,
 )
-from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.modules.critics import BatchRenorm1d, make_batchrenorm_critic, make_qvalue_critic
 from rlpipe.modules.exploration import EGreedyQPolicy, epsilon_greedy
 from rlpipe.modules.optim import LeanAdam, clip_gradient_norms
 from rlpipe.modules.qnetworks import make_qvalue_actor
@@ -29,6 +30,7 @@ from rlpipe.modules.target_updates import ForeachSoftUpdate, make_target_updater
 from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
 
 __all__ = [
+    "BatchRenorm1d",
     "EGreedyQPolicy",
     "ForeachSoftUpdate",
     "LeanAdam",
@@ -39,6 +41,7 @@ __all__ = [
     "epsilon_greedy",
     "make_deterministic_actor",
     "make_exploration_policy",
+    "make_batchrenorm_critic",
     "make_gaussian_actor",
     "make_qvalue_actor",
     "make_qvalue_critic",

@@ -41,6 +41,7 @@ ALGOS = {
     "dqn": "rlpipe.pipelines.dqn:DQN",
     "td3": "rlpipe.pipelines.td3:TD3",
     "sac": "rlpipe.pipelines.sac:SAC",
+    "crossq": "rlpipe.pipelines.crossq:CrossQ",
 }
 
 

@@ -73,7 +73,7 @@ def check_action_space(algo: str, action_space: str, spec, env_label: str) -> No
     if is_discrete(spec) == (action_space == "discrete"):
         return
     needs = "discrete action space" if action_space == "discrete" else "continuous (Box) action space"
-    other = "td3 or sac for continuous actions" if action_space == "discrete" else "dqn for discrete actions"
+    other = "td3, sac or crossq for continuous actions" if action_space == "discrete" else "dqn for discrete actions"
     raise InputError(f"{algo.upper()} needs a {needs}; env {env_label!r} has a {describe_action_space(spec)} (use {other})")
 
 

@@ -330,7 +330,7 @@ def cmd_presets(args) -> int:
 
     for name in presets():
         algo, cfg = resolve_preset(name)
-        print(f"{name:22s} {algo:4s} {cfg.env}  ({cfg.num_iterations} iterations)")
+        print(f"{name:22s} {algo:6s} {cfg.env}  ({cfg.num_iterations} iterations)")
     return 0
 
 

@@ -262,6 +262,11 @@ BAD_INPUTS = {
     "text-observations": (["train", "dqn", "env=rlpipe-test/TextObservations-v0", "--out", "new"],
                           ["Text", "Box"], None),
     "frozenlake-to-sac": (["train", "sac", "env=FrozenLake-v1", "--out", "new"], ["FrozenLake-v1", "continuous"], None),
+    # issue 22: CrossQ's own keys and action space
+    "cartpole-to-crossq": (["train", "crossq", "env=CartPole-v1", "--out", "new"], ["CartPole-v1", "continuous"], None),
+    "zero-policy-delay": (["train", "crossq-pendulum", "policy_delay=0", "--out", "new"], ["policy_delay=0", "positive"],
+                          None),
+    "adam-beta1-of-1": (["train", "crossq-pendulum", "adam_beta1=1", "--out", "new"], ["adam_beta1=1", "[0, 1)"], None),
     "out-under-a-file": (["train", "dqn", "--out", "RUN/config.json/new"], ["config.json", "is a file"], None),
     "out-in-sys": (["train", "dqn", "--out", "/sys/rlpipe-test/run"], ["/sys", "cannot write"], None),
     "out-in-proc": (["train", "dqn", "--out", "/proc/rlpipe-test"], ["/proc", "cannot write"], None),

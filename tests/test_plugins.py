@@ -1,6 +1,6 @@
 """The plug-in story: a TorchRL user's own parts in each pipeline, written as a user would write them.
 
-Every case runs for DQN (CartPole-v1), TD3 and SAC (Pendulum-v1) with small networks: foreign and
+Every case runs for DQN (CartPole-v1), TD3, SAC and CrossQ (Pendulum-v1) with small networks: foreign and
 plain TorchRL envs (no ``RewardSum``), an observation under another key, env instances, batched
 envs, the user's networks and losses, a TorchRL logger, callbacks, a custom trigger, rlpipe's
 parts in a hand-written loop, the exported policy in a fresh process, and resume from Python.
@@ -23,25 +23,26 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs import CatTensors, GymEnv, SerialEnv, TransformedEnv
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
-from torchrl.objectives import DQNLoss, SACLoss, TD3Loss
+from torchrl.objectives import CrossQLoss, DQNLoss, SACLoss, TD3Loss
 from torchrl.record.loggers import CSVLogger
 
 from rlpipe import pipelines
 from rlpipe.modules import make_qvalue_actor
-from rlpipe.pipelines import dqn, sac, td3
+from rlpipe.pipelines import crossq, dqn, sac, td3
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.training.triggers import EVAL, IntervalTrigger, Trigger
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
-ALGOS = ["dqn", "td3", "sac"]
-ENV = {"dqn": "CartPole-v1", "td3": "Pendulum-v1", "sac": "Pendulum-v1"}
-PIPELINE = {"dqn": dqn.DQN, "td3": td3.TD3, "sac": sac.SAC}
+ALGOS = ["dqn", "td3", "sac", "crossq"]
+ENV = {"dqn": "CartPole-v1", "td3": "Pendulum-v1", "sac": "Pendulum-v1", "crossq": "Pendulum-v1"}
+PIPELINE = {"dqn": dqn.DQN, "td3": td3.TD3, "sac": sac.SAC, "crossq": crossq.CrossQ}
 SMALL = {
     "dqn": ["fc_layer_params=[16]"],
     "td3": ["actor_fc_layer_params=[16]", "critic_fc_layer_params=[16]"],
     "sac": ["actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]"],
+    "crossq": ["actor_fc_layer_params=[16]", "critic_fc_layer_params=[16]"],
 }
 SHORT = [
     "batch_size=16", "num_iterations=100", "initial_collect_steps=50", "learning_starts=50", "eval_interval=0",
@@ -65,7 +66,7 @@ def make_plain(algo: str):
 
 
 def obs_dim(algo: str) -> int:
-    return {"dqn": 4, "td3": 3, "sac": 3}[algo]
+    return {"dqn": 4, "td3": 3, "sac": 3, "crossq": 3}[algo]
 
 
 def changed(before: dict, module: nn.Module) -> bool:
@@ -221,6 +222,8 @@ def users_loss(algo: str):
     if algo == "td3":
         actor = users_actor("td3")
         return TD3Loss(actor, users_critic("td3"), action_spec=spec)
+    if algo == "crossq":
+        return CrossQLoss(users_actor("crossq"), users_critic("crossq"), num_qvalue_nets=2)
     return SACLoss(users_actor("sac"), users_critic("sac"), num_qvalue_nets=2)
 
 
@@ -386,7 +389,7 @@ def test_the_exported_policies_act_in_a_fresh_process_with_torch_alone(tmp_path)
         for algo, path in policies.items()) + "print('rlpipe' in sys.modules, 'torchrl' in sys.modules)\n"
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.split("\n")[:4] == ["[7]", "[7, 1]", "[7, 1]", "False False"]  # dqn, td3, sac
+    assert proc.stdout.split("\n")[:5] == ["[7]", "[7, 1]", "[7, 1]", "[7, 1]", "False False"]  # dqn, td3, sac, crossq
 
 
 # --- a pipeline leaves the process as it found it -------------------------------------------------------

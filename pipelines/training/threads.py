@@ -27,7 +27,7 @@ def choose_threads(pipeline: OffPolicyPipeline) -> int:
     of the loss on a replay-sized batch measured fastest (by 10% or more over fewer threads).
     The env steps in the learner's own process (``collector.workers=1``, ``sync=true``) take
     turns with the updates, so there every core is the learner's. Parameters, optimisers and
-    the run's random state are left as they were; a loss that cannot run on the env's fake
+    the run's random state (and the loss's buffers) are left as they were; a loss that cannot run on the env's fake
     batch (a plug-in's own keys) gets one thread.
     """
     c = pipeline.config.collector
@@ -39,6 +39,8 @@ def choose_threads(pipeline: OffPolicyPipeline) -> int:
     batch = pipeline.env.fake_tensordict().reshape(-1)[:1].expand(pipeline.config.batch_size).clone()
     before = torch.get_num_threads()
     timings = {}
+    # A forward pass in training mode moves batch-norm statistics (CrossQ's critics): put them back.
+    buffers = [(b, b.clone()) for b in pipeline.loss_module.buffers()]
     with torch.random.fork_rng(devices=[]):
         try:
             for n in candidates:
@@ -49,6 +51,9 @@ def choose_threads(pipeline: OffPolicyPipeline) -> int:
         finally:
             torch.set_num_threads(before)
             pipeline.loss_module.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                for b, saved in buffers:
+                    b.copy_(saved)
     # More threads only for a clear gain (10%): on noise, the count (and its arithmetic) stays put.
     chosen = candidates[0]
     for n in candidates[1:]:

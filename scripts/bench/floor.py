@@ -25,6 +25,7 @@ CASES = [
      "TD3, Pendulum-v1, 256x256, batch 256 (CleanRL's sizes)"),
     ("td3", [], "TD3, Pendulum-v1, 256, batch 256 (the tutorial)"),
     ("dqn-cleanrl", [], "DQN, CartPole-v1, 120-84, batch 128 (CleanRL's)"),
+    ("crossq-pendulum", [], "CrossQ, Pendulum-v1, 256x256 batch-renormalised critics, batch 256 (the preset)"),
 ]
 
 
@@ -44,7 +45,7 @@ def mlp_flops(sizes: list[int], batch: int, *, forward: bool = True, weight_grad
 
 
 def update_flops(pipeline) -> int:
-    """Matmul FLOPs of one update of a SAC, TD3 or DQN pipeline built with rlpipe's networks."""
+    """Matmul FLOPs of one update of a SAC, TD3, DQN or CrossQ pipeline built with rlpipe's networks."""
     cfg, b = pipeline.config, pipeline.config.batch_size
     obs = pipeline.observation_dim
     if pipeline.algo == "dqn":
@@ -52,6 +53,14 @@ def update_flops(pipeline) -> int:
         target = mlp_flops(q, b) * (2 if cfg.double_dqn else 1)
         return target + mlp_flops(q, b, weight_grads=True, input_grads=True)
     act = int(pipeline.action_spec.shape[-1])
+    if pipeline.algo == "crossq":
+        actor, critic = [obs, *cfg.actor_fc_layer_params, 2 * act], [obs + act, *cfg.critic_fc_layer_params, 1]
+        # no targets: the next action, then both critics on (s, a) and (s', a') joined (2b rows)
+        critic_loss = mlp_flops(actor, b) + 2 * mlp_flops(critic, 2 * b, weight_grads=True, input_grads=True)
+        # the actor and temperature every policy_delay-th update: both critics judge its action
+        actor_loss = (mlp_flops(actor, b, weight_grads=True, input_grads=True)
+                      + 2 * mlp_flops(critic, b, input_grads=True, first_input_grad=True))
+        return critic_loss + actor_loss // cfg.policy_delay
     if pipeline.algo == "sac":
         actor, critic = [obs, *cfg.actor_fc_layer_params, 2 * act], [obs + act, *cfg.critic_joint_fc_layer_params, 1]
         target = mlp_flops(actor, b) + 2 * mlp_flops(critic, b)

@@ -1,0 +1,279 @@
+"""The CrossQ pipeline: its presets, the agent it builds (no target networks, batch-renormalised twin
+critics, Adam betas (0.5, 0.999)), the update (critics every time, actor and temperature every
+``policy_delay``; batch statistics moved once per update), the batch-renorm statistics in checkpoints,
+the faster ``BatchRenorm1d`` against TorchRL's, and learning on Pendulum-v1 and InvertedPendulum-v5."""
+
+from __future__ import annotations
+
+import copy
+import json
+import subprocess
+import sys
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+from torchrl.modules import BatchRenorm1d as TorchRLBatchRenorm1d
+
+from rlpipe.modules import TanhNormalMode
+from rlpipe.modules.critics import BatchRenorm1d
+from rlpipe.pipelines import crossq, resolve_preset
+from rlpipe.pipelines.artifacts.checkpoint import latest_checkpoint, load_checkpoint
+from rlpipe.pipelines.config import apply_overrides
+from rlpipe.pipelines.errors import InputError
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+SMALL = ["env=Pendulum-v1", "actor_fc_layer_params=[16]", "critic_fc_layer_params=[32,32]", "batch_size=32",
+         "num_threads=1", "eval_in_background=false", "collector.workers=1", "collector.sync=true"]
+
+
+def small(*overrides: str) -> crossq.CrossQ:
+    return crossq.CrossQ(apply_overrides(crossq.preset("crossq-pendulum"), [*SMALL, *overrides]))
+
+
+def batch_of(pipeline, n: int = 32):
+    torch.manual_seed(0)
+    return pipeline.env.rollout(n, break_when_any_done=False).select(*pipeline.replay_keys)
+
+
+def renorm_buffers(pipeline) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in pipeline.loss_module.state_dict().items()
+            if k.endswith(("running_mean", "running_var", "num_batches_tracked"))}
+
+
+# --- presets and what they build ---------------------------------------------------------------------
+
+
+def test_crossq_presets_are_sb3_contribs_settings_with_cpu_sized_critics():
+    cfg = crossq.preset("crossq")
+    assert cfg.env == "MinitaurBulletEnv-v0" and resolve_preset("crossq") == ("crossq", cfg)
+    assert cfg.actor_learning_rate == cfg.critic_learning_rate == cfg.alpha_learning_rate == 1e-3
+    assert (cfg.adam_beta1, cfg.policy_delay, cfg.collect_steps_per_iteration) == (0.5, 3, 1)
+    assert cfg.batch_renorm_momentum == 0.01 and cfg.batch_size == 256
+    assert cfg.critic_fc_layer_params == [256, 256]  # not the paper's 2048: see the config's docstring
+    assert cfg.collector.sync is False and cfg.eval_in_background  # the sac preset's collection path
+    assert crossq.preset("crossq-minitaur") == cfg  # the name the time-to-return bench looks for
+    assert crossq.preset("crossq-halfcheetah").env == "HalfCheetah-v5"
+    for name, env in (("crossq-pendulum", "Pendulum-v1"), ("crossq-invpendulum", "InvertedPendulum-v5")):
+        algo, small_cfg = resolve_preset(name)
+        assert algo == "crossq" and small_cfg.env == env
+        assert small_cfg.collector.workers == 1 and small_cfg.collector.sync  # in-process collection
+
+
+def test_crossq_builds_batch_renormalised_twin_critics_and_no_target_networks():
+    pipeline = crossq.CrossQ(apply_overrides(crossq.preset("crossq"), ["num_threads=1"]))  # Minitaur: 28 obs, 8 actions
+    loss = pipeline.loss_module
+    assert pipeline.target_updater is None
+    assert not any(k.startswith("target_") for k in loss.state_dict())  # (its "_target_entropy" is a number)
+    assert float(loss.target_entropy) == -8.0 and float(loss.log_alpha.exp()) == pytest.approx(1.0)
+    norms = [m for m in loss.qvalue_network.modules() if isinstance(m, BatchRenorm1d)]
+    assert [m.num_features for m in norms] == [36, 256, 256]  # on the input, after each hidden layer
+    assert all(m.momentum == 0.01 and m.warmup_steps == 100_000 for m in norms)
+    running = loss.qvalue_network_params["module", "2", "running_mean"]  # the first hidden layer's
+    assert running.shape == (2, 256)  # one set of statistics per critic
+    for name in ("actor", "qvalue", "alpha"):
+        group = pipeline.optimizers[name].param_groups[0]
+        assert group["lr"] == 1e-3 and group["betas"] == (0.5, 0.999)
+    # the optimisers hold parameters only; the statistics are buffers, moved by the forward pass
+    assert sum(p.numel() for p in pipeline.optimizers["qvalue"].param_groups[0]["params"]) == sum(
+        p.numel() for p in loss.qvalue_network_params.values(True, True) if isinstance(p, torch.nn.Parameter))
+
+
+@pytest.mark.parametrize("override, words", [("policy_delay=0", "positive"), ("adam_beta1=1.0", "[0, 1)"),
+                                             ("batch_renorm_momentum=0", "(0, 1]"),
+                                             ("critic_fc_layer_params=[]", "critic_fc_layer_params")])
+def test_bad_crossq_keys_are_one_clear_line(override, words):
+    with pytest.raises(InputError) as info:
+        apply_overrides(crossq.preset("crossq-pendulum"), [override])
+    message = str(info.value)
+    assert message.startswith(override.split("=")[0]) and words in message and "\n" not in message
+
+
+def test_a_discrete_env_is_refused_naming_the_algorithms_that_fit():
+    with pytest.raises(InputError) as info:
+        crossq.CrossQ(apply_overrides(crossq.preset("crossq"), ["env=CartPole-v1"]))
+    assert "continuous" in str(info.value) and "CartPole-v1" in str(info.value) and "dqn" in str(info.value)
+
+
+# --- the update ----------------------------------------------------------------------------------------
+
+
+def test_critics_update_every_time_and_the_actor_and_temperature_every_policy_delay():
+    pipeline = small()
+    batch = batch_of(pipeline)
+    loss = pipeline.loss_module
+    actor = {k: v.clone() for k, v in loss.actor_network_params.items(True, True)}
+    for index in (1, 2):
+        before = copy.deepcopy(loss.qvalue_network_params.data)
+        out = pipeline.update(batch.clone(), index)
+        assert set(out) == {"qvalue"} and torch.isfinite(out["qvalue"])
+        assert (loss.qvalue_network_params.data != before).any()  # the critics stepped ...
+        assert all(torch.equal(v, loss.actor_network_params[k]) for k, v in actor.items())  # ... the actor not
+        assert float(loss.log_alpha) == 0.0
+        # one training-mode pass per update (the joint (s, a) + (s', a') batch), for each critic
+        assert loss.qvalue_network_params["module", "0", "num_batches_tracked"].tolist() == [index, index]
+    out = pipeline.update(batch.clone(), 3)
+    assert set(out) == set(crossq.CrossQ.loss_names)
+    assert any(not torch.equal(v, loss.actor_network_params[k]) for k, v in actor.items())
+    assert float(loss.log_alpha) != 0.0
+    # the actor's loss reads the critics in eval mode: it moved no statistics
+    assert loss.qvalue_network_params["module", "0", "num_batches_tracked"].tolist() == [3, 3]
+
+
+def test_the_update_computes_torchrls_crossq_loss():
+    pipeline = small("policy_delay=1")
+    batch = batch_of(pipeline)
+    # the same networks (built from the config's seed); not a deepcopy: CrossQLoss's vmapped critic
+    # call keeps the module it was made with, whose train/eval mode the copy would no longer set
+    reference = small("policy_delay=1").loss_module
+    torch.manual_seed(7)
+    expected = reference(batch.clone())
+    torch.manual_seed(7)
+    got = pipeline.update(batch.clone(), 1)
+    for name in ("qvalue", "actor", "alpha", "entropy"):
+        torch.testing.assert_close(got[name], expected[f"loss_{name}" if name != "entropy" else name].detach())
+    # and the statistics moved as the reference's forward moved them
+    torch.testing.assert_close(pipeline.loss_module.qvalue_network_params["module", "2", "running_var"],
+                               reference.qvalue_network_params["module", "2", "running_var"])
+
+
+def test_the_thread_probe_leaves_the_batch_statistics_alone():
+    pipeline = small("num_threads=-1")
+    before = renorm_buffers(pipeline)
+    pipeline.choose_threads()  # a forward pass per thread count, in training mode
+    after = renorm_buffers(pipeline)
+    assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)
+
+
+# --- BatchRenorm1d ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_batch_renorm_is_torchrls_faster_and_holds_its_step_count(smooth):
+    torch.manual_seed(0)
+    ours, theirs = BatchRenorm1d(5, warmup_steps=4, smooth=smooth), TorchRLBatchRenorm1d(5, warmup_steps=4, smooth=smooth)
+    with torch.no_grad():
+        theirs.weight.uniform_(0.5, 2.0)
+        theirs.bias.uniform_(-1.0, 1.0)
+    ours.load_state_dict(theirs.state_dict())
+    for _ in range(5):  # the warm-up and the first step past it, where r and d take full effect
+        x = torch.randn(16, 5) * 3 + 1
+        x_ours, x_theirs = x.clone().requires_grad_(), x.clone().requires_grad_()
+        grad = torch.randn(16, 5)
+        y_ours, y_theirs = ours(x_ours), theirs(x_theirs)
+        (y_ours * grad).sum().backward()
+        (y_theirs * grad).sum().backward()
+        torch.testing.assert_close(y_ours, y_theirs)
+        for a, b in ((x_ours.grad, x_theirs.grad), (ours.weight.grad, theirs.weight.grad),
+                     (ours.bias.grad, theirs.bias.grad), (ours.running_mean, theirs.running_mean),
+                     (ours.running_var, theirs.running_var)):
+            torch.testing.assert_close(a, b)
+    ours.eval()
+    theirs.eval()
+    torch.testing.assert_close(ours(x), theirs(x))
+    # TorchRL 0.14's count runs past warmup_steps (its clamp is not in place); ours stops there
+    assert int(theirs.num_batches_tracked) == 5 and int(ours.num_batches_tracked) == 4
+    ours.train()
+    for _ in range(10):
+        ours(torch.randn(16, 5))
+    assert int(ours.num_batches_tracked) == 4
+
+
+# --- checkpoints, export -----------------------------------------------------------------------------------
+
+
+SHORT = ["num_iterations=60", "initial_collect_steps=50", "eval_interval=0", "num_eval_episodes=1",
+         "log_interval=30", "checkpoint_interval=60", "policy_save_interval=60", "baseline_episodes=0"]
+
+
+def test_checkpoints_hold_the_batch_statistics_and_a_fresh_pipeline_takes_them_back(tmp_path):
+    trained = small(*SHORT)
+    result = trained.train(tmp_path / "run", progress=False)
+    assert result.summary["updates"] == 60
+    state = load_checkpoint(latest_checkpoint(tmp_path / "run" / "checkpoints"), "crossq", "Pendulum-v1")
+    saved = renorm_buffers(trained)
+    assert saved and all(k in state["loss"] for k in saved)
+    counts = [v for k, v in saved.items() if k.endswith("num_batches_tracked")]
+    assert all(c.tolist() == [60, 60] for c in counts)  # one per update, each critic
+    fresh = small(*SHORT)
+    assert any(not torch.equal(v, renorm_buffers(fresh)[k]) for k, v in saved.items())
+    fresh.load_state_dict(state)
+    assert all(torch.equal(v, renorm_buffers(fresh)[k]) for k, v in saved.items())
+    # the exported policy is the actor's deterministic action (TanhNormal's mode), the same every call
+    exported = torch.export.load(str(tmp_path / "run" / "policy" / "policy.pt2")).module()
+    obs = torch.randn(9, 3)
+    expected = TanhNormalMode.from_actor(trained.policy, trained.action_spec)(obs)
+    torch.testing.assert_close(exported(obs), expected)
+    torch.testing.assert_close(exported(obs), exported(obs))
+    assert exported(obs * 100).abs().max() <= 2.0
+
+
+def test_cli_trains_crossq_and_lists_its_keys(tmp_path):
+    cli = [sys.executable, "-m", "rlpipe.scripts.cli"]
+    keys = subprocess.run([*cli, "train", "crossq", "--keys"], capture_output=True, text=True, timeout=120)
+    assert keys.returncode == 0, keys.stderr[-2000:]
+    for line in ("policy_delay=3", "adam_beta1=0.5", "critic_fc_layer_params=[256, 256]", "batch_renorm_momentum=0.01"):
+        assert line in keys.stdout
+    run = tmp_path / "run"
+    proc = subprocess.run([*cli, "train", "crossq-pendulum", *SHORT, "critic_fc_layer_params=[32,32]",
+                           "--no-progress", "--out", str(run)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["algo"] == "crossq" and summary["updates"] == 60
+    header = (run / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert {"loss_qvalue", "loss_actor", "loss_alpha", "loss_alpha_value", "loss_entropy"} <= set(header)
+    assert (run / "report.html").exists()
+
+
+# --- it learns ---------------------------------------------------------------------------------------------
+
+
+def _play(policy_path, env_id: str, episodes: int) -> float:
+    policy = torch.export.load(str(policy_path)).module()
+    env = gymnasium.make(env_id)
+    returns = []
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=300 + episode)
+        total, done = 0.0, False
+        while not done:
+            with torch.no_grad():
+                action = policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0].numpy()
+            obs, reward, terminated, truncated, _ = env.step(action)
+            total += reward
+            done = terminated or truncated
+        returns.append(total)
+    env.close()
+    return float(np.mean(returns))
+
+
+LEARN = ["eval_interval=500", "num_eval_episodes=5", "log_interval=500", "checkpoint_interval=100000",
+         "policy_save_interval=100000", "num_threads=1"]
+
+
+@pytest.mark.slow
+def test_crossq_learns_pendulum(run_dir):
+    # Its evaluations swing between updates (as SAC's do on Pendulum): the check is that it got there,
+    # and that the policy it ends with is far past random (-1300 to -1500). Tried (evaluations every 500):
+    # seed 0 -152 at 1500 updates, -520 at 2000 (this test passed, 2026-11-25); seed 1 -145 at 2500, -200 at
+    # 3000; seed 2 -901 at 1500, -545 at 2500, -128 at 3000.
+    cfg = apply_overrides(crossq.preset("crossq-pendulum"), [*LEARN, "num_iterations=3000"])
+    result = crossq.CrossQ(cfg).train(run_dir, progress=False)
+    returns = [e["average_return"] for e in result.evaluations]
+    assert result.evaluations[0]["step"] == 0 and returns[0] < -900, returns
+    assert result.evaluations[-1]["step"] == 3000
+    assert max(returns[1:]) > -400, f"CrossQ did not learn Pendulum-v1: {returns}"
+    assert _play(run_dir / "policy" / "policy.pt2", "Pendulum-v1", 3) > -1100
+
+
+@pytest.mark.slow
+def test_crossq_learns_inverted_pendulum(run_dir, monkeypatch):
+    monkeypatch.chdir(run_dir.parent)  # MuJoCo writes MUJOCO_LOG.TXT into the cwd
+    # Tried on seeds 0, 1 and 2 (evaluations every 500): each evaluated at 1000 at 1500 updates, from 50-62
+    # at 500 and 129-149 at 1000; seed 2 still 1000 at 2000.
+    cfg = apply_overrides(crossq.preset("crossq-invpendulum"), [*LEARN, "num_iterations=2000"])
+    result = crossq.CrossQ(cfg).train(run_dir, progress=False)
+    returns = [e["average_return"] for e in result.evaluations]
+    assert returns[0] < 100, returns
+    assert max(returns[1:]) >= 950, f"CrossQ did not learn InvertedPendulum-v5: {returns}"
