@@ -68,7 +68,7 @@ def group_members(pgid: int) -> list[str]:
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     out = tmp_path_factory.mktemp("ablation") / "study"
-    command = [*CLI, *STUDY, "--out", str(out)]
+    command = [*CLI, *STUDY, "--continue", "checkpoint", "--out", str(out)]
     info = {"out": out}
 
     # 1. Ctrl-C (SIGINT to the process group, as a terminal sends it) while runs are in flight: the
