@@ -206,6 +206,10 @@ def test_rerun_of_a_finished_study_skips_every_run(study):
 BAD = {
     "zero seeds": (["--seeds", "0"], "--seeds"),
     "unknown variant": (["--variants", "full,no_target_nets"], "no_target_nets"),
+    "unknown ingredient": (["--variants", "full,clipped_double_qq"], "clipped_double_qq"),
+    # --steps 600 with 600 random start-up steps leaves no step to learn from
+    "no steps beyond the random ones": (["initial_collect_steps=600"], "random start-up steps"),
+    "a key the study sets": (["num_iterations=100"], "--steps"),
     "unknown env": (["--envs", "Pendulum-v9"], "Pendulum-v9"),
     "key typo": (["lerning_rate=1e-3"], "lerning_rate"),
     # every env is checked before any run starts (the discrete one is the second)
@@ -264,7 +268,7 @@ def test_every_env_is_checked_before_a_run_starts_and_box2d_envs_pass(tmp_path):
 # --- a study killed through the fault hook and run again ends as an uninterrupted one ---------------
 
 TINY = ["ablate", "td3", "--envs", "Pendulum-v1", "--seeds", "2", "--steps", "300", "--evals", "1",
-        "--eval-episodes", "1", "--variants", "full,no_target_policy_smoothing", "--workers", "2",
+        "--eval-episodes", "1", "--variants", "full,target_policy_smoothing", "--workers", "2",  # an ingredient: no_ it
         "actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]", "batch_size=32"]
 TINY_RUNS = [(variant, seed) for variant in ("full", "no_target_policy_smoothing") for seed in (0, 1)]
 
