@@ -268,7 +268,7 @@ def test_every_env_is_checked_before_a_run_starts_and_box2d_envs_pass(tmp_path):
 # --- a study killed through the fault hook and run again ends as an uninterrupted one ---------------
 
 TINY = ["ablate", "td3", "--envs", "Pendulum-v1", "--seeds", "2", "--steps", "300", "--evals", "1",
-        "--eval-episodes", "1", "--variants", "full,target_policy_smoothing", "--workers", "2",  # an ingredient: no_ it
+        "--eval-episodes", "1", "--variants", "full,target_policy_smoothing", "--workers", "2",  # an ingredient names its no_ variant
         "actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]", "batch_size=32"]
 TINY_RUNS = [(variant, seed) for variant in ("full", "no_target_policy_smoothing") for seed in (0, 1)]
 
