@@ -1,6 +1,6 @@
 """``rlpipe ablate td3``: the TD3 tutorial's ablation exercise as one command.
 
-    rlpipe ablate td3                      # the default study: STUDY_ENVS x 7 variants x 5 seeds, ~70 min on 2 cores
+    rlpipe ablate td3                      # the default study: STUDY_ENVS x 7 variants x 5 seeds, ~72-89 min on 2 cores
     rlpipe ablate td3 --envs Pendulum-v1,HalfCheetah-v5 --seeds 3 --steps 30000 [--workers 2] [--out DIR]
 
 Runs the full agent and the six leave-one-out variants on every env and seed, each as its own run
@@ -14,17 +14,20 @@ envs' state is not checkpointed). Then it writes ``ablation.csv``, ``ablation.md
 ``aggregate_iqm.png``, ``performance_profile.png``, ``probability_of_improvement.png``) and
 ``report.html`` into ``--out``; each run's log (``seedN.log``) holds its live log lines.
 
-The default study's budget, from seconds per env step measured on this 2-core machine while other
-jobs ran on it (noisy, so rounded up; learning phase, one thread, `rlpipe train td3 ... num_threads=1
-collector.sync=true`), plus ~6 s of process start and the evaluations:
+The default study's budget, from the CPU seconds of single full-agent runs of it, measured on this
+2-core machine while other jobs loaded it to 5-12 (so wall times were 5-10x these; CPU seconds, from
+`time rlpipe ablate td3 --envs ENV --seeds 1 --variants full --workers 1`, are what two runs side by
+side on two free cores each take; noisy, so rounded up; each includes ~10 s of start, plan and report):
 
-    env                  nets, batch     steps   ~steps/s   ~s per run (start + learn + evals)
-    Pendulum-v1          [256], 256      20,000    640       6 + 30 + 9   =  45
-    InvertedPendulum-v5  [64,64], 256    15,000    790       6 + 19 + 15  =  40
-    Hopper-v5            [128,128], 100  50,000    415       6 + 120 + 15 = 140
+    env                  nets, lr, batch           steps    CPU s per run   full agent (seed 0)
+    Pendulum-v1          [64,64], 1e-3, 256        20,000   ~65 (134.5 s for 2)   -156 (seed 1: -136)
+    InvertedPendulum-v5  [64,64], 1e-3, 256        30,000   ~100 (99.2)            1000 from 17,400 on
+    Hopper-v5            [128,128], 1e-3, 100      50,000   ~140 (140.7)           317 (random: 28)
 
-    7 variants x 5 seeds x (45 + 40 + 140) s = 7,875 run-seconds; two runs at a time on 2 cores:
-    ~66 minutes (no_delayed_policy_updates updates its actor twice as often: +~3% in all).
+    7 variants x 5 seeds x (65 + 100 + 140) s = 10,675 run-seconds; two at a time: ~89 minutes,
+    less the start/report share counted in every run (~35 x 3 x 10 s / 2 = ~17 min): ~72-89 minutes.
+    no_delayed_policy_updates updates its actor twice as often (+~3% in all); no_experience_replay
+    learns from batches of 1 (cheaper).
 """
 
 from __future__ import annotations
@@ -118,14 +121,16 @@ class StudyEnv:
 
 # The default study. Pendulum: 2x64 layers at lr 1e-3, batch 256, 1,000 random steps: -146 (seeds 0
 # and 1: -156, -136) after 20,000 steps, where the tutorial's agent (1x256, lr 3e-4) reached -187 at
-# 9,500 and then fell back to -1295 and ended at -668 (seed 0, same 1,000 random steps). InvertedPendulum: small nets
-# are enough (the pole is balanced for 1,000 steps within ~10k). Hopper: where the TD3 paper's
-# ingredients matter (its Table 2), with the paper's lr 1e-3, batch 100 and 1,000 random steps, and
-# 128-unit layers instead of (400, 300), which learn ~2.3x as many steps per second here.
+# 9,500, fell back to -1295 and ended at -668 (seed 0, the same 1,000 random steps). InvertedPendulum:
+# small nets are enough, but TD3 takes its time: 64 at 15,000 steps; 1,000 from 17,400 to 30,000
+# (seed 0). Hopper: where the TD3 paper's ingredients matter (its Table 2), with the paper's lr 1e-3,
+# batch 100 and 1,000 random steps, and 128-unit layers instead of (400, 300), which learn ~2.3x as
+# many steps per second here; at 50,000 steps (1/20 of the paper's) the full agent is still early on
+# its curve (317 against the random agent's 28, seed 0).
 STUDY_ENVS = {
     "Pendulum-v1": StudyEnv(20_000, 1000, 10, ("actor_fc_layer_params=[64,64]", "critic_fc_layer_params=[64,64]",
                                                 "batch_size=256", "learning_rate=1e-3")),
-    "InvertedPendulum-v5": StudyEnv(15_000, 1000, 5, ("actor_fc_layer_params=[64,64]", "critic_fc_layer_params=[64,64]",
+    "InvertedPendulum-v5": StudyEnv(30_000, 1000, 5, ("actor_fc_layer_params=[64,64]", "critic_fc_layer_params=[64,64]",
                                                       "batch_size=256", "learning_rate=1e-3")),
     "Hopper-v5": StudyEnv(50_000, 1000, 5, ("actor_fc_layer_params=[128,128]", "critic_fc_layer_params=[128,128]",
                                             "batch_size=100", "learning_rate=1e-3")),
