@@ -345,11 +345,11 @@ def run(args) -> int:
                 bar.set_postfix(running=len(running), failed=len(failed), refresh=False)
             if stop.requested:
                 stop_runs([proc for _, proc in running], stop.signum, RUN_STOP_TIMEOUT)
-                print(f"rlpipe: interrupted; rerun the same command to resume {args.out}", file=sys.stderr)
+                print(f"rlpipe: interrupted; rerun the same command to continue {args.out}", file=sys.stderr)
                 return 128 + stop.signum
     except KeyboardInterrupt as exc:  # a second signal: stop now, unsaved
         stop_runs([proc for _, proc in running], signal.SIGKILL, 10.0)
-        print(f"rlpipe: interrupted; rerun the same command to resume {args.out}", file=sys.stderr)
+        print(f"rlpipe: interrupted; rerun the same command to continue {args.out}", file=sys.stderr)
         return getattr(exc, "exit_status", 130)
     finally:
         bar.close()
