@@ -1,6 +1,6 @@
 """``rlpipe ablate td3``: the TD3 tutorial's ablation exercise as one command.
 
-    rlpipe ablate td3                      # the default study: STUDY_ENVS x 7 variants x 5 seeds, ~72-89 min on 2 cores
+    rlpipe ablate td3                      # the default study: STUDY_ENVS x 7 variants x 5 seeds, ~73-90 min on 2 cores
     rlpipe ablate td3 --envs Pendulum-v1,HalfCheetah-v5 --seeds 3 --steps 30000 [--workers 2] [--out DIR]
 
 Runs the full agent and the six leave-one-out variants on every env and seed, each as its own run
@@ -22,10 +22,10 @@ side on two free cores each take; noisy, so rounded up; each includes ~10 s of s
     env                  nets, lr, batch           steps    CPU s per run   full agent (seed 0)
     Pendulum-v1          [64,64], 1e-3, 256        20,000   ~65 (134.5 s for 2)   -156 (seed 1: -136)
     InvertedPendulum-v5  [64,64], 1e-3, 256        30,000   ~100 (99.2)            1000 from 17,400 on
-    Hopper-v5            [128,128], 1e-3, 100      50,000   ~140 (140.7)           317 (random: 28)
+    Hopper-v5            [128,128], 1e-3, 100      50,000   ~145 (144.4)           1043 (random: 28)
 
-    7 variants x 5 seeds x (65 + 100 + 140) s = 10,675 run-seconds; two at a time: ~89 minutes,
-    less the start/report share counted in every run (~35 x 3 x 10 s / 2 = ~17 min): ~72-89 minutes.
+    7 variants x 5 seeds x (65 + 100 + 145) s = 10,850 run-seconds; two at a time: ~90 minutes,
+    less the start/report share counted in every run (~35 x 3 x 10 s / 2 = ~17 min): ~73-90 minutes.
     no_delayed_policy_updates updates its actor twice as often (+~3% in all); no_experience_replay
     learns from batches of 1 (cheaper).
 """
@@ -123,16 +123,16 @@ class StudyEnv:
 # and 1: -156, -136) after 20,000 steps, where the tutorial's agent (1x256, lr 3e-4) reached -187 at
 # 9,500, fell back to -1295 and ended at -668 (seed 0, the same 1,000 random steps). InvertedPendulum:
 # small nets are enough, but TD3 takes its time: 64 at 15,000 steps; 1,000 from 17,400 to 30,000
-# (seed 0). Hopper: where the TD3 paper's ingredients matter (its Table 2), with the paper's lr 1e-3,
-# batch 100 and 1,000 random steps, and 128-unit layers instead of (400, 300), which learn ~2.3x as
-# many steps per second here; at 50,000 steps (1/20 of the paper's) the full agent is still early on
-# its curve (317 against the random agent's 28, seed 0).
+# (seed 0). Hopper: where the TD3 paper's ingredients matter (its Table 2), with the paper's lr 1e-3
+# and batch 100, and 128-unit layers instead of (400, 300), which learn ~2.3x as many steps per second
+# here. 10,000 random steps (updates from 1,000 on, as the paper's): 1043 at 50,000 steps (seed 0),
+# where the paper's 1,000 random steps gave 317 (the random agent: 28).
 STUDY_ENVS = {
     "Pendulum-v1": StudyEnv(20_000, 1000, 10, ("actor_fc_layer_params=[64,64]", "critic_fc_layer_params=[64,64]",
                                                 "batch_size=256", "learning_rate=1e-3")),
     "InvertedPendulum-v5": StudyEnv(30_000, 1000, 5, ("actor_fc_layer_params=[64,64]", "critic_fc_layer_params=[64,64]",
                                                       "batch_size=256", "learning_rate=1e-3")),
-    "Hopper-v5": StudyEnv(50_000, 1000, 5, ("actor_fc_layer_params=[128,128]", "critic_fc_layer_params=[128,128]",
+    "Hopper-v5": StudyEnv(50_000, 10_000, 5, ("actor_fc_layer_params=[128,128]", "critic_fc_layer_params=[128,128]",
                                             "batch_size=100", "learning_rate=1e-3")),
 }
 DEFAULT_STEPS = 30_000  # envs outside the default study
