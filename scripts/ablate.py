@@ -185,14 +185,16 @@ def plan(args) -> list[Job]:
         study = STUDY_ENVS.get(env)
         steps = args.steps or (study.steps if study else DEFAULT_STEPS)
         settings = list(study.overrides) if study else []
-        # The random start-up steps: a user's initial_collect_steps=, or the study env's own (the
-        # preset's for other envs), at most a tenth of the budget; in whole collector blocks, so evaluations land on the
+        # The random start-up steps: a user's initial_collect_steps=, the study env's own at its own
+        # budget, else at most a tenth of the budget (the study env's or preset's, if fewer); in whole collector blocks, so evaluations land on the
         # iterations they name.
         user = apply_overrides(apply_overrides(base, settings), args.overrides)
         block = user.collector.frames_per_batch
         if any(o.partition("=")[0].strip() == "initial_collect_steps" for o in args.overrides):
             start = user.initial_collect_steps
-        else:  # a shorter --steps than the study's keeps a tenth of it random
+        elif study and args.steps is None:
+            start = study.random_steps
+        else:  # another --steps keeps at most a tenth of it random
             start = min(study.random_steps if study else base.initial_collect_steps, steps // 10) // block * block
         if steps <= start:
             raise InputError(f"--steps={steps} for {env}: not more than its {start} random start-up steps "
