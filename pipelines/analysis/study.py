@@ -85,7 +85,7 @@ def write_study_figures(st: StudyStatistics, out_dir: str | os.PathLike, referen
     ax.set_yticks(range(len(rows)), list(rows["variant"]))
     ax.axvline(1.0, color="grey", linewidth=0.8, linestyle=":")
     ax.axvline(0.0, color="grey", linewidth=0.8, linestyle=":")
-    ax.set_xlabel("IQM of normalised final return (random 0, full agent 1); bar: 95% stratified-bootstrap CI")
+    ax.set_xlabel("IQM of normalised final return (random 0, full 1); bar: 95% CI")
     ax.set_title(f"Aggregate over {envs}", fontsize="medium")
     written.append(_save_figure(fig, out / "aggregate_iqm.png"))
 
@@ -113,7 +113,7 @@ def write_study_figures(st: StudyStatistics, out_dir: str | os.PathLike, referen
     ax.set_yticks(range(len(rows)), [f"{reference} > {v}" for v in rows["variant"]])
     ax.axvline(0.5, color="grey", linewidth=0.8, linestyle=":")
     ax.set_xlim(0, 1)
-    ax.set_xlabel("probability of improvement P(X > Y); bar: 95% stratified-bootstrap CI")
+    ax.set_xlabel("probability of improvement P(X > Y); bar: 95% CI")
     ax.set_title(f"Does the full agent beat each ablation? ({envs})", fontsize="medium")
     written.append(_save_figure(fig, out / "probability_of_improvement.png"))
     return written
