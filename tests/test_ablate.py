@@ -68,7 +68,7 @@ def group_members(pgid: int) -> list[str]:
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     out = tmp_path_factory.mktemp("ablation") / "study"
-    command = [*CLI, *STUDY, "--out", str(out)]
+    command = [*CLI, *STUDY, "--continue", "checkpoint", "--out", str(out)]
     info = {"out": out}
 
     # 1. Ctrl-C (SIGINT to the process group, as a terminal sends it) while runs are in flight: the
@@ -206,6 +206,10 @@ def test_rerun_of_a_finished_study_skips_every_run(study):
 BAD = {
     "zero seeds": (["--seeds", "0"], "--seeds"),
     "unknown variant": (["--variants", "full,no_target_nets"], "no_target_nets"),
+    "unknown ingredient": (["--variants", "full,clipped_double_qq"], "clipped_double_qq"),
+    # --steps 600 with 600 random start-up steps leaves no step to learn from
+    "no steps beyond the random ones": (["initial_collect_steps=600"], "random start-up steps"),
+    "a key the study sets": (["num_iterations=100"], "--steps"),
     "unknown env": (["--envs", "Pendulum-v9"], "Pendulum-v9"),
     "key typo": (["lerning_rate=1e-3"], "lerning_rate"),
     # every env is checked before any run starts (the discrete one is the second)
@@ -259,3 +263,38 @@ def test_every_env_is_checked_before_a_run_starts_and_box2d_envs_pass(tmp_path):
     jobs = plan(args)
     assert {j.env for j in jobs} == {"LunarLanderContinuous-v3", "BipedalWalker-v3"} and len(jobs) == 8
     assert not (tmp_path / "study").exists()
+
+
+# --- a study killed through the fault hook and run again ends as an uninterrupted one ---------------
+
+TINY = ["ablate", "td3", "--envs", "Pendulum-v1", "--seeds", "2", "--steps", "300", "--evals", "1",
+        "--eval-episodes", "1", "--variants", "full,target_policy_smoothing", "--workers", "2",  # an ingredient names its no_ variant
+        "actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]", "batch_size=32"]
+TINY_RUNS = [(variant, seed) for variant in ("full", "no_target_policy_smoothing") for seed in (0, 1)]
+
+
+def test_killed_study_continues_to_the_results_of_an_uninterrupted_one(tmp_path):
+    reference, stopped = tmp_path / "reference", tmp_path / "stopped"
+    done = subprocess.run([*CLI, *TINY, "--out", str(reference)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+    # The first run to finish the block of iteration 150 SIGKILLs the study's whole process group
+    # (the study and every run in flight): nothing is saved, as after `kill -9` or a power cut.
+    marker = tmp_path / "killed-by"
+    killed = subprocess.run([*CLI, *TINY, "--out", str(stopped)], capture_output=True, text=True, timeout=600,
+                            start_new_session=True,
+                            env={**os.environ, "RLPIPE_FAULT": "collected@150:SIGKILL", "RLPIPE_FAULT_ONCE": str(marker)})
+    assert killed.returncode == -signal.SIGKILL and marker.exists()
+    assert not (stopped / "ablation.csv").exists()
+    assert not all((run_dir(stopped, *run) / "summary.json").exists() for run in TINY_RUNS)
+
+    again = subprocess.run([*CLI, *TINY, "--out", str(stopped)], capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "aggregate_iqm.png" in again.stdout
+    # The same table, and every run the same evaluations, as the uninterrupted study's.
+    assert (stopped / "ablation.csv").read_text() == (reference / "ablation.csv").read_text()
+    for run in TINY_RUNS:
+        assert [(r["step"], r["average_return"]) for r in read_rows(run_dir(stopped, *run))] == \
+               [(r["step"], r["average_return"]) for r in read_rows(run_dir(reference, *run))], run
+    aggregate = (stopped / "aggregate.csv").read_text()
+    assert aggregate == (reference / "aggregate.csv").read_text() and "no_target_policy_smoothing" in aggregate

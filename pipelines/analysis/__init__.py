@@ -6,11 +6,22 @@
   IQM, mean curves with bands);
 * :mod:`~rlpipe.pipelines.analysis.plots` draws the figures (``rlpipe plot``, ``rlpipe eval
   --ecdf``, a run's ``returns.png``);
+* :mod:`~rlpipe.pipelines.analysis.aggregate` gives the across-env statistics (rliable's IQM with
+  stratified-bootstrap CIs, performance profiles, probability of improvement) and
+  :mod:`~rlpipe.pipelines.analysis.study` the ablation study's figures and sentences from them;
 * :mod:`~rlpipe.pipelines.analysis.report` writes the ablation report;
 * :mod:`~rlpipe.pipelines.analysis.pages` writes the HTML pages: a run's ``report.html`` and the
   comparison page of several runs (``rlpipe report``, the ablation's ``report.html``).
 """
 
+from rlpipe.pipelines.analysis.aggregate import (
+    aggregate_iqm,
+    iqm,
+    normalise_scores,
+    performance_profile,
+    probability_of_improvement,
+    stratified_bootstrap_ci,
+)
 from rlpipe.pipelines.analysis.pages import write_comparison_report, write_run_report
 from rlpipe.pipelines.analysis.plots import (
     plot_ecdf,
@@ -45,6 +56,12 @@ __all__ = [
     "area_under_curve",
     "bootstrap_ci",
     "interquartile_mean",
+    "iqm",
+    "normalise_scores",
+    "stratified_bootstrap_ci",
+    "aggregate_iqm",
+    "performance_profile",
+    "probability_of_improvement",
     "collect_runs",
     "summarise_runs",
     "aggregate_curves",

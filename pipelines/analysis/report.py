@@ -16,6 +16,7 @@ from typing import Any
 
 import pandas as pd
 
+from rlpipe.pipelines.analysis.aggregate import AGG_RESAMPLES
 from rlpipe.pipelines.analysis.pages import REPORT_FILE, write_comparison_page
 from rlpipe.pipelines.analysis.plots import (
     _fmt,
@@ -30,6 +31,12 @@ from rlpipe.pipelines.analysis.stats import (
     N_RESAMPLES_BAND,
     aggregate_curves,
     summarise_runs,
+)
+from rlpipe.pipelines.analysis.study import (
+    ingredient_sentences,
+    random_scores_of,
+    study_statistics,
+    write_study_figures,
 )
 from rlpipe.pipelines.artifacts.files import write_text_atomic
 
@@ -104,6 +111,7 @@ def write_ablation_report(
     curves: pd.DataFrame | Mapping | None,
     out_dir: str | os.PathLike,
     reference_variant: str = "full",
+    random_scores: Mapping[str, float] | None = None,
 ) -> list[Path]:
     """Write the ablation study's tables and figures into ``out_dir``.
 
@@ -115,6 +123,9 @@ def write_ablation_report(
             ``(env, variant, seed)``); ``None`` skips the curve figures.
         out_dir: output folder (created).
         reference_variant: the full agent, marked in the table and drawn black and thick.
+        random_scores: each env's random-agent return (normalised score 0; default: the runs'
+            ``baseline.json``, see :func:`~rlpipe.pipelines.analysis.study.random_scores_of`).
+            With it and the reference variant, the across-env statistics are written too.
 
     Writes:
         * ``ablation.csv`` -- ``env, variant, seed, final_return, auc``, one row per run;
@@ -125,6 +136,11 @@ def write_ablation_report(
           :func:`safe_filename`) -- mean over seeds per variant with a shaded 95% percentile
           bootstrap band (see :func:`aggregate_curves` for the step alignment);
         * ``ecdf_final_returns.png`` -- one panel per env, one ECDF per variant;
+        * across envs (where the reference and a random score exist for some env):
+          ``aggregate.csv`` (per variant the IQM of normalised final returns with its stratified-
+          bootstrap 95% CI and P(reference > variant) with its CI), ``aggregate_iqm.png``,
+          ``performance_profile.png``, ``probability_of_improvement.png``, and in ``ablation.md``
+          and on the page one sentence per ingredient (:func:`~rlpipe.pipelines.analysis.study.ingredient_sentences`);
         * ``report.html`` -- the same tables and figures on one page that opens from disk, with a
           table of the runs linking to each run's own ``report.html`` (see
           :func:`~rlpipe.pipelines.analysis.pages.write_comparison_page`).
@@ -180,18 +196,66 @@ def write_ablation_report(
             _plot_env_curves(env_agg, env, order, styles, reference, out / curve_files[env])
         )
 
+    scores = dict(random_scores) if random_scores is not None else random_scores_of(records)
+    study = study_statistics(table, scores, reference) if reference is not None else None
+    if study is not None and not study.envs:
+        study = None
+    sentences = ingredient_sentences(study, reference) if study is not None else {}
+    md = _markdown_report(summary, envs, curve_files, reference, len(table))
+    aggregate_paths = []
+    if study is not None:
+        md += _markdown_aggregate(study, reference, sentences)
+        aggregate = study.iqm.merge(study.improvement.rename(
+            columns={"p": f"p_{reference}_better", "ci_low": "p_ci_low", "ci_high": "p_ci_high"}), on="variant", how="left")
+        csv_agg = out / "aggregate.csv"
+        write_text_atomic(csv_agg, aggregate.to_csv(index=False))
+        aggregate_paths = [csv_agg, *write_study_figures(study, out, reference)]
     md_path = out / "ablation.md"
-    write_text_atomic(
-        md_path, _markdown_report(summary, envs, curve_files, reference, len(table))
-    )
+    write_text_atomic(md_path, md)
     written.append(md_path)
     written += curve_paths
     written.append(
         _plot_final_ecdfs(table, envs, orders, styles, reference, out / "ecdf_final_returns.png")
     )
+    written += aggregate_paths
+    notes = ["Each variant leaves one ingredient out of the full agent (the TD3 tutorial's exercise)."] \
+        if reference == "full" else []
+    if study is not None:
+        notes.append("Across envs (normalised: random agent 0, full agent's mean final return 1; IQM with "
+                     "stratified-bootstrap 95% CIs): " + ", ".join(
+                         f"{r.variant} {r.iqm:.2f} [{r.ci_low:.2f}, {r.ci_high:.2f}]" for r in study.iqm.itertuples())
+                     + ". Figures beside this page: aggregate_iqm.png, performance_profile.png, "
+                     "probability_of_improvement.png.")
+    notes += list(sentences.values())
     written.append(write_comparison_page(
         records, curves, out / REPORT_FILE,
-        reference=reference_variant, title="Ablation report",
-        notes=["Each variant leaves one ingredient out of the full agent (the TD3 tutorial's exercise)."]
-        if reference == "full" else ()))
+        reference=reference_variant, title="Ablation report", notes=notes))
     return written
+
+
+def _markdown_aggregate(study, reference: str, sentences: Mapping[str, str]) -> str:
+    improvement = study.improvement.set_index("variant")
+    lines = [
+        "## Across envs",
+        "",
+        f"Scores normalised per env: the random agent's return (its runs' `baseline.json`) is 0, the mean "
+        f"final return of `{reference}` is 1. Random returns: "
+        + ", ".join(f"{env} {_fmt(v)}" for env, v in study.random.items()) + ".",
+        "IQM = interquartile mean of all runs of all envs; 95% CIs from a stratified bootstrap (each env's "
+        f"seeds resampled on their own, {AGG_RESAMPLES} resamples; rliable's method). P({reference} > X) = the "
+        "probability that a run of the full agent beats a run of X on an env, averaged over envs (1,000 resamples).",
+        "",
+        "![aggregate IQM](aggregate_iqm.png) ![performance profiles](performance_profile.png) "
+        "![probability of improvement](probability_of_improvement.png)",
+        "",
+        f"| variant | runs | IQM (normalised) | 95% CI | P({reference} > variant) | 95% CI |",
+        "|:--|--:|--:|:-:|--:|:-:|",
+    ]
+    for r in study.iqm.itertuples(index=False):
+        name = f"**{r.variant}** ★" if r.variant == reference else f"`{r.variant}`"
+        p = improvement.loc[r.variant] if r.variant in improvement.index else None
+        pcol = f"{p['p']:.2f} | [{p['ci_low']:.2f}, {p['ci_high']:.2f}]" if p is not None else "— | —"
+        lines.append(f"| {name} | {r.n} | {r.iqm:.2f} | [{r.ci_low:.2f}, {r.ci_high:.2f}] | {pcol} |")
+    lines += ["", "### What each ingredient does here", ""]
+    lines += [f"- {s}" for s in sentences.values()]
+    return "\n".join(lines) + "\n"
