@@ -78,7 +78,7 @@ def _additive_gaussian_step(policy: nn.Module, observation_key: str) -> TensorSt
         return None
     spec = noise.spec
     spec = spec["action"] if isinstance(spec, Composite) else spec
-    if type(spec) is not Bounded:
+    if not isinstance(spec, Bounded) or spec.domain != "continuous":
         return None
     net = actor.module
 

@@ -33,9 +33,9 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 from torch import nn
+from torchrl._utils import seed_generator
 from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase, GymWrapper, TransformedEnv
-from torchrl._utils import seed_generator
 
 from rlpipe.envs import is_discrete
 from rlpipe.modules.tensor_policy import tensor_step

@@ -1,7 +1,8 @@
 """The local collector backend (``collector.backend=local``): TorchRL's collectors on this machine.
 
-One worker with ``collector.sync=true`` steps the env in the learner's process (TorchRL's ``Collector``,
-no process to watch); otherwise ``collector.workers`` processes, stepping in lock-step
+One worker with ``collector.sync=true`` steps the env in the learner's process (no process to watch):
+``gym_collector.GymCollector`` on an env made from ``config.env`` (``collector.direct``), else TorchRL's
+``Collector``; otherwise ``collector.workers`` processes, stepping in lock-step
 (``MultiSyncCollector``) or each at its own pace (``MultiAsyncCollector``). Weights reach the processes
 through TorchRL's shared-memory weight sync, with a deadline on the workers' acknowledgements
 (``supervision.TimedSharedMemScheme``): a push to a dead worker is a ``WorkerFailure``, not a wait for good.
@@ -10,6 +11,7 @@ through TorchRL's shared-memory weight sync, with a deadline on the workers' ack
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Callable, Iterator
 
 import torch
@@ -18,9 +20,11 @@ from torch import nn
 from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
 from torchrl.envs import EnvBase
 
+from rlpipe.envs import make_env
 from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
+from rlpipe.pipelines.workers.gym_collector import GymCollector, gym_env_of
 from rlpipe.pipelines.workers.supervision import (
     TimedSharedMemScheme,
     close_weight_sync_queues,
@@ -29,7 +33,17 @@ from rlpipe.pipelines.workers.supervision import (
     kill_processes,
 )
 
-__all__ = ["LocalBackend", "local_collector", "push_weights"]
+__all__ = ["LocalBackend", "direct_collection", "local_collector", "push_weights"]
+
+
+def direct_collection(config: TrainConfig, env_fn: Callable[[], EnvBase] | None, env: EnvBase | None) -> bool:
+    """Whether the in-process collector steps the gymnasium env directly (``GymCollector``): one worker,
+    sync, ``collector.direct``, and the env the pipeline made from ``config.env`` (a user's own TorchRL env
+    keeps TorchRL's ``Collector``: its transforms are its own)."""
+    c = config.collector
+    made_here = (isinstance(env_fn, functools.partial) and env_fn.func is make_env and env_fn.args == (config.env,)
+                 and set(env_fn.keywords) <= {"device", "num_envs"} and env_fn.keywords.get("num_envs", 1) == 1)
+    return c.direct and c.workers == 1 and c.sync and made_here and gym_env_of(env) is not None
 
 
 def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[[], EnvBase] | None,
@@ -41,6 +55,9 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
                   # the env steps where it lives; its outputs go to the policy's device, and the
                   # collected blocks to the learner's (where the replay buffer is)
                   policy_device=device, storing_device=device)
+    if direct_collection(config, env_fn, env):
+        return GymCollector(env, policy, frames_per_batch=c.frames_per_batch, total_frames=total_frames,
+                            init_random_frames=init_random_frames, device=device)
     if c.workers == 1 and c.sync:
         return Collector(env if env is not None else env_fn(), policy, **common)
     if not c.sync and init_random_frames > 0:
@@ -57,7 +74,7 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
 def push_weights(collector) -> None:
     """Send the policy's weights to a TorchRL collector's worker processes (in-process collection
     shares the policy itself: nothing to send)."""
-    if not isinstance(collector, Collector):
+    if not isinstance(collector, (Collector, GymCollector)):
         collector.update_policy_weights_()
 
 
