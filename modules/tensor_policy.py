@@ -99,7 +99,7 @@ def _tanh_normal_step(policy: nn.Module, observation_key: str) -> TensorStep | N
     if not isinstance(policy, ProbabilisticTensorDictSequential) or len(policy.module) != 2:
         return None
     net, dist = policy.module
-    if not (is_plain_module(net) and type(dist) is ProbabilisticTensorDictModule):
+    if not (is_plain_module(net) and isinstance(dist, ProbabilisticTensorDictModule)):
         return None
     if list(net.in_keys) != [observation_key] or list(net.out_keys) != list(dist.in_keys):
         return None
