@@ -11,7 +11,7 @@ import pytest
 import torch
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
-from torchrl.envs import TransformedEnv
+from torchrl.envs import GymEnv
 from torchrl.objectives import DQNLoss
 
 from rlpipe.envs import make_env
@@ -133,7 +133,7 @@ def test_user_envs_and_direct_false_keep_torchrls_collector():
     off = apply_overrides(p.config, ["collector.direct=false"])
     assert not direct_collection(off, p.env_fn, p.env)
     assert not direct_collection(apply_overrides(p.config, ["collector.sync=false"]), p.env_fn, p.env)
-    user_env = TransformedEnv(make_env("CartPole-v1"))
+    user_env = GymEnv("CartPole-v1")  # a user's own TorchRL env: its transforms are its own
     algo, cfg = resolve_preset("dqn")
     user = pipeline_class(algo)(apply_overrides(cfg, [*SMALL["dqn"], *IN_PROCESS]), env=lambda: user_env,
                                 eval_env=lambda: make_env("CartPole-v1"))
