@@ -58,9 +58,22 @@ def test_blocks_have_torchrls_keys_shapes_and_dtypes(algo):
     assert layout(our_random) == layout(their_random) == layout(their_policy)  # random rows: the policy's keys too
 
 
+def test_a_collector_process_steps_its_env_directly_too():
+    p = pipeline("td3", "collector.sync=false")
+    collector = p.make_collector(total_frames=150, init_random_frames=50)
+    try:
+        assert collector.collector_class is GymCollector
+        first, second = blocks(collector, 2)
+    finally:
+        collector.shutdown()
+    theirs = Collector(p.env, p.collect_policy, frames_per_batch=50, total_frames=50, **COLLECTOR_KWARGS)
+    assert layout(first) == layout(second) == layout(blocks(theirs, 1)[0])
+    assert not torch.equal(first["observation"], second["observation"])  # the shared block was refilled, not resent
+
+
 def test_episodes_are_bookkept_as_torchrls_transforms_do():
     p = pipeline("dqn", "env=CartPole-v1")
-    collector = GymCollector(p.env, p.collect_policy, frames_per_batch=100, total_frames=300)
+    collector = GymCollector(p.env, p.collect_policy, frames_per_batch=100, total_frames=300, **COLLECTOR_KWARGS)
     collector.set_seed(0)
     batch = torch.cat(blocks(collector, 3))
     done = batch["next", "done"].squeeze(-1)
@@ -132,7 +145,8 @@ def test_user_envs_and_direct_false_keep_torchrls_collector():
     assert direct_collection(p.config, p.env_fn, p.env)
     off = apply_overrides(p.config, ["collector.direct=false"])
     assert not direct_collection(off, p.env_fn, p.env)
-    assert not direct_collection(apply_overrides(p.config, ["collector.sync=false"]), p.env_fn, p.env)
+    vector = pipeline("dqn", "env=CartPole-v1", "collector.envs_per_worker=2", "collector.frames_per_batch=50")
+    assert not direct_collection(vector.config, vector.env_fn, vector.env)
     user_env = GymEnv("CartPole-v1")  # a user's own TorchRL env: its transforms are its own
     algo, cfg = resolve_preset("dqn")
     user = pipeline_class(algo)(apply_overrides(cfg, [*SMALL["dqn"], *IN_PROCESS]), env=lambda: user_env,
@@ -144,14 +158,18 @@ def test_user_envs_and_direct_false_keep_torchrls_collector():
 
 def test_its_state_dict_carries_the_bookkeeping_over():
     p = pipeline("dqn", "env=CartPole-v1")
-    collector = GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1)
+    collector = GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1, **COLLECTOR_KWARGS)
     collector.set_seed(0)
-    blocks(collector, 2)
+    iterator = iter(collector)
+    seen = torch.cat([next(iterator), next(iterator)])
     state = collector.state_dict()
-    assert state["frames"] == 60 and state["env"] is None  # the env's own state: rlpipe.envs.snapshot (issue 23)
-    other = GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1)
+    assert state["frames"] == 60 and state["gym_collector"]["env"] is None  # the env's state: envs.snapshot (issue 23)
+    assert state["gym_collector"]["observation"].shape == (4,)
+    other = GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1, **COLLECTOR_KWARGS)
     other.load_state_dict(state)
     block = next(iter(other))
-    assert other.frames == 90
-    # without the env's state the episode under way cannot go on: a new trajectory starts
-    assert block["collector", "traj_ids"][0].item() == state["next_traj_id"] and block["is_init"][0].item()
+    assert other._frames == 90
+    # without the env's state the episode under way cannot go on: a new trajectory starts, numbered after the
+    # ones collected before
+    assert block["is_init"][0].item() and block["step_count"][0].item() == 0
+    assert block["collector", "traj_ids"][0].item() > seen["collector", "traj_ids"].max().item()

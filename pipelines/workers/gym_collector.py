@@ -25,17 +25,17 @@ once ``total_frames`` are collected (whole blocks; -1: never).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import gymnasium
 import numpy as np
 import torch
 from tensordict import TensorDict
-from torch import nn
 from torchrl._utils import seed_generator
+from torchrl.collectors import Collector
 from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase, GymWrapper, TransformedEnv
+from torchrl.envs.utils import set_exploration_type
 
 from rlpipe.envs import is_discrete
 from rlpipe.modules.tensor_policy import tensor_step
@@ -60,96 +60,94 @@ def gym_env_of(env: EnvBase | None) -> gymnasium.Env | None:
     return gym_env if isinstance(gym_env, gymnasium.Env) else None
 
 
-class GymCollector:
-    """TorchRL ``Collector``'s interface (iterate, ``set_seed``, ``shutdown``, ``update_policy_weights_``)
-    over a gymnasium env stepped directly; see the module's docstring for why.
+class GymCollector(Collector):
+    """TorchRL's ``Collector`` whose ``rollout`` steps the gymnasium env under ``make_env``'s env directly;
+    see the module's docstring for why.
 
-    Args:
-        env: the TorchRL env ``make_env`` made (its specs give the block's keys and dtypes; its
-            gymnasium env is what is stepped: the same object, so it is not closed here).
-        policy: the collect policy (a TensorDict module reading ``observation_key``).
-        frames_per_batch, total_frames, init_random_frames: as TorchRL's ``Collector``'s.
-        device: where blocks are stored and the policy runs (the learner's device).
+    Everything else is TorchRL's: the constructor's arguments, iteration, frame counting, random initial
+    frames, the weight-sync receivers, and its use as ``collector_class`` of ``MultiSyncCollector`` /
+    ``MultiAsyncCollector`` (each worker process then steps its env so). The env must be ``make_env``'s
+    one-copy env (``gym_env_of`` not None); its TorchRL specs give the block's keys and dtypes.
     """
 
-    def __init__(self, env: EnvBase, policy: nn.Module, *, frames_per_batch: int, total_frames: int = -1,
-                 init_random_frames: int = 0, device: torch.device | str = "cpu"):
-        gym_env = gym_env_of(env)
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        gym_env = gym_env_of(self.env)
         if gym_env is None:
-            raise ValueError(f"GymCollector steps make_env's one-copy gymnasium envs; got {type(env).__name__}")
-        self.env, self.gym_env, self.policy = env, gym_env, policy
-        self.frames_per_batch, self.total_frames = int(frames_per_batch), int(total_frames)
-        self.init_random_frames = int(init_random_frames)
-        self.device = torch.device(device)
-        obs_keys = [k for k in env.observation_spec.keys() if k not in _TRANSFORM_KEYS]
+            raise ValueError(f"GymCollector steps make_env's one-copy gymnasium envs; got {type(self.env).__name__}")
+        self.gym_env = gym_env
+        obs_keys = [k for k in self.env.observation_spec.keys() if k not in _TRANSFORM_KEYS]
         if len(obs_keys) != 1:
             raise ValueError(f"GymCollector needs one observation entry; the env has {obs_keys}")
         self.observation_key = obs_keys[0]
-        obs_spec = env.observation_spec[self.observation_key]
+        obs_spec = self.env.observation_spec[self.observation_key]
         self._obs_shape, self._obs_dtype = tuple(obs_spec.shape), _numpy_dtype(obs_spec.dtype)
         self._obs_torch_dtype = obs_spec.dtype
-        self.action_spec: TensorSpec = env.action_spec_unbatched
-        self._discrete = is_discrete(self.action_spec)
-        self._reward_dtype = env.reward_spec.dtype
-        self._act = tensor_step(policy, self.observation_key)
-        # bookkeeping of the episode under way (state_dict holds it)
-        self.frames = 0
-        self._obs: np.ndarray | None = None  # None: the env needs a reset before the next step
+        self._action_spec: TensorSpec = self.env.action_spec_unbatched
+        self._discrete = is_discrete(self._action_spec)
+        self._reward_dtype = self.env.reward_spec.dtype
+        self._act = None  # the policy on tensors, made at the first block (weight receivers are set up by then)
+        self._template: dict[str, torch.Tensor] | None = None
+        self._shared_block: TensorDict | None = None
+        # the episode under way (state_dict holds it): the env is reset at the first block
+        self._obs: np.ndarray | None = None
         self._step_count = 0
         self._episode_reward = 0.0
-        self._traj_id = -1
-        self._next_traj_id = 0
-        self.closed = False
-        self._template: dict[str, torch.Tensor] | None = None
+        self._traj_id = int(self._carrier.get(("collector", "traj_ids")).reshape(-1)[0])  # TorchRL's first id
 
-    # --- TorchRL Collector's interface ----------------------------------------------------------
+    # --- TorchRL Collector's hooks --------------------------------------------------------------------
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         """Reset the env with ``seed`` (a new episode); returns the next seed, as TorchRL's envs do."""
         self._reset(seed=seed)
         return seed if static_seed else seed_generator(seed)
 
-    def update_policy_weights_(self, *args, **kwargs) -> None:
-        """Nothing to send: the collector holds the learner's own policy."""
+    def reset(self, index=None, **kwargs) -> None:
+        super().reset(index, **kwargs)
+        self._obs = None  # a new episode at the next block
 
-    def shutdown(self, *args, **kwargs) -> None:
-        self.closed = True  # the env is the pipeline's: it closes it
-
-    def __iter__(self) -> Iterator[TensorDict]:
-        while self.total_frames < 0 or self.frames < self.total_frames:
-            if self.closed:
-                return
-            block = self.rollout(random=self.frames < self.init_random_frames)
-            self.frames += self.frames_per_batch
-            yield block
+    @torch.no_grad()
+    def rollout(self) -> TensorDict:
+        """One block of ``frames_per_batch`` env steps, random while ``_should_use_random_frames()``."""
+        if self._act is None:
+            self._act = tensor_step(self.policy, self.observation_key)
+        with set_exploration_type(self.exploration_type):
+            block = self._rollout(random=self._should_use_random_frames())
+        if not self.return_same_td:
+            return block
+        # TorchRL's worker processes send the first block's shared memory once, then expect it filled in place
+        if self._shared_block is None:
+            self._shared_block = block
+        else:
+            self._shared_block.update_(block)
+        return self._shared_block
 
     # --- the state a resume needs -----------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """The collector's own bookkeeping: frames counted, the episode under way (its observation, step,
-        return, trajectory id) and the env's own state (``capture_env_state``). The exploration's state is
-        the policy's (its state dict: epsilon, noise scale) and torch's global generator (the pipeline's
-        checkpoint holds both)."""
-        return {
-            "frames": self.frames,
+        """TorchRL's (frames, trajectory counter, transforms) and this collector's own bookkeeping: the
+        episode under way (its observation, step, return, trajectory id) and the env's own state
+        (``capture_env_state``). The exploration's state is the policy's (its state dict: epsilon, noise
+        scale) and torch's global generator (the pipeline's checkpoint holds both)."""
+        return {**super().state_dict(), "gym_collector": {
             "observation": None if self._obs is None else torch.as_tensor(self._obs.copy()),
             "step_count": self._step_count,
             "episode_reward": self._episode_reward,
             "traj_id": self._traj_id,
-            "next_traj_id": self._next_traj_id,
             "env": self.capture_env_state(),
-        }
+        }}
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.frames = int(state["frames"])
-        obs = state["observation"]
-        self._obs = None if obs is None else np.asarray(obs, dtype=self._obs_dtype).copy()
-        self._step_count, self._episode_reward = int(state["step_count"]), float(state["episode_reward"])
-        self._traj_id, self._next_traj_id = int(state["traj_id"]), int(state["next_traj_id"])
-        if state.get("env") is not None:
-            self.restore_env_state(state["env"])
-        elif self._obs is not None:
-            self._obs = None  # without the env's own state the episode cannot go on: start a new one
+    def load_state_dict(self, state_dict: dict[str, Any], **kwargs) -> None:
+        state_dict = dict(state_dict)
+        own = state_dict.pop("gym_collector")
+        super().load_state_dict(state_dict, **kwargs)  # TorchRL starts a new trajectory id
+        self._traj_id = int(self._carrier.get(("collector", "traj_ids")).reshape(-1)[0])
+        self._obs, self._step_count, self._episode_reward = None, 0, 0.0
+        if own.get("env") is not None and own["observation"] is not None:  # the episode goes on
+            self.restore_env_state(own["env"])
+            self._obs = np.asarray(own["observation"], dtype=self._obs_dtype).copy()
+            self._step_count, self._episode_reward = int(own["step_count"]), float(own["episode_reward"])
+            self._traj_id = int(own["traj_id"])
 
     def capture_env_state(self) -> dict[str, torch.Tensor] | None:
         """The gymnasium env's own state (physics, its random generator, the time limit's count), for an exact
@@ -166,25 +164,24 @@ class GymCollector:
 
     def _reset(self, seed: int | None = None) -> None:
         obs, _ = self.gym_env.reset(seed=seed) if seed is not None else self.gym_env.reset()
+        if self._step_count > 0:  # the trajectory under way had steps: a new one, numbered by TorchRL's pool
+            self._traj_id = int(self._traj_pool.get_traj_and_increment(1)[0])
         self._obs = np.asarray(obs, dtype=self._obs_dtype)
         self._step_count, self._episode_reward = 0, 0.0
-        self._traj_id, self._next_traj_id = self._next_traj_id, self._next_traj_id + 1
 
     def _policy_template(self) -> dict[str, torch.Tensor]:
         """What the policy writes for one step (keys, shapes, dtypes), from one call whose random draws are
         undone (torch's generator forked); cached."""
         if self._template is None:
-            observation = torch.zeros(self._obs_shape, dtype=self._obs_torch_dtype, device=self.device)
+            observation = torch.zeros(self._obs_shape, dtype=self._obs_torch_dtype, device=self.policy_device)
             with torch.random.fork_rng(devices=[]), torch.no_grad():
                 self._template = {k: v.detach() for k, v in self._act(observation).items()}
         return self._template
 
     def _random_step(self, observation: torch.Tensor) -> dict:
-        return {"action": self.action_spec.rand()}
+        return {"action": self._action_spec.rand()}
 
-    @torch.no_grad()
-    def rollout(self, random: bool = False) -> TensorDict:
-        """One block of ``frames_per_batch`` env steps (random actions with ``random=True``)."""
+    def _rollout(self, random: bool) -> TensorDict:
         n, env = self.frames_per_batch, self.gym_env
         obs_buf = np.empty((n, *self._obs_shape), self._obs_dtype)
         next_obs_buf = np.empty_like(obs_buf)
@@ -197,7 +194,7 @@ class GymCollector:
         traj_ids = np.empty((n,), np.int64)
         outputs: list[dict] = []
         act = self._random_step if random else self._act
-        on_cpu = self.device.type == "cpu"
+        device = self.policy_device if self.policy_device is not None and self.policy_device.type != "cpu" else None
         discrete = self._discrete
         if self._obs is None:
             self._reset()
@@ -205,7 +202,7 @@ class GymCollector:
         for i in range(n):
             obs_buf[i] = obs
             observation = torch.from_numpy(obs_buf[i])
-            out = act(observation if on_cpu else observation.to(self.device))
+            out = act(observation if device is None else observation.to(device))
             outputs.append(out)
             action = out["action"]
             action = action.item() if discrete else action.cpu().numpy()
@@ -262,8 +259,9 @@ class GymCollector:
             },
             "collector": {"traj_ids": torch.from_numpy(traj_ids)},
             **policy_out,
-        }, batch_size=[n])
-        return td if self.device.type == "cpu" else td.to(self.device)
+        }, batch_size=[n], device="cpu")
+        storing = self.storing_device
+        return td if storing is None or storing.type == "cpu" else td.to(storing)
 
 
 def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
