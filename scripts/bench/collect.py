@@ -147,9 +147,9 @@ def collect_steps_per_s(preset: str, overrides: list[str], envs_per_worker: int,
                         direct: bool = False) -> dict:
     """Collect-only env steps/s of the collector the pipeline makes, with its collection policy.
 
-    ``process=False``: ``collector.workers=1 collector.sync=true`` in this process: with ``direct``
-    rlpipe's ``GymCollector`` (``collector.direct=true``), else TorchRL's ``Collector``; ``True``:
-    ``collector.sync=false`` (a ``MultiAsyncCollector`` with one worker process).
+    ``process=False``: ``collector.workers=1 collector.sync=true`` (in this process); ``True``:
+    ``collector.sync=false`` (a ``MultiAsyncCollector`` with one worker process). ``direct``: each
+    collector is rlpipe's ``GymCollector`` (``collector.direct=true``), else TorchRL's ``Collector``.
     """
     import torch
 
@@ -260,31 +260,43 @@ def target_cell(fraction: float) -> str:
     return f"**{fraction:.2f} met**" if fraction >= TARGET_FRACTION else f"{fraction:.2f}"
 
 
+def _runs_cell(xs: list[float]) -> str:
+    return " / ".join(f"{x:.0f}" for x in xs) if xs else "-"
+
+
+def _ratio_cell(xs: list[float], plain: float, target: bool = False) -> str:
+    if not xs:
+        return "-"
+    return target_cell(_mean(xs) / plain) if target else f"{_mean(xs) / plain:.2f}"
+
+
+COLUMNS = (("torchrl", "TorchRL Collector, in-process"), ("ours", "rlpipe GymCollector, in-process"),
+           ("torchrl_process", "TorchRL, 1 collector process"), ("ours_process", "rlpipe, 1 collector process"))
+"""the collectors measured (row key, column title): TorchRL's over GymEnv (collector.direct=false) and rlpipe's
+GymCollector (collector.direct=true), in the learner's process (Collector) and in one worker (MultiAsyncCollector)"""
+
+
 def collect_table(rows: list[dict], steps: int, overrides: list[str]) -> str:
-    """Markdown table of ``rows`` (one per env and envs_per_worker): raw env, plain loop, TorchRL's and our
-    in-process collectors (each run, alternated), one collector process."""
+    """Markdown table of ``rows`` (one per env and envs_per_worker): raw env, plain loop, then each collector's
+    runs (alternated) and their mean's ratio to the plain loop."""
     lines = [
         f"Collect-only env steps/s (no learner), each preset's collection policy, on one torch thread, over >= {steps} "
         f"frames after the first block. Raw env: the gymnasium env under random actions. Plain loop: CleanRL's loop "
-        f"(obs -> policy -> env.step, numpy in and out) with the same policy network. In-process runs alternate "
-        f"TorchRL's `Collector` (collector.direct=false) and rlpipe's `GymCollector` (collector.direct=true), each run "
-        f"listed; ratios from their means. Target: rlpipe's >= {TARGET_FRACTION:g} of the plain loop (\"met\" in bold)."
-        f"{' Overrides: ' + ' '.join(overrides) if overrides else ''}",
+        f"(obs -> policy -> env.step, numpy in and out) with the same policy network. The collectors' runs alternate "
+        f"TorchRL's path (collector.direct=false: `Collector` over `GymEnv`) and rlpipe's (collector.direct=true: "
+        f"`GymCollector`); each run is listed, ratios from their means. Target: rlpipe's >= {TARGET_FRACTION:g} of "
+        f"the plain loop (\"met\" in bold).{' Overrides: ' + ' '.join(overrides) if overrides else ''}",
         "",
         "| env | preset (collection policy) | raw env | plain loop | envs per worker | frames per block | "
-        "TorchRL Collector, in-process | / plain | rlpipe GymCollector, in-process | / plain | "
-        "1 collector process (MultiAsyncCollector) | / plain |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        + " | ".join(f"{title} | / plain" for _, title in COLUMNS) + " |",
+        "|---|---|---|---|---|---|" + "---|---|" * len(COLUMNS),
     ]
     for r in rows:
-        torchrl, ours = r["torchrl"], r["ours"]
-        ours_cells = (f"{' / '.join(f'{x:.0f}' for x in ours)} | {target_cell(_mean(ours) / r['plain'])}" if ours
-                      else "- | -")
-        lines.append(
-            f"| {r['env']} | {r['preset']} | {r['raw']:.0f} | {r['plain']:.0f} | {r['envs_per_worker']} | "
-            f"{r['frames_per_batch']} | {' / '.join(f'{x:.0f}' for x in torchrl)} | {_mean(torchrl) / r['plain']:.2f} | "
-            f"{ours_cells} | {r['process']:.0f} | {r['process'] / r['plain']:.2f} |")
-    met = [r for r in rows if r["ours"] and _mean(r["ours"]) >= TARGET_FRACTION * r["plain"]]
+        cells = " | ".join(f"{_runs_cell(r.get(key, []))} | {_ratio_cell(r.get(key, []), r['plain'], key.startswith('ours'))}"
+                           for key, _ in COLUMNS)
+        lines.append(f"| {r['env']} | {r['preset']} | {r['raw']:.0f} | {r['plain']:.0f} | {r['envs_per_worker']} | "
+                     f"{r['frames_per_batch']} | {cells} |")
+    met = [r for r in rows if r.get("ours") and _mean(r["ours"]) >= TARGET_FRACTION * r["plain"]]
     lines += ["", "Target met (rlpipe in-process) for: " + (
         "; ".join(f"{r['env']} at envs_per_worker={r['envs_per_worker']}" for r in met) or "none") + "."]
     return "\n".join(lines)
@@ -295,7 +307,7 @@ def _mean(xs: list[float]) -> float:
 
 
 REPEATS = 2
-"""in-process runs of each collector, alternated (TorchRL's, rlpipe's, TorchRL's, ...)"""
+"""runs of each collector, alternated (TorchRL's, rlpipe's, TorchRL's, ...)"""
 
 
 def bench_collect(args, out: Path) -> dict:
@@ -311,18 +323,16 @@ def bench_collect(args, out: Path) -> dict:
         plain = plain_loop_steps_per_s(preset, overrides, steps)["steps_per_s"]
         print(f"  {env_id} raw env: {raw:.0f} steps/s; plain loop, same policy network: {plain:.0f}", file=sys.stderr)
         for n in counts:
-            runs: dict[str, list[dict]] = {"torchrl": [], "ours": []}
+            runs: dict[str, list[dict]] = {key: [] for key, _ in COLUMNS}
             for _ in range(REPEATS):
-                runs["torchrl"].append(collect_steps_per_s(preset, overrides, n, False, steps, direct=False))
-                if n == 1:  # GymCollector steps one env; a vector of them is TorchRL's path
-                    runs["ours"].append(collect_steps_per_s(preset, overrides, n, False, steps, direct=True))
-            process = collect_steps_per_s(preset, overrides, n, True, steps)
-            torchrl = [r["steps_per_s"] for r in runs["torchrl"]]
-            ours = [r["steps_per_s"] for r in runs["ours"]]
-            print(f"  {env_id} envs_per_worker={n}: in-process TorchRL {' / '.join(f'{x:.0f}' for x in torchrl)}, "
-                  f"rlpipe {' / '.join(f'{x:.0f}' for x in ours) or '-'}; collector process "
-                  f"{process['steps_per_s']:.0f} steps/s", file=sys.stderr)
+                for process in (False, True):
+                    suffix = "_process" if process else ""
+                    runs["torchrl" + suffix].append(collect_steps_per_s(preset, overrides, n, process, steps, direct=False))
+                    if n == 1:  # GymCollector steps one env; a vector of them is TorchRL's path
+                        runs["ours" + suffix].append(collect_steps_per_s(preset, overrides, n, process, steps, direct=True))
+            speeds = {key: [r["steps_per_s"] for r in rs] for key, rs in runs.items()}
+            print(f"  {env_id} envs_per_worker={n}: " + "; ".join(
+                f"{title} {_runs_cell(speeds[key])}" for key, title in COLUMNS) + " steps/s", file=sys.stderr)
             rows.append({"env": env_id, "preset": preset, "raw": raw, "plain": plain, "envs_per_worker": n,
-                         "frames_per_batch": runs["torchrl"][0]["frames_per_batch"], "torchrl": torchrl, "ours": ours,
-                         "process": process["steps_per_s"], "runs": runs, "process_run": process})
+                         "frames_per_batch": runs["torchrl"][0]["frames_per_batch"], **speeds, "runs": runs})
     return {"rows": rows, "steps": steps, "table": collect_table(rows, steps, args.overrides)}
