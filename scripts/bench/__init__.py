@@ -24,7 +24,7 @@ writes the raw figures. These machines are shared and noisy: compare the ratios 
 
 One module per target here (``dqn.py`` ... ``ray.py``, each with its ``bench_TARGET(args, out)``),
 ``runs.py`` for the rlpipe runs they share, ``peers/`` for the peers run in venvs of their own;
-``dqn_tries.py`` and ``ray_replay.py`` are measurements run with ``python -m``.
+``dqn_tries.py``, ``ray_replay.py``, ``collect_tries.py`` and ``dqn_one_env.py`` are measurements run with ``python -m``.
 """
 
 from __future__ import annotations
