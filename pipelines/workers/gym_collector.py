@@ -103,8 +103,9 @@ class GymCollector(Collector):
         return seed if static_seed else seed_generator(seed)
 
     def reset(self, index=None, **kwargs) -> None:
-        super().reset(index, **kwargs)
-        self._obs = None  # a new episode at the next block
+        super().reset(index, **kwargs)  # TorchRL numbers the new trajectory
+        self._traj_id = int(self._carrier.get(("collector", "traj_ids")).reshape(-1)[0])
+        self._obs, self._step_count, self._episode_reward = None, 0, 0.0  # a new episode at the next block
 
     @torch.no_grad()
     def rollout(self) -> TensorDict:
