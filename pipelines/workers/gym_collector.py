@@ -89,6 +89,11 @@ class GymCollector(Collector):
         self._act = None  # the policy on tensors, made at the first block (weight receivers are set up by then)
         self._template: dict[str, torch.Tensor] | None = None
         self._shared_block: TensorDict | None = None
+        # Outside a worker process each block is a new TensorDict: TorchRL's iterator need not clone it
+        # (~150 us a block, ~3 us a CartPole step) before handing it out.
+        self._fresh_blocks = self.worker_idx is None and self.replay_buffer is None
+        if self._fresh_blocks and (self.storing_device is None or self.storing_device.type == "cpu"):
+            self.return_same_td = True
         # the episode under way (state_dict holds it): the env is reset at the first block
         self._obs: np.ndarray | None = None
         self._step_count = 0
@@ -114,7 +119,7 @@ class GymCollector(Collector):
             self._act = tensor_step(self.policy, self.observation_key)
         with set_exploration_type(self.exploration_type):
             block = self._rollout(random=self._should_use_random_frames())
-        if not self.return_same_td:
+        if self._fresh_blocks or not self.return_same_td:
             return block
         # TorchRL's worker processes send the first block's shared memory once, then expect it filled in place
         if self._shared_block is None:
