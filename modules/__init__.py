@@ -5,6 +5,7 @@ This package never imports ``rlpipe.pipelines``: everything here is a plain Torc
     actors, critics, qnetworks, exploration   policies and value networks (TensorDict modules); critics
                       also holds CrossQ's batch-renormalised critic and a faster BatchRenorm1d
     plain_policy      any TensorDict policy as a plain module on observation tensors (what torch.export takes)
+    tensor_policy     a collect policy as a function on one observation tensor (a collector's per-step call)
     td3_loss          TorchRL's TD3Loss with TD3's six ingredients as switches, and one TD3 step
     sac_loss          TorchRL's SACLoss terms on plain tensors (LeanSACLoss), importance weights included
     dqn_loss          TorchRL's DQNLoss on plain tensors (LeanDQNLoss)

@@ -94,17 +94,24 @@ class EGreedyQPolicy(TensorDictSequential):
         parts = self._lean_parts() if tensordict_out is None and not kwargs else None
         if parts is None:
             return super().forward(tensordict, tensordict_out, **kwargs)
-        qnet, observation_key, num_actions, greedy = parts
-        values = qnet(tensordict.get(observation_key))
-        action = values.argmax(-1)  # QValueModule's categorical action
-        # QValueModule's value of its (greedy) action, before EGreedyModule may replace the action
-        tensordict.set("chosen_action_value", values.gather(-1, action.unsqueeze(-1)))
-        if exploration_type() in (ExplorationType.RANDOM, None):
-            # EGreedyModule.forward: a coin per env, then a uniform action from the spec
-            eps = greedy.eps
-            explore = torch.rand(tensordict.shape, device=eps.device) < eps
-            random_action = torch.randint(0, num_actions, action.shape, device=action.device)
-            action = torch.where(explore, random_action, action)
+        action, values, chosen = self.act(tensordict.get(parts[1]), tensordict.shape)
+        tensordict.set("chosen_action_value", chosen)
         tensordict.set("action", action)
         tensordict.set("action_value", values)
         return tensordict
+
+    def act(self, observation: torch.Tensor, batch_shape: torch.Size) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(action, action_value, chosen_action_value)`` at ``observation`` (batch ``batch_shape``), as
+        ``forward`` writes them; only where the tensor path applies (``_lean_parts()`` is not None)."""
+        qnet, _, num_actions, greedy = self._lean_parts()
+        values = qnet(observation)
+        action = values.argmax(-1)  # QValueModule's categorical action
+        # QValueModule's value of its (greedy) action, before EGreedyModule may replace the action
+        chosen = values.gather(-1, action.unsqueeze(-1))
+        if exploration_type() in (ExplorationType.RANDOM, None):
+            # EGreedyModule.forward: a coin per env, then a uniform action from the spec
+            eps = greedy.eps
+            explore = torch.rand(batch_shape, device=eps.device) < eps
+            random_action = torch.randint(0, num_actions, action.shape, device=action.device)
+            action = torch.where(explore, random_action, action)
+        return action, values, chosen

@@ -163,6 +163,8 @@ class CollectorConfig:
     """true: `MultiSyncCollector` (workers step in lock-step); false: `MultiAsyncCollector` (collection overlaps learning)"""
     envs_per_worker: int = checked(1, POSITIVE)
     """env copies each worker steps as one batch (gymnasium's SyncVectorEnv): the policy and TorchRL's per-step work run once per batch; made from `env` (evaluation keeps one copy)"""
+    direct: bool = True
+    """with one env copy per worker made from `env`: each collector (in the learner's process or a worker's) steps the gymnasium env directly (`GymCollector`, a TorchRL `Collector` giving TorchRL's keys at a fraction of its per-step cost over `GymEnv`); false: TorchRL's `Collector` over `GymEnv`"""
     frames_per_batch: int = checked(50, POSITIVE)
     """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
     weight_sync_interval: int = checked(1, POSITIVE)

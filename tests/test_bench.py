@@ -19,14 +19,17 @@ def test_the_target_cell_marks_half_the_raw_speed_and_above():
 
 
 def test_the_collect_table_names_where_the_target_is_met():
-    def row(env, n, inproc, process):
-        return {"env": env, "preset": "p", "raw": 1000.0, "envs_per_worker": n, "frames_per_batch": 50 * n,
-                "inproc": inproc, "process": process, "inproc_run": {"threads": 1}}
+    def row(env, n, torchrl, ours):
+        return {"env": env, "preset": "p", "raw": 1000.0, "plain": 800.0, "envs_per_worker": n, "frames_per_batch": 50 * n,
+                "torchrl": torchrl, "ours": ours, "torchrl_process": [200.0], "ours_process": [400.0] if ours else []}
 
-    table = collect_table([row("A", 1, 100.0, 200.0), row("A", 8, 400.0, 600.0), row("B", 1, 500.0, 10.0)], 3000, [])
-    assert "| A | p | 1000 | 8 | 400 | 400 | 0.40 | 600 | **0.60 met** |" in table
-    assert table.endswith("Target met (either collector) for: A at envs_per_worker=8; B at envs_per_worker=1.")
-    assert collect_table([row("A", 1, 1.0, 1.0)], 10, []).endswith("for: none.")
+    table = collect_table([row("A", 1, [100.0, 120.0], [300.0, 500.0]), row("A", 8, [400.0], []),
+                           row("B", 1, [50.0], [390.0, 400.0])], 3000, [])
+    assert ("| A | p | 1000 | 800 | 1 | 50 | 100 / 120 | 0.14 | 300 / 500 | **0.50 met** | 200 | 0.25 | 400 | "
+            "**0.50 met** |") in table
+    assert "| A | p | 1000 | 800 | 8 | 400 | 400 | 0.50 | - | - | 200 | 0.25 | - | - |" in table
+    assert table.endswith("Target met (rlpipe in-process) for: A at envs_per_worker=1.")
+    assert collect_table([row("A", 1, [1.0], [1.0])], 10, []).endswith("for: none.")
 
 
 def test_actors_saturate_the_learner_where_their_steps_pay_for_its_updates():

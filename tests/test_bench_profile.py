@@ -65,6 +65,24 @@ def test_each_real_stack_lands_in_its_part():
         assert classify(stack) == part, line[:200]
 
 
+def test_gym_collectors_steps_land_in_the_same_parts():
+    # GymCollector (collector.direct=true) steps the env under its own _rollout, below TorchRL's iterator
+    gc = "/work/rlpipe/pipelines/workers/gym_collector.py"
+    worker = (("_main_async_collector", "/site-packages/torchrl/collectors/_runner.py"),
+              ("Collector.iterator", "/site-packages/torchrl/collectors/_single.py"),
+              ("GymCollector.rollout", gc), ("GymCollector._rollout", gc))
+    assert bp.classify_worker((*worker, ("_egreedy_step.<locals>.act", "/work/rlpipe/modules/tensor_policy.py"),
+                               ("Module._call_impl", "/site-packages/torch/nn/modules/module.py"))) == "collection policy"
+    assert bp.classify_worker((*worker, ("CartPoleEnv.step", "/site-packages/gymnasium/envs/classic_control/cartpole.py"))
+                              ) == "env step"
+    assert bp.classify_worker((*worker, ("GymCollector._block", gc))) == \
+        "collector bookkeeping (trajectory ids, stacking, copies)"
+    learner = (("Loop.run", "/work/rlpipe/pipelines/training/loop.py"),
+               ("Loop.collect", "/work/rlpipe/pipelines/training/loop.py"), *worker[1:])
+    assert bp.classify_learner((*learner, ("TimeLimit.step", "/site-packages/gymnasium/wrappers/common.py"))) == \
+        "env step (in-process collector)"
+
+
 def test_processes_roles_and_shares():
     processes = bp.parse_raw(SAMPLE.read_text().splitlines())
     # the collector process's command line holds ';' (multiprocessing's -c string): still one process

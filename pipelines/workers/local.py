@@ -2,7 +2,9 @@
 
 One worker with ``collector.sync=true`` steps the env in the learner's process (TorchRL's ``Collector``,
 no process to watch); otherwise ``collector.workers`` processes, stepping in lock-step
-(``MultiSyncCollector``) or each at its own pace (``MultiAsyncCollector``). Weights reach the processes
+(``MultiSyncCollector``) or each at its own pace (``MultiAsyncCollector``). On one-copy envs made from
+``config.env`` (``collector.direct``) each of those collectors is ``gym_collector.GymCollector``, TorchRL's
+``Collector`` stepping the gymnasium env directly. Weights reach the processes
 through TorchRL's shared-memory weight sync, with a deadline on the workers' acknowledgements
 (``supervision.TimedSharedMemScheme``): a push to a dead worker is a ``WorkerFailure``, not a wait for good.
 """
@@ -10,6 +12,7 @@ through TorchRL's shared-memory weight sync, with a deadline on the workers' ack
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Callable, Iterator
 
 import torch
@@ -18,9 +21,11 @@ from torch import nn
 from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
 from torchrl.envs import EnvBase
 
+from rlpipe.envs import make_env
 from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
+from rlpipe.pipelines.workers.gym_collector import GymCollector, gym_env_of
 from rlpipe.pipelines.workers.supervision import (
     TimedSharedMemScheme,
     close_weight_sync_queues,
@@ -29,7 +34,17 @@ from rlpipe.pipelines.workers.supervision import (
     kill_processes,
 )
 
-__all__ = ["LocalBackend", "local_collector", "push_weights"]
+__all__ = ["LocalBackend", "direct_collection", "local_collector", "push_weights"]
+
+
+def direct_collection(config: TrainConfig, env_fn: Callable[[], EnvBase] | None, env: EnvBase | None) -> bool:
+    """Whether the collectors step the gymnasium env directly (``GymCollector``, in this process or in each
+    worker process): ``collector.direct`` and one-copy envs the pipeline makes from ``config.env`` (a user's
+    own TorchRL env keeps TorchRL's ``Collector``: its transforms are its own)."""
+    c = config.collector
+    made_here = (isinstance(env_fn, functools.partial) and env_fn.func is make_env and env_fn.args == (config.env,)
+                 and set(env_fn.keywords) <= {"device", "num_envs"} and env_fn.keywords.get("num_envs", 1) == 1)
+    return c.direct and made_here and gym_env_of(env) is not None
 
 
 def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[[], EnvBase] | None,
@@ -41,8 +56,11 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
                   # the env steps where it lives; its outputs go to the policy's device, and the
                   # collected blocks to the learner's (where the replay buffer is)
                   policy_device=device, storing_device=device)
+    direct = direct_collection(config, env_fn, env)
     if c.workers == 1 and c.sync:
-        return Collector(env if env is not None else env_fn(), policy, **common)
+        return (GymCollector if direct else Collector)(env if env is not None else env_fn(), policy, **common)
+    if direct:  # each worker process steps its gymnasium env directly
+        common["collector_class"] = GymCollector
     if not c.sync and init_random_frames > 0:
         # MultiAsyncCollector decides random-or-policy for a worker's next block when it hands
         # over that worker's last one, so the other workers' blocks in flight are random too:

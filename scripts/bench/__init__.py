@@ -29,7 +29,7 @@ writes the raw figures. These machines are shared and noisy: compare the ratios 
 
 One module per target here (``dqn.py`` ... ``ray.py``, each with its ``bench_TARGET(args, out)``),
 ``runs.py`` for the rlpipe runs they share, ``peers/`` for the peers run in venvs of their own;
-``dqn_tries.py`` and ``ray_replay.py`` are measurements run with ``python -m``.
+``dqn_tries.py``, ``ray_replay.py``, ``collect_tries.py`` and ``dqn_one_env.py`` are measurements run with ``python -m``.
 """
 
 from __future__ import annotations
@@ -56,9 +56,9 @@ def add_parser(sub) -> None:
     bench.add_argument("--peer-iterations", type=int, default=3000, help="iterations timed for the plain-PyTorch peer")
     bench.add_argument("--algos", nargs="+", choices=["sac", "td3", "dqn"], help="cleanrl: algorithms to compare (default: all)")
     bench.add_argument("--envs", nargs="+", help="cleanrl: env ids (default: Pendulum-v1 and HalfCheetah-v5; CartPole-v1 for "
-                       "dqn); collect: default CartPole-v1 Pendulum-v1 HalfCheetah-v5 MinitaurBulletEnv-v0; ray: "
+                       "dqn); collect: default CartPole-v1 Pendulum-v1 MinitaurBulletEnv-v0; ray: "
                        "the one env (default MinitaurBulletEnv-v0)")
-    bench.add_argument("--envs-per-worker", nargs="+", type=int, help="collect: collector.envs_per_worker values (default: 1 8 32)")
+    bench.add_argument("--envs-per-worker", nargs="+", type=int, help="collect: collector.envs_per_worker values (default: 1)")
     bench.add_argument("--workers", nargs="+", type=int, help="ray: collector workers (default: 1 2 4)")
     bench.add_argument("--frames", type=int, help="collect, ray: collect-only frames timed per measurement "
                        "(default 3000; ray 1000)")

@@ -108,6 +108,13 @@ def _after(stack: tuple[Frame, ...], name: str) -> tuple[Frame, ...] | None:
     return None
 
 
+def _rollout(stack: tuple[Frame, ...]) -> tuple[Frame, ...] | None:
+    """The frames below a collector's per-step loop: TorchRL's ``Collector.rollout``, or ``GymCollector``'s
+    own (``GymCollector._rollout``, which steps the gymnasium env directly); None outside one."""
+    frames = _after(stack, "GymCollector._rollout")
+    return frames if frames is not None else _after(stack, "Collector.rollout")
+
+
 def _is_env(stack: tuple[Frame, ...]) -> bool:
     return any("/torchrl/envs/" in file or "/gymnasium/" in file or "/pybullet" in file or "/mujoco/" in file
                or "/envs/" in file and "/site-packages/" not in file for _, file in stack)
@@ -116,7 +123,8 @@ def _is_env(stack: tuple[Frame, ...]) -> bool:
 def _collector_part(rollout: tuple[Frame, ...]) -> str:
     """What a collector's ``rollout`` is doing: the policy (a module called from the rollout itself),
     the env (its step, reset, transforms, ``step_mdp``), or the collector's own work."""
-    if rollout and rollout[0][0] in ("Module._wrapped_call_impl", "Module._call_impl"):
+    if rollout and (rollout[0][0] in ("Module._wrapped_call_impl", "Module._call_impl", "GymCollector._random_step")
+                    or rollout[0][1].endswith("/tensor_policy.py")):  # GymCollector's policy on tensors
         return "policy"
     return "env" if _is_env(rollout) else "bookkeeping"
 
@@ -144,8 +152,8 @@ def classify_learner(stack: tuple[Frame, ...], in_process: bool = False) -> str:
                 return "update: forward (losses)"
         return LEARNER_PARTS[-1]  # check_finite, the loss meters, pay_updates' own lines
     if top == "Loop.collect":
-        rollout = _after(loop, "Collector.rollout")
-        if rollout is not None:  # TorchRL's in-process Collector, stepping the env here
+        rollout = _rollout(loop)
+        if rollout is not None:  # an in-process Collector, stepping the env here
             return {"policy": "collection policy (in-process collector)", "env": "env step (in-process collector)",
                     "bookkeeping": "collector bookkeeping (in-process: trajectory ids, stacking, copies)"}[
                 _collector_part(rollout)]
@@ -163,7 +171,7 @@ def classify_learner(stack: tuple[Frame, ...], in_process: bool = False) -> str:
 
 def classify_worker(stack: tuple[Frame, ...]) -> str:
     """The part of a collector process's work a main-thread sample belongs to (one of ``WORKER_PARTS``)."""
-    rollout = _after(stack, "Collector.rollout")
+    rollout = _rollout(stack)
     if rollout is not None:
         return {"policy": "collection policy", "env": "env step",
                 "bookkeeping": "collector bookkeeping (trajectory ids, stacking, copies)"}[_collector_part(rollout)]
@@ -204,7 +212,7 @@ def shares(processes: dict[int, dict]) -> list[dict]:
         parts, classify = (LEARNER_PARTS, classify_learner) if kind == "learner" else (WORKER_PARTS, classify_worker)
         counts, main = Counter(), main_thread(proc)
         if kind == "learner":  # TorchRL's in-process Collector: its rollout shows on the learner's stacks
-            in_process = any(_after(stack, "Collector.rollout") is not None for stack in main)
+            in_process = any(_rollout(stack) is not None for stack in main)
             classify = functools.partial(classify_learner, in_process=in_process)
         for stack, n in main.items():
             counts[classify(stack)] += n

@@ -1,0 +1,274 @@
+"""``GymCollector``: blocks of env steps from a gymnasium env stepped directly, as TorchRL's ``Collector`` gives them.
+
+Why it exists (issue 22): with one env in the learner's process, TorchRL's ``Collector`` over
+``GymEnv`` and the standard transforms (``StepCounter``, ``RewardSum``, ``InitTracker``) costs
+~600-700 us a step on this 2-core CPU (CartPole 1,478 steps/s against ~120,000 for the raw env; a
+cProfile of 2,000 steps: 72% in ``step_and_maybe_reset`` through the transforms and ``GymEnv``'s
+TensorDict reads and writes, 11% the policy through TensorDicts, the rest the collector's own
+TensorDict copies). CleanRL's loop (``obs -> policy -> env.step``, numpy in and out) pays only the
+network and the env. TorchRL has no per-step path without TensorDicts (pytorch/rl#1247), so this
+collector steps the gymnasium env with numpy, calls the collect policy on one observation tensor
+(``rlpipe.modules.tensor_policy``: the built-in policies' own arithmetic, a user's policy through
+a TensorDict), writes each row into per-block numpy arrays, and hands each block out as a
+TensorDict with exactly the keys, shapes and dtypes TorchRL's ``Collector`` gives for the same env
+(``observation``, ``action``, the policy's outputs, ``step_count``, ``episode_reward``, ``is_init``,
+``done``/``terminated``/``truncated``, the same under ``next`` with ``reward``, and
+``("collector", "traj_ids")``), so a TorchRL replay buffer and loss take them unchanged.
+Figures (``rlpipe bench collect``): BENCHMARKS.md, "A collection path worth its cost".
+
+Semantics kept from TorchRL's path: ``set_seed(s)`` resets the env with ``seed=s`` (later resets
+unseeded, as ``GymEnv`` does); a block is random (the action spec's ``rand()``, torch's global
+generator) while fewer than ``init_random_frames`` frames were collected before it; the policy's
+exploration draws from torch's global generator, in the policy modules' own order; iteration ends
+once ``total_frames`` are collected (whole blocks; -1: never).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl._utils import seed_generator
+from torchrl.collectors import Collector
+from torchrl.data import TensorSpec
+from torchrl.envs import EnvBase, GymWrapper, TransformedEnv
+from torchrl.envs.utils import set_exploration_type
+
+from rlpipe.envs import is_discrete
+from rlpipe.modules.tensor_policy import tensor_step
+
+__all__ = ["GymCollector", "gym_env_of"]
+
+_TRANSFORM_KEYS = {"step_count", "episode_reward", "is_init"}
+
+
+def gym_env_of(env: EnvBase | None) -> gymnasium.Env | None:
+    """The gymnasium env under ``env`` when ``env`` is ``rlpipe.envs.make_env``'s one-copy env (TorchRL's
+    ``GymEnv``/``GymWrapper`` under the standard transforms), else None."""
+    if not isinstance(env, TransformedEnv) or env.batch_size != torch.Size([]):
+        return None
+    base = env.base_env
+    if not isinstance(base, GymWrapper) or base.batch_size != torch.Size([]):
+        return None
+    names = {type(t).__name__ for t in env.transform}
+    if not names <= {"StepCounter", "RewardSum", "InitTracker", "DoubleToFloat"} or "RewardSum" not in names:
+        return None
+    gym_env = base._env
+    return gym_env if isinstance(gym_env, gymnasium.Env) else None
+
+
+class GymCollector(Collector):
+    """TorchRL's ``Collector`` whose ``rollout`` steps the gymnasium env under ``make_env``'s env directly;
+    see the module's docstring for why.
+
+    Everything else is TorchRL's: the constructor's arguments, iteration, frame counting, random initial
+    frames, the weight-sync receivers, and its use as ``collector_class`` of ``MultiSyncCollector`` /
+    ``MultiAsyncCollector`` (each worker process then steps its env so). The env must be ``make_env``'s
+    one-copy env (``gym_env_of`` not None); its TorchRL specs give the block's keys and dtypes.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        gym_env = gym_env_of(self.env)
+        if gym_env is None:
+            raise ValueError(f"GymCollector steps make_env's one-copy gymnasium envs; got {type(self.env).__name__}")
+        self.gym_env = gym_env
+        obs_keys = [k for k in self.env.observation_spec.keys() if k not in _TRANSFORM_KEYS]
+        if len(obs_keys) != 1:
+            raise ValueError(f"GymCollector needs one observation entry; the env has {obs_keys}")
+        self.observation_key = obs_keys[0]
+        obs_spec = self.env.observation_spec[self.observation_key]
+        self._obs_shape, self._obs_dtype = tuple(obs_spec.shape), _numpy_dtype(obs_spec.dtype)
+        self._obs_torch_dtype = obs_spec.dtype
+        self._action_spec: TensorSpec = self.env.action_spec_unbatched
+        self._discrete = is_discrete(self._action_spec)
+        self._reward_dtype = self.env.reward_spec.dtype
+        self._act = None  # the policy on tensors, made at the first block (weight receivers are set up by then)
+        self._template: dict[str, torch.Tensor] | None = None
+        self._shared_block: TensorDict | None = None
+        # Outside a worker process each block is a new TensorDict: TorchRL's iterator need not clone it
+        # (~150 us a block, ~3 us a CartPole step) before handing it out.
+        self._fresh_blocks = self.worker_idx is None and self.replay_buffer is None
+        if self._fresh_blocks and (self.storing_device is None or self.storing_device.type == "cpu"):
+            self.return_same_td = True
+        # the episode under way (state_dict holds it): the env is reset at the first block
+        self._obs: np.ndarray | None = None
+        self._step_count = 0
+        self._episode_reward = 0.0
+        self._traj_id = int(self._carrier.get(("collector", "traj_ids")).reshape(-1)[0])  # TorchRL's first id
+
+    # --- TorchRL Collector's hooks --------------------------------------------------------------------
+
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        """Reset the env with ``seed`` (a new episode); returns the next seed, as TorchRL's envs do."""
+        self._reset(seed=seed)
+        return seed if static_seed else seed_generator(seed)
+
+    def reset(self, index=None, **kwargs) -> None:
+        super().reset(index, **kwargs)  # TorchRL numbers the new trajectory
+        self._traj_id = int(self._carrier.get(("collector", "traj_ids")).reshape(-1)[0])
+        self._obs, self._step_count, self._episode_reward = None, 0, 0.0  # a new episode at the next block
+
+    @torch.no_grad()
+    def rollout(self) -> TensorDict:
+        """One block of ``frames_per_batch`` env steps, random while ``_should_use_random_frames()``."""
+        if self._act is None:
+            self._act = tensor_step(self.policy, self.observation_key)
+        with set_exploration_type(self.exploration_type):
+            block = self._rollout(random=self._should_use_random_frames())
+        if self._fresh_blocks or not self.return_same_td:
+            return block
+        # TorchRL's worker processes send the first block's shared memory once, then expect it filled in place
+        if self._shared_block is None:
+            self._shared_block = block
+        else:
+            self._shared_block.update_(block)
+        return self._shared_block
+
+    # --- the state a resume needs -----------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """TorchRL's (frames, trajectory counter, transforms) and this collector's own bookkeeping: the
+        episode under way (its observation, step, return, trajectory id) and the env's own state
+        (``capture_env_state``). The exploration's state is the policy's (its state dict: epsilon, noise
+        scale) and torch's global generator (the pipeline's checkpoint holds both)."""
+        return {**super().state_dict(), "gym_collector": {
+            "observation": None if self._obs is None else torch.as_tensor(self._obs.copy()),
+            "step_count": self._step_count,
+            "episode_reward": self._episode_reward,
+            "traj_id": self._traj_id,
+            "env": self.capture_env_state(),
+        }}
+
+    def load_state_dict(self, state_dict: dict[str, Any], **kwargs) -> None:
+        state_dict = dict(state_dict)
+        own = state_dict.pop("gym_collector")
+        super().load_state_dict(state_dict, **kwargs)  # TorchRL starts a new trajectory id
+        self._traj_id = int(self._carrier.get(("collector", "traj_ids")).reshape(-1)[0])
+        self._obs, self._step_count, self._episode_reward = None, 0, 0.0
+        if own.get("env") is not None and own["observation"] is not None:  # the episode goes on
+            self.restore_env_state(own["env"])
+            self._obs = np.asarray(own["observation"], dtype=self._obs_dtype).copy()
+            self._step_count, self._episode_reward = int(own["step_count"]), float(own["episode_reward"])
+            self._traj_id = int(own["traj_id"])
+
+    def capture_env_state(self) -> dict[str, torch.Tensor] | None:
+        """The gymnasium env's own state (physics, its random generator, the time limit's count), for an exact
+        resume. The one place it is captured: wire ``rlpipe.envs.snapshot.capture(self.gym_env)`` here
+        (issue 23). None: not captured, and a restored collector starts a new episode."""
+        return None
+
+    def restore_env_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Put back what ``capture_env_state`` captured: ``rlpipe.envs.snapshot.restore(self.gym_env, state)``
+        (issue 23)."""
+        raise NotImplementedError("env-state restore is wired with rlpipe.envs.snapshot (issue 23)")
+
+    # --- stepping -----------------------------------------------------------------------------------
+
+    def _reset(self, seed: int | None = None) -> None:
+        obs, _ = self.gym_env.reset(seed=seed) if seed is not None else self.gym_env.reset()
+        if self._step_count > 0:  # the trajectory under way had steps: a new one, numbered by TorchRL's pool
+            self._traj_id = int(self._traj_pool.get_traj_and_increment(1)[0])
+        self._obs = np.asarray(obs, dtype=self._obs_dtype)
+        self._step_count, self._episode_reward = 0, 0.0
+
+    def _policy_template(self) -> dict[str, torch.Tensor]:
+        """What the policy writes for one step (keys, shapes, dtypes), from one call whose random draws are
+        undone (torch's generator forked); cached."""
+        if self._template is None:
+            observation = torch.zeros(self._obs_shape, dtype=self._obs_torch_dtype, device=self.policy_device)
+            with torch.random.fork_rng(devices=[]), torch.no_grad():
+                self._template = {k: v.detach() for k, v in self._act(observation).items()}
+        return self._template
+
+    def _random_step(self, observation: torch.Tensor) -> dict:
+        return {"action": self._action_spec.rand()}
+
+    def _rollout(self, random: bool) -> TensorDict:
+        n, env = self.frames_per_batch, self.gym_env
+        obs_buf = np.empty((n, *self._obs_shape), self._obs_dtype)
+        next_obs_buf = np.empty_like(obs_buf)
+        reward = np.empty((n, 1), np.float64)
+        terminated = np.empty((n, 1), bool)
+        truncated = np.empty((n, 1), bool)
+        step_count = np.empty((n, 1), np.int64)
+        episode_reward = np.empty((n, 1), np.float64)
+        next_episode_reward = np.empty((n, 1), np.float64)
+        traj_ids = np.empty((n,), np.int64)
+        outputs: list[dict] = []
+        act = self._random_step if random else self._act
+        device = self.policy_device if self.policy_device is not None and self.policy_device.type != "cpu" else None
+        discrete = self._discrete
+        if self._obs is None:
+            self._reset()
+        obs = self._obs
+        for i in range(n):
+            obs_buf[i] = obs
+            observation = torch.from_numpy(obs_buf[i])
+            out = act(observation if device is None else observation.to(device))
+            outputs.append(out)
+            action = out["action"]
+            action = action.item() if discrete else action.cpu().numpy()
+            next_obs, r, term, trunc, _ = env.step(action)
+            step_count[i] = self._step_count
+            episode_reward[i] = self._episode_reward
+            traj_ids[i] = self._traj_id
+            self._step_count += 1
+            self._episode_reward += r
+            reward[i], terminated[i], truncated[i] = r, term, trunc
+            next_obs_buf[i] = next_obs
+            next_episode_reward[i] = self._episode_reward
+            if term or trunc:
+                self._reset()
+                obs = self._obs
+            else:
+                obs = next_obs
+        self._obs = np.asarray(obs, dtype=self._obs_dtype)
+        return self._block(n, obs_buf, next_obs_buf, reward, terminated, truncated, step_count, episode_reward,
+                           next_episode_reward, traj_ids, outputs)
+
+    def _block(self, n, obs_buf, next_obs_buf, reward, terminated, truncated, step_count, episode_reward,
+               next_episode_reward, traj_ids, outputs) -> TensorDict:
+        """The rows as TorchRL's ``Collector`` lays them out (``tests/test_gym_collector.py`` compares them)."""
+        terminated_t, truncated_t = torch.from_numpy(terminated), torch.from_numpy(truncated)
+        step_count_t = torch.from_numpy(step_count)
+        reward_dtype = self._reward_dtype
+        not_done = torch.zeros(n, 1, dtype=torch.bool)
+        is_init = step_count_t == 0
+        policy_out = {key: torch.stack([o[key] for o in outputs]) for key in outputs[0]}
+        for key, value in self._policy_template().items():  # random rows: zeros where the policy writes, as TorchRL
+            if key not in policy_out:
+                policy_out[key] = value.new_zeros((n, *value.shape))
+        action = policy_out.pop("action")
+        obs_key = self.observation_key
+        td = TensorDict({
+            "step_count": step_count_t,
+            "episode_reward": torch.from_numpy(episode_reward).to(reward_dtype),
+            "action": action,
+            obs_key: torch.from_numpy(obs_buf),
+            "is_init": is_init,
+            "done": not_done,
+            "terminated": not_done.clone(),
+            "truncated": not_done.clone(),
+            "next": {
+                obs_key: torch.from_numpy(next_obs_buf),
+                "step_count": step_count_t + 1,
+                "episode_reward": torch.from_numpy(next_episode_reward).to(reward_dtype),
+                "is_init": torch.zeros(n, 1, dtype=torch.bool),
+                "reward": torch.from_numpy(reward).to(reward_dtype),
+                "done": terminated_t | truncated_t,
+                "terminated": terminated_t,
+                "truncated": truncated_t,
+            },
+            "collector": {"traj_ids": torch.from_numpy(traj_ids)},
+            **policy_out,
+        }, batch_size=[n], device="cpu")
+        storing = self.storing_device
+        return td if storing is None or storing.type == "cpu" else td.to(storing)
+
+
+def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
+    return torch.empty((), dtype=dtype).numpy().dtype

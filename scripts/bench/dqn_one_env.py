@@ -1,0 +1,42 @@
+"""DQN with CleanRL's settings and one env in the learner's process against CleanRL's ``dqn.py`` (issue 22),
+run with ``python -m``: runs alternated, each side timed as ``rlpipe bench cleanrl`` times it (two lengths
+after the random start-up, one torch thread), rlpipe on ``GymCollector`` and, with ``--torchrl``, on TorchRL's
+``Collector`` too. Figures: BENCHMARKS.md, "Issue 22".
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+IN_PROCESS = ["collector.workers=1", "collector.sync=true", "collector.envs_per_worker=1",
+              "collector.frames_per_batch=160", "num_threads=1"]
+
+
+def main() -> None:
+    from rlpipe.scripts.bench.cleanrl import rlpipe_overrides, rlpipe_speed
+    from rlpipe.scripts.bench.peers import cleanrl
+
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--lengths", nargs=2, type=int, default=[5000, 25000])
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--torchrl", action="store_true", help="also time rlpipe on TorchRL's Collector")
+    args = parser.parse_args()
+    out = Path(tempfile.mkdtemp(prefix="rlpipe-dqn-one-env-"))
+    preset, overrides = rlpipe_overrides("dqn", "CartPole-v1", cleanrl.defaults("dqn"), 0)
+    lengths = tuple(args.lengths)
+    sides = {"GymCollector": ["collector.direct=true"]}
+    if args.torchrl:
+        sides["TorchRL Collector"] = ["collector.direct=false"]
+    for i in range(args.repeats):
+        peer = cleanrl.cleanrl_speed("dqn", "CartPole-v1", lengths, seed=0, threads=1)
+        print(f"CleanRL, 1 thread: {peer['updates_per_s']:.0f} updates/s (in-run {peer.get('updates_per_s_in_run')})",
+              flush=True)
+        for name, extra in sides.items():
+            r = rlpipe_speed(preset, [*overrides, *IN_PROCESS, *extra], lengths, 10, 0, out / f"{name}-{i}".replace(" ", ""))
+            print(f"rlpipe on {name}: {r['updates_per_s']:.0f} updates/s (in-run {r['updates_per_s_in_run']})", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,175 @@
+"""``GymCollector``: the in-process collector that steps a gymnasium env directly (issue 22).
+
+Its blocks must be what TorchRL's ``Collector`` gives for the same env and policy (a user's replay buffer
+and loss take them), its episodes bookkept as TorchRL's transforms do, and the same seed must give the
+same blocks.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import GymEnv
+from torchrl.objectives import DQNLoss
+
+from rlpipe.envs import make_env
+from rlpipe.modules.tensor_policy import tensor_step
+from rlpipe.pipelines import pipeline_class, resolve_preset
+from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
+from rlpipe.pipelines.config import apply_overrides
+from rlpipe.pipelines.workers.gym_collector import GymCollector
+from rlpipe.pipelines.workers.local import direct_collection
+
+SMALL = {"dqn": ["fc_layer_params=[16]"], "td3": ["actor_fc_layer_params=[16]", "critic_fc_layer_params=[16]"],
+         "sac": ["env=Pendulum-v1", "actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]"]}
+IN_PROCESS = ["eval_in_background=false", "collector.workers=1", "collector.sync=true"]
+
+
+def pipeline(algo: str, *extra: str):
+    algo_name, cfg = resolve_preset(algo)
+    return pipeline_class(algo_name)(apply_overrides(cfg, [*SMALL[algo], *IN_PROCESS, *extra]))
+
+
+def layout(block) -> dict:
+    return {k: (tuple(v.shape), v.dtype) for k, v in block.items(include_nested=True, leaves_only=True)}
+
+
+def blocks(collector, n: int) -> list:
+    out = []
+    for block in collector:
+        out.append(block)
+        if len(out) == n:
+            break
+    collector.shutdown()
+    return out
+
+
+@pytest.mark.parametrize("algo", ["dqn", "td3", "sac"])  # CartPole (discrete), Pendulum (noisy actor, TanhNormal)
+def test_blocks_have_torchrls_keys_shapes_and_dtypes(algo):
+    p = pipeline(algo)
+    ours = p.make_collector(total_frames=200, init_random_frames=50)
+    assert isinstance(ours, GymCollector)
+    theirs = Collector(p.env, p.collect_policy, frames_per_batch=50, total_frames=200, init_random_frames=50,
+                       **COLLECTOR_KWARGS)
+    (our_random, our_policy), (their_random, their_policy) = blocks(ours, 2), blocks(theirs, 2)
+    assert layout(our_policy) == layout(their_policy)
+    assert layout(our_random) == layout(their_random) == layout(their_policy)  # random rows: the policy's keys too
+
+
+def test_a_collector_process_steps_its_env_directly_too():
+    p = pipeline("td3", "collector.sync=false")
+    collector = p.make_collector(total_frames=150, init_random_frames=50)
+    try:
+        assert collector.collector_class is GymCollector
+        first, second = blocks(collector, 2)
+    finally:
+        collector.shutdown()
+    theirs = Collector(p.env, p.collect_policy, frames_per_batch=50, total_frames=50, **COLLECTOR_KWARGS)
+    assert layout(first) == layout(second) == layout(blocks(theirs, 1)[0])
+    assert not torch.equal(first["observation"], second["observation"])  # the shared block was refilled, not resent
+
+
+def test_episodes_are_bookkept_as_torchrls_transforms_do():
+    p = pipeline("dqn", "env=CartPole-v1")
+    collector = GymCollector(p.env, p.collect_policy, frames_per_batch=100, total_frames=300, **COLLECTOR_KWARGS)
+    collector.set_seed(0)
+    batch = torch.cat(blocks(collector, 3))
+    done = batch["next", "done"].squeeze(-1)
+    assert done.sum() >= 3  # CartPole's episodes under a fresh network last ~10-50 steps
+    assert torch.equal(batch["next", "done"], batch["next", "terminated"] | batch["next", "truncated"])
+    assert not batch["done"].any() and not batch["next", "is_init"].any()
+    ends = done.nonzero().squeeze(-1).tolist()
+    start = 0
+    for end in ends:
+        episode = batch[start:end + 1]
+        assert episode["step_count"].squeeze(-1).tolist() == list(range(end + 1 - start))
+        assert torch.equal(episode["next", "step_count"], episode["step_count"] + 1)
+        assert episode["next", "episode_reward"][-1].item() == pytest.approx(
+            episode["episode_reward"][0].item() + episode["next", "reward"].sum().item(), rel=1e-5)
+        assert (episode["collector", "traj_ids"] == episode["collector", "traj_ids"][0]).all()
+        if end + 1 < batch.numel():  # the next row starts a new episode and trajectory
+            after = batch[end + 1]
+            assert after["is_init"].item() and after["step_count"].item() == 0 and after["episode_reward"].item() == 0
+            assert after["collector", "traj_ids"].item() == episode["collector", "traj_ids"][0].item() + 1
+        start = end + 1
+    # each transition's next observation is the following row's observation within an episode
+    same_episode = ~done[:-1]
+    assert torch.equal(batch["next", "observation"][:-1][same_episode], batch["observation"][1:][same_episode])
+
+
+def test_the_same_seed_gives_the_same_blocks():
+    def run():
+        p = pipeline("td3")
+        torch.manual_seed(5)
+        collector = p.make_backend().start(150, 50, seed=11).collector
+        return torch.cat(blocks(collector, 3))
+
+    first, second = run(), run()
+    assert (first == second).all()
+    assert first["observation"][0].tolist() == pytest.approx(
+        make_env("Pendulum-v1").base_env._env.reset(seed=11)[0].tolist())  # set_seed seeds the first episode
+
+
+def test_a_torchrl_replay_buffer_and_loss_take_its_blocks():
+    p = pipeline("dqn", "replay_all_keys=true")
+    collector = p.make_collector(total_frames=150, init_random_frames=50)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(1000), batch_size=32)
+    for block in collector:
+        buffer.extend(block)
+    assert len(buffer) == 150
+    loss = DQNLoss(p.policy, action_space=p.env.action_spec_unbatched, delay_value=False)
+    sample = buffer.sample()
+    losses = loss(sample)
+    losses["loss"].backward()
+    assert torch.isfinite(losses["loss"])
+
+
+def test_the_fast_policy_paths_act_as_the_modules_themselves():
+    observation = torch.tensor([0.3, -0.2, 0.5])
+    for algo in ("td3", "sac"):
+        policy = pipeline(algo).collect_policy
+        step = tensor_step(policy)
+        assert step.__name__ == "act" and "_tensordict_step" not in step.__qualname__
+        torch.manual_seed(0)
+        ours = step(observation)
+        torch.manual_seed(0)
+        theirs = policy(pipeline(algo).env.reset().set("observation", observation))
+        for key, value in ours.items():
+            assert torch.allclose(value, theirs[key], atol=1e-4), (algo, key)
+
+
+def test_user_envs_and_direct_false_keep_torchrls_collector():
+    p = pipeline("dqn", "env=CartPole-v1")
+    assert direct_collection(p.config, p.env_fn, p.env)
+    off = apply_overrides(p.config, ["collector.direct=false"])
+    assert not direct_collection(off, p.env_fn, p.env)
+    vector = pipeline("dqn", "env=CartPole-v1", "collector.envs_per_worker=2", "collector.frames_per_batch=50")
+    assert not direct_collection(vector.config, vector.env_fn, vector.env)
+    user_env = GymEnv("CartPole-v1")  # a user's own TorchRL env: its transforms are its own
+    algo, cfg = resolve_preset("dqn")
+    user = pipeline_class(algo)(apply_overrides(cfg, [*SMALL["dqn"], *IN_PROCESS]), env=lambda: user_env,
+                                eval_env=lambda: make_env("CartPole-v1"))
+    collector = user.make_collector(total_frames=50, init_random_frames=0)
+    assert isinstance(collector, Collector)
+    collector.shutdown()
+
+
+def test_its_state_dict_carries_the_bookkeeping_over():
+    p = pipeline("dqn", "env=CartPole-v1")
+    collector = GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1, **COLLECTOR_KWARGS)
+    collector.set_seed(0)
+    iterator = iter(collector)
+    seen = torch.cat([next(iterator), next(iterator)])
+    state = collector.state_dict()
+    assert state["frames"] == 60 and state["gym_collector"]["env"] is None  # the env's state: envs.snapshot (issue 23)
+    assert state["gym_collector"]["observation"].shape == (4,)
+    other = GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1, **COLLECTOR_KWARGS)
+    other.load_state_dict(state)
+    block = next(iter(other))
+    assert other._frames == 90
+    # without the env's state the episode under way cannot go on: a new trajectory starts, numbered after the
+    # ones collected before
+    assert block["is_init"][0].item() and block["step_count"][0].item() == 0
+    assert block["collector", "traj_ids"][0].item() > seen["collector", "traj_ids"].max().item()
