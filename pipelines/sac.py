@@ -177,7 +177,7 @@ PRESETS = {
 }
 
 PRESET_INFO = {
-    "sac": PresetInfo("MinitaurBulletEnv-v0", (), "TF-Agents' SAC actor-learner tutorial", sized=False),
+    "sac": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "TF-Agents' SAC actor-learner tutorial", sized=False),
     "sac-002": PresetInfo("MinitaurBulletEnv-v0", (), "TF-Agents' older SAC Minitaur tutorial (drivers)", sized=False),
     "sac-halfcheetah": PresetInfo("HalfCheetah-v5", (), "the SAC paper's settings, 1M steps", sized=False),
     "sac-hopper": PresetInfo("Hopper-v5", (), "the SAC paper's settings, 1M steps", sized=False),
