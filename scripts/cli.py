@@ -124,8 +124,6 @@ def cmd_train(args) -> int:
         cfg = config_from_dict(Pipeline.Config, saved)
     cfg = apply_overrides(cfg, args.overrides)
     hint = None if args.resume is not None else size_hint(args.preset, cfg)
-    if hint:  # a hint, not an error: the run goes on with what was asked
-        print(f"rlpipe: hint: {hint}", file=sys.stderr)
     if args.keys:  # the values this command would train with, overrides included
         docs = field_docs(type(cfg))
         for key in flat_keys(type(cfg)):
@@ -133,8 +131,12 @@ def cmd_train(args) -> int:
             for part in key.split("."):
                 value = getattr(value, part)
             print(f"{key}={json.dumps(value)}\n    {docs.get(key, '')}")
+        if hint:
+            print(f"rlpipe: hint: {hint}", file=sys.stderr)
         return 0
     pipeline = Pipeline(cfg)
+    if hint:  # once the env is known to fit (else the error is the one line); a hint: the run goes on as asked
+        print(f"rlpipe: hint: {hint}", file=sys.stderr)
     args.pipeline = pipeline  # where main() writes a traceback, once the run directory exists
     out = args.resume if args.resume is not None else args.out
     check_output_dir(out if out is not None else default_run_dir(algo, pipeline.config.env),
