@@ -172,7 +172,7 @@ PRESETS = {
     # RL-Zoo's Pendulum-v1 TD3 (gamma 0.98, lr 1e-3, noise 0.1) on small networks and 1,000 random steps
     "td3-pendulum": lambda: _sized("Pendulum-v1", num_iterations=15_000, gamma=0.98),
     # Pendulum's sizes, not yet tuned further: the training mean reached 950 at ~24,000 env steps in
-    # the one long try (BENCHMARKS.md); RLlib's tuned TD3 example says 10-20k with 32x32 networks.
+    # the one long try (BENCHMARKS.md).
     "td3-invpendulum": lambda: _sized("InvertedPendulum-v5", num_iterations=50_000, eval_interval=5000,
                                       log_interval=1000),
 }
