@@ -24,9 +24,10 @@ writes the raw figures. These machines are shared and noisy: compare the ratios 
 
 One module per target here (``dqn.py`` ... ``ray.py``, each with its ``bench_TARGET(args, out)``),
 ``runs.py`` for the rlpipe runs they share, ``peers/`` for the peers run in venvs of their own;
-``dqn_tries.py``, ``ray_replay.py`` and ``fixed_cost.py`` (a run's launch-to-first-step and
-last-step-to-exit, per part) are measurements run with ``python -m``; ``preset_times.json`` holds
-each preset's measured time to its target, which ``rlpipe presets`` shows.
+``dqn_tries.py`` and ``ray_replay.py`` are measurements run with ``python -m`` (as is
+``scripts/fixed_cost.py``, a run's launch-to-first-step and last-step-to-exit per part, beside the
+CLI it wraps); ``preset_times.json`` holds each preset's measured time to its target, which
+``rlpipe presets`` shows.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The fixed cost of a run, per part: ``rlpipe train ...`` with a timestamp at each stage (seconds from the
 process's start, interpreter start-up included), printed as one line on stderr at exit.
 
-    python -m rlpipe.scripts.bench.fixed_cost train sac-pendulum num_iterations=1 initial_collect_steps=100 --out DIR
+    python -m rlpipe.scripts.fixed_cost train sac-pendulum num_iterations=1 initial_collect_steps=100 --out DIR
 
 The stages are marked by wrapping the methods that begin and end them (the CLI's own code runs
 unchanged): imports, pipeline built, thread count, random baseline, the triggers' start (a background
