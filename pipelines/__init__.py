@@ -21,7 +21,9 @@ The map of this package (each room's ``__init__`` maps its own modules):
     compat/      each workaround for a library version, one module per library
     analysis/    reading finished runs: tables, statistics, plots, report pages
 
-Presets are named after the tutorials they reproduce; ``presets()`` lists them.
+Presets are named after the tutorials they reproduce (``sac``, ``td3``, ``dqn``) or the task they are sized
+for (``sac-pendulum``, ``dqn-cartpole-v0``, ...); ``presets()`` lists them, ``preset_info(name)`` says
+what each is for (env, target returns), ``size_hint`` what to use instead when a preset meets another env.
 """
 
 from __future__ import annotations
@@ -30,11 +32,13 @@ import difflib
 import importlib
 
 from rlpipe.pipelines import _moved
+from rlpipe.pipelines.config import PresetInfo, layer_sizes
 from rlpipe.pipelines.errors import InputError
 
 _moved.install()  # the module paths from before the rooms (``rlpipe.pipelines.loop``, ...), with a DeprecationWarning
 
-__all__ = ["ALGOS", "InputError", "pipeline_class", "presets", "resolve_preset"]
+__all__ = ["ALGOS", "InputError", "PresetInfo", "pipeline_class", "preset_info", "presets", "resolve_preset",
+           "size_hint", "sized_presets"]
 
 # algorithm -> "module:class"; a fourth algorithm is one new module and one line here.
 ALGOS = {
@@ -67,3 +71,38 @@ def resolve_preset(name: str):
         raise InputError(f"unknown preset {name!r}; {hint}")
     algo = known[name]
     return algo, pipeline_class(algo).preset(name)
+
+
+def preset_info(name: str) -> PresetInfo | None:
+    """The task preset ``name`` is for (env, target returns, whether it is sized for time to them); None
+    for a preset that declares none."""
+    algo = presets().get(name)
+    return None if algo is None else pipeline_class(algo).preset_info.get(name)
+
+
+def sized_presets(env: str) -> list[str]:
+    """The presets sized for time to a target on ``env``, in registry order."""
+    return [name for name, algo in presets().items()
+            if (info := pipeline_class(algo).preset_info.get(name)) is not None and info.sized and info.env == env]
+
+
+def size_hint(name: str, cfg) -> str | None:
+    """One line for a preset pointed at an env other than its own (``rlpipe train sac env=Pendulum-v1``):
+    the preset sized for that env, or, for an env no preset knows, the keys that size a run. None when
+    ``cfg`` trains on the preset's own env."""
+    algo = presets()[name]
+    own = pipeline_class(algo).preset(name).env
+    if cfg.env == own:
+        return None
+    fits = sized_presets(cfg.env)
+    info = preset_info(name)
+    what = f"preset {name!r} ({info.task}) is sized for {own}" if info and info.task else f"preset {name!r} is sized for {own}"
+    if fits:
+        best = next((p for p in fits if presets()[p] == algo), fits[0])
+        target = preset_info(best).target
+        to = f" (to {target:g})" if target is not None else ""
+        return f"{what}; the one sized for {cfg.env}{to} is {best!r}: rlpipe train {best}"
+    networks = "/".join(layer_sizes(cfg))
+    return (f"{what} and none is sized for {cfg.env}; what matters most for a run's size: {networks} (networks), "
+            f"initial_collect_steps (random steps), collector.workers and collector.sync (a process for the env, "
+            f"or the learner's own), batch_size, num_threads")

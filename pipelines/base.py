@@ -35,7 +35,7 @@ from torchrl.record.loggers import Logger
 
 from rlpipe.envs import EnvError, env_id_of, env_label, is_discrete, make_env, resolve_env_id
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
-from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig, layer_sizes, validate
+from rlpipe.pipelines.config import EVAL_SEED_OFFSET, PresetInfo, TrainConfig, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.plugins import (
     EnvArg,
@@ -94,6 +94,8 @@ class OffPolicyPipeline:
     Config: ClassVar[type[TrainConfig]]
     action_space: ClassVar[str]  # "discrete" or "continuous"
     presets: ClassVar[dict[str, Callable[[], TrainConfig]]]
+    preset_info: ClassVar[dict[str, PresetInfo]] = {}
+    """preset name -> the task it is for (env, targets); a preset without an entry has none"""
     loss_names: ClassVar[tuple[str, ...]] = ("loss",)
 
     policy: nn.Module

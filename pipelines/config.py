@@ -43,6 +43,7 @@ __all__ = [
     "POSITIVE",
     "PROBABILITY",
     "BackendNeeds",
+    "PresetInfo",
     "Check",
     "CollectorConfig",
     "RayConfig",
@@ -66,6 +67,29 @@ EVAL_SEED_OFFSET = 10_000
 """the eval env's seed is the run's seed plus this"""
 BASELINE_SEED_OFFSET = 20_000
 """the random baseline's env's seed is the run's seed plus this"""
+
+
+# --- what a preset is for ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PresetInfo:
+    """The task a preset is sized for, as data: ``rlpipe presets`` lists it, ``rlpipe train`` hints at
+    it when a tutorial preset is pointed at its env, and the time-to-return bench stops a run at it."""
+
+    env: str
+    """the gymnasium env id the preset trains on"""
+    targets: tuple[float, ...] = ()
+    """returns that count as the task reached, in the order they are met (empty: a reproduction, no target)"""
+    task: str = ""
+    """a few words on what the preset is: 'the Minitaur tutorial', 'sized for time to -200', ..."""
+    sized: bool = True
+    """tuned for time to its target on a small CPU machine (false: a tutorial's or a paper's settings, kept as written)"""
+
+    @property
+    def target(self) -> float | None:
+        """the first of ``targets`` (None without one)"""
+        return self.targets[0] if self.targets else None
 
 
 # --- rules on one key's value, declared with its field --------------------------------------------
@@ -221,6 +245,8 @@ class TrainConfig:
     """iterations between evaluations of the deterministic policy (0: only before and after training)"""
     num_eval_episodes: int = checked(10, POSITIVE)
     """episodes per evaluation; their mean return is AverageReturn"""
+    initial_eval: bool = True
+    """evaluate the untrained policy before the first update (the tutorials' step-0 row); false: the first evaluation is at `eval_interval` (a preset sized for time to a target skips the untrained one: ~1-2 s on Pendulum before the first env step)"""
     baseline_episodes: int = checked(-1, Check(lambda v: v >= -1, "-1 (num_eval_episodes), 0 (no baseline) or a positive count"))
     """episodes of the random agent played once before training for its baseline return (RUN/baseline.json, the DQN tutorial's); -1: num_eval_episodes; 0: no baseline"""
     eval_in_background: bool = False

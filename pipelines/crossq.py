@@ -34,12 +34,13 @@ from rlpipe.pipelines.config import (
     POSITIVE,
     Check,
     CollectorConfig,
+    PresetInfo,
     TrainConfig,
     checked,
 )
 from rlpipe.pipelines.errors import InputError
 
-__all__ = ["CrossQConfig", "CrossQ", "PRESETS", "preset"]
+__all__ = ["CrossQConfig", "CrossQ", "PRESETS", "PRESET_INFO", "preset"]
 
 
 @dataclass
@@ -87,19 +88,25 @@ def _minitaur() -> CrossQConfig:
                         initial_collect_steps=5000, eval_interval=5000, num_eval_episodes=10)
 
 
+def _sized(env: str, **keys) -> CrossQConfig:
+    # What the sized SAC presets share (sac._sized): the env in the learner's process, no untrained
+    # evaluation or random baseline, the thread count named (no timing of the loss at start), sparse
+    # evaluations, exports only at the end.
+    defaults = dict(initial_eval=False, baseline_episodes=0, num_eval_episodes=10, num_threads=1,
+                    collector=CollectorConfig(workers=1, sync=True))
+    return CrossQConfig(env=env, **{**defaults, **keys})
+
+
 def _pendulum() -> CrossQConfig:
-    # Small task, cheap env: collection in the learner's process, taking turns with the updates.
-    return CrossQConfig(env="Pendulum-v1", num_iterations=20_000, initial_collect_steps=1000,
-                        eval_interval=1000, num_eval_episodes=5, log_interval=1000,
-                        checkpoint_interval=5000, policy_save_interval=5000,
-                        collector=CollectorConfig(workers=1, sync=True))
+    # Pendulum-v1 to -200: tried at 1,500-3,000 updates (tests/test_crossq.py's learning check).
+    return _sized("Pendulum-v1", num_iterations=20_000, initial_collect_steps=1000, eval_interval=5000,
+                  log_interval=500, checkpoint_interval=20_000, policy_save_interval=20_000)
 
 
 def _inverted_pendulum() -> CrossQConfig:
-    return CrossQConfig(env="InvertedPendulum-v5", num_iterations=20_000, initial_collect_steps=1000,
-                        eval_interval=1000, num_eval_episodes=5, log_interval=1000,
-                        checkpoint_interval=5000, policy_save_interval=5000,
-                        collector=CollectorConfig(workers=1, sync=True))
+    # InvertedPendulum-v5 to 950: 1,000 at 1,500 updates on seeds 0-2 in the learning check's tries.
+    return _sized("InvertedPendulum-v5", num_iterations=20_000, initial_collect_steps=1000, eval_interval=5000,
+                  log_interval=500, checkpoint_interval=20_000, policy_save_interval=20_000)
 
 
 def _halfcheetah() -> CrossQConfig:
@@ -112,6 +119,16 @@ def _halfcheetah() -> CrossQConfig:
 # "crossq-minitaur" is "crossq" under the name `rlpipe bench time-to-return` looks for (task-named presets)
 PRESETS = {"crossq": _minitaur, "crossq-minitaur": _minitaur, "crossq-pendulum": _pendulum,
            "crossq-invpendulum": _inverted_pendulum, "crossq-halfcheetah": _halfcheetah}
+
+PRESET_INFO = {
+    "crossq": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "CrossQ on the main job, the sac tutorial's collection"),
+    "crossq-minitaur": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "crossq under its task's name"),
+    "crossq-pendulum": PresetInfo("Pendulum-v1", (-200.0,), "sized for time to -200"),
+    "crossq-invpendulum": PresetInfo("InvertedPendulum-v5", (950.0,), "sized for time to 950"),
+    "crossq-halfcheetah": PresetInfo("HalfCheetah-v5", (3000.0,), "sb3-contrib's settings, CPU-sized critics; untuned",
+                                     sized=False),
+}
+"""each preset's task (env, targets); ``rlpipe presets`` and the time-to-return bench read it"""
 
 
 class CrossQ(OffPolicyPipeline):
@@ -137,6 +154,7 @@ class CrossQ(OffPolicyPipeline):
     Config = CrossQConfig
     action_space = "continuous"
     presets = PRESETS
+    preset_info = PRESET_INFO
     loss_names = ("qvalue", "actor", "alpha", "alpha_value", "entropy")
 
     def __init__(self, config: CrossQConfig | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,

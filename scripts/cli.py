@@ -89,7 +89,7 @@ def _parser() -> argparse.ArgumentParser:
     report.add_argument("--out", type=Path,
                         help="HTML file (default: RUN_DIR/report.html for one run, compare.html for several)")
 
-    sub.add_parser("presets", help="list the presets")
+    sub.add_parser("presets", help="list the presets: algorithm, the task each is for, its measured time to target")
 
     from rlpipe.scripts import ablate, bench
 
@@ -106,7 +106,7 @@ def _positive(name: str, value: int) -> None:
 
 
 def cmd_train(args) -> int:
-    from rlpipe.pipelines import pipeline_class, resolve_preset
+    from rlpipe.pipelines import pipeline_class, resolve_preset, size_hint
     from rlpipe.pipelines.artifacts.rundir import RunDir, default_run_dir
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
@@ -123,6 +123,7 @@ def cmd_train(args) -> int:
             raise InputError(f"{args.resume} holds a {saved_algo} run; expected a {algo} run for preset {args.preset!r}")
         cfg = config_from_dict(Pipeline.Config, saved)
     cfg = apply_overrides(cfg, args.overrides)
+    hint = None if args.resume is not None else size_hint(args.preset, cfg)
     if args.keys:  # the values this command would train with, overrides included
         docs = field_docs(type(cfg))
         for key in flat_keys(type(cfg)):
@@ -130,8 +131,12 @@ def cmd_train(args) -> int:
             for part in key.split("."):
                 value = getattr(value, part)
             print(f"{key}={json.dumps(value)}\n    {docs.get(key, '')}")
+        if hint:
+            print(f"rlpipe: hint: {hint}", file=sys.stderr)
         return 0
     pipeline = Pipeline(cfg)
+    if hint:  # once the env is known to fit (else the error is the one line); a hint: the run goes on as asked
+        print(f"rlpipe: hint: {hint}", file=sys.stderr)
     args.pipeline = pipeline  # where main() writes a traceback, once the run directory exists
     out = args.resume if args.resume is not None else args.out
     check_output_dir(out if out is not None else default_run_dir(algo, pipeline.config.env),
@@ -325,12 +330,38 @@ def cmd_report(args) -> int:
     return 0
 
 
-def cmd_presets(args) -> int:
-    from rlpipe.pipelines import presets, resolve_preset
+PRESET_TIMES = Path(__file__).parent / "bench" / "preset_times.json"
+"""preset -> its measured time to target ({"seconds": ..., "commit": ..., "date": ...}), filled in from
+`rlpipe bench time-to-return` runs; `rlpipe presets` shows it"""
 
-    for name in presets():
-        algo, cfg = resolve_preset(name)
-        print(f"{name:22s} {algo:6s} {cfg.env}  ({cfg.num_iterations} iterations)")
+
+def preset_times() -> dict[str, dict]:
+    try:
+        return json.loads(PRESET_TIMES.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _measured(entry: dict | None) -> str:
+    if not entry or entry.get("seconds") is None:
+        return "not measured yet"
+    when = ", ".join(str(entry[k]) for k in ("date", "commit") if entry.get(k))
+    return f"{entry['seconds']:.1f} s" + (f" ({when})" if when else "")
+
+
+def cmd_presets(args) -> int:
+    from rlpipe.pipelines import preset_info, presets, resolve_preset
+
+    times = preset_times()
+    rows = [("preset", "algo", "env", "iterations", "target", "time to target", "what it is")]
+    for name, algo in presets().items():
+        info, cfg = preset_info(name), resolve_preset(name)[1]
+        targets = " then ".join(f"{t:g}" for t in info.targets) if info and info.targets else "-"
+        rows.append((name, algo, cfg.env, str(cfg.num_iterations), targets,
+                     _measured(times.get(name)) if info and info.targets else "-", info.task if info else ""))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
+    for row in rows:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)) + "  " + row[-1])
     return 0
 
 

@@ -248,7 +248,7 @@ def _play(policy_path, env_id: str, episodes: int) -> float:
     return float(np.mean(returns))
 
 
-LEARN = ["eval_interval=500", "num_eval_episodes=5", "log_interval=500", "checkpoint_interval=100000",
+LEARN = ["initial_eval=true", "eval_interval=500", "num_eval_episodes=5", "log_interval=500", "checkpoint_interval=100000",
          "policy_save_interval=100000", "num_threads=1"]
 
 

@@ -148,11 +148,13 @@ class Evaluations:
         resumed from its first checkpoint (saved before this) goes on as the uninterrupted one. A
         pipeline handed env instances (no function to make another) has no baseline.
         """
-        from rlpipe.pipelines.analysis.pages import read_baseline, write_baseline
-
         loop, cfg = self.loop, self.loop.config
         episodes = cfg.num_eval_episodes if cfg.baseline_episodes == -1 else cfg.baseline_episodes
-        if episodes == 0 or read_baseline(loop.run_dir.path) is not None or loop.pipeline.eval_env_fn is None:
+        if episodes == 0 or loop.pipeline.eval_env_fn is None:
+            return  # before importing the report pages (pandas, matplotlib): ~2 s before the first env step
+        from rlpipe.pipelines.analysis.pages import read_baseline, write_baseline
+
+        if read_baseline(loop.run_dir.path) is not None:
             return
         loop.echo(f"random agent: playing {episodes} episodes for its baseline return (baseline_episodes)")
         generators = ckpt.rng_state()

@@ -127,7 +127,7 @@ class Run:
         """A run from its first iteration: (its empty metrics table, no evaluations, fresh)."""
         pipeline = self.pipeline
         seed_everything(pipeline.config.seed)  # replay sampling, exploration: the same seed gives the same run
-        pipeline.state.owed = [EVAL]  # the tutorials evaluate once before training
+        pipeline.state.owed = [EVAL] if pipeline.config.initial_eval else []  # the tutorials evaluate once before training
         return MetricsCSV(run.metrics_path, list(pipeline.loss_names), extra_columns=pipeline.metrics_columns()), [], True
 
     def _resume(self, out) -> tuple[RunDir, MetricsCSV, list[dict], bool]:

@@ -71,7 +71,7 @@ TASKS: dict[str, Task] = {
     "pendulum-sac": Task("Pendulum-v1", "sac", -200.0, 30_000, "sac-pendulum", ("sac", ("env=Pendulum-v1",)),
                          crossq="crossq-pendulum"),
     "pendulum-td3": Task("Pendulum-v1", "td3", -200.0, 30_000, "td3-pendulum", ("td3", ()), crossq="crossq-pendulum"),
-    "cartpole-v1-dqn": Task("CartPole-v1", "dqn", 475.0, 100_000, "dqn-cartpole-v1", ("dqn", ("env=CartPole-v1",))),
+    "cartpole-v1-dqn": Task("CartPole-v1", "dqn", 475.0, 100_000, "dqn-cartpole-v1-fast", ("dqn", ("env=CartPole-v1",))),
     "cartpole-v0-dqn": Task("CartPole-v0", "dqn", 195.0, 50_000, "dqn-cartpole-v0", ("dqn", ()),
                             peers=("cleanrl", "sb3", "sbx", "tfagents"), why="the DQN tutorial's task"),
     "invpendulum-sac": Task("InvertedPendulum-v5", "sac", 950.0, 50_000, "sac-invpendulum",
@@ -83,7 +83,7 @@ TASKS: dict[str, Task] = {
     # and Spinning Up's SAC HalfCheetah-v3 benchmark, spinningup.openai.com/en/latest/spinningup/bench.html,
     # both above 3000 there, as read off their plots: neither page tabulates the 100k value, so re-read them
     # before publishing); v5 has v4's dynamics and reward. Cap 200k: twice that budget.
-    "halfcheetah-sac": Task("HalfCheetah-v5", "sac", 3000.0, 200_000, "sac-halfcheetah",
+    "halfcheetah-sac": Task("HalfCheetah-v5", "sac", 3000.0, 200_000, "sac-halfcheetah-100k",
                             ("sac", ("env=HalfCheetah-v5",)), crossq="crossq-halfcheetah"),
     # 1.0: above the best evaluation (0.85) that TF-Agents' SAC Minitaur tutorial printed in its 100,000
     # iterations; 5.0: a gait (issue 21's main job). The peers' CleanRL venv has no pybullet.
