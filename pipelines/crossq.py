@@ -121,7 +121,8 @@ PRESETS = {"crossq": _minitaur, "crossq-minitaur": _minitaur, "crossq-pendulum":
            "crossq-invpendulum": _inverted_pendulum, "crossq-halfcheetah": _halfcheetah}
 
 PRESET_INFO = {
-    "crossq": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "CrossQ on the main job, the sac tutorial's collection"),
+    "crossq": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "CrossQ on the main job, the sac tutorial's collection",
+                         sized=False),
     "crossq-minitaur": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "crossq under its task's name"),
     "crossq-pendulum": PresetInfo("Pendulum-v1", (-200.0,), "sized for time to -200"),
     "crossq-invpendulum": PresetInfo("InvertedPendulum-v5", (950.0,), "sized for time to 950"),
