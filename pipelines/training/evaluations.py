@@ -17,7 +17,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import RandomPolicy
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
-from rlpipe.pipelines.config import BASELINE_SEED_OFFSET
+from rlpipe.pipelines.config import BASELINE_SEED_OFFSET, eval_seed
 from rlpipe.pipelines.system.runtime import fault_point, stop_signals_blocked
 from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, evaluate
 from rlpipe.pipelines.workers.factory import backend_class
@@ -70,6 +70,7 @@ class Evaluations:
             policy = copy.deepcopy(policy)
             weights.to_module(policy)
         with loop.clock.paused():
+            loop.pipeline.eval_env.set_seed(eval_seed(loop.config.seed, at["step"]))
             result = evaluate(loop.pipeline.eval_env, policy, loop.config.num_eval_episodes, interrupt=loop.stop.check)
         self.record(result, at)
 

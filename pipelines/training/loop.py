@@ -35,7 +35,7 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir
+from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, notice
 from rlpipe.pipelines.system.runtime import (
     DeferredInterrupt,
     Interrupted,
@@ -48,6 +48,7 @@ from rlpipe.pipelines.system.runtime import (
 from rlpipe.pipelines.training.divergence import check_finite
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
+from rlpipe.pipelines.workers.snapshot import why_not_exact
 from rlpipe.pipelines.workers.supervision import NoRestartLeft, SupervisedCollector, Supervisor, Watchdog
 
 if TYPE_CHECKING:
@@ -165,8 +166,11 @@ class Loop:
         if cfg.total_frames - state.frames <= 0:
             return
         self.collection = SupervisedCollector(self._make_collector, self.supervisor, self.watchdog)
+        # held here: the for loop's own reference goes (and the generator closes its backend) as an
+        # exception leaves it, before `finally` has captured the envs
+        blocks = iter(self.collection)
         try:
-            for batch in self.collection:
+            for batch in blocks:
                 yield batch
                 fault_point("collected", state.iteration)  # the learner, once the block's work is done
                 fault_point("collector_worker", state.iteration,
@@ -174,19 +178,50 @@ class Loop:
                 if state.frames >= cfg.total_frames:
                     break
         finally:
+            self.capture_envs()  # between two blocks: what a checkpoint at a stop goes on from
             self.collection.close()
             self.collection = None
 
+    def capture_envs(self) -> None:
+        """Note the collector's envs in their episodes (``state.envs``) for the next checkpoint, when they
+        are between two blocks and its workers are all alive; otherwise leave the last note."""
+        collection, state = self.collection, self.state
+        backend = None if collection is None else collection.collector
+        if backend is None or state.frames >= self.config.total_frames:  # finished: nothing more to collect
+            return
+        if collection.failed or backend.health().failure is not None:
+            state.envs = None  # a lost worker's envs are lost: the next collector starts new episodes
+            return
+        state.envs = backend.snapshot()
+
     def _make_collector(self, restarts: int) -> CollectorBackend:
-        """A started collector backend for the frames still to collect, seeded; after a restart, with a seed
-        stream no earlier collector of the run used."""
+        """A started collector backend for the frames still to collect, going on from the envs' episodes
+        where the last one left them (``state.envs``), else seeded; after a restart, with a seed stream no
+        earlier collector of the run used (its workers' episodes died with them)."""
         cfg, state = self.config, self.state
-        seed = cfg.seed + state.frames
+        seed, snapshot = cfg.seed + state.frames, state.envs
         if restarts:
             seed = int(np.random.SeedSequence([cfg.seed, state.frames, restarts]).generate_state(1)[0])
+            snapshot = None
+            self.not_exact("a collector worker was restarted: the episodes in progress in its envs, and its "
+                           "random generators, died with it")
+        elif not cfg.collector.sync:
+            self.not_exact("asynchronous collection (collector.sync=false): which weights act in a block, and "
+                           "which worker's block comes first, depend on timing")
         with stop_signals_blocked(), self.clock.paused():  # worker start-up is not training time
-            return self.pipeline.make_backend().start(cfg.total_frames - state.frames,
-                                                      max(0, cfg.initial_collect_steps - state.frames), seed)
+            backend = self.pipeline.make_backend().start(cfg.total_frames - state.frames,
+                                                         max(0, cfg.initial_collect_steps - state.frames), seed,
+                                                         restore=snapshot)
+        if snapshot is not None and not backend.restored:
+            why = why_not_exact(self.pipeline.env) or "its state did not fit this collector"
+            notice(f"{cfg.env}: the collector's env cannot be captured ({why}); its episode in progress restarts")
+            self.not_exact(f"the env's episode in progress restarted at a resume ({why})")
+        return backend
+
+    def not_exact(self, why: str) -> None:
+        """Record (once: the first reason) that this run no longer equals an uninterrupted one: summary.json says so."""
+        if self.state.inexact is None:
+            self.state.inexact = why
 
     def insert(self, batch: TensorDictBase) -> None:
         """Store a block in the replay buffer, count it, and note the triggers its iterations crossed."""

@@ -42,6 +42,11 @@ class RunState:
     """names of the triggers still to run at ``iteration``, in order"""
     pending_evals: deque[tuple[dict, TensorDictBase]] = field(default_factory=deque)
     """background evaluations asked for and not back yet: (position, policy weights), oldest first"""
+    envs: dict[str, Any] | None = None
+    """the collector's envs between two blocks (``CollectorBackend.snapshot``), for the next collector to go
+    on from; None: it starts new episodes (a run's first start, asynchronous collection)"""
+    inexact: str | None = None
+    """why the run can no longer equal an uninterrupted one of its seed (None: it still does)"""
 
     @classmethod
     def fresh(cls, cfg: TrainConfig) -> RunState:
@@ -84,6 +89,8 @@ class RunState:
             "limiter": self.limiter.state_dict(),
             "background_evals": [{"at": dict(at), "weights": dict(w.flatten_keys("/").items())}
                                  for at, w in self.pending_evals],
+            **({"envs": self.envs} if self.envs is not None else {}),
+            **({"inexact": self.inexact} if self.inexact is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -94,3 +101,5 @@ class RunState:
         self.limiter.load_state_dict(state["limiter"])
         self.pending_evals = deque((dict(e["at"]), TensorDict(e["weights"]).unflatten_keys("/"))
                                    for e in state.get("background_evals", []))
+        self.envs = state.get("envs")  # a checkpoint from before envs were kept: None, new episodes
+        self.inexact = state.get("inexact")

@@ -209,6 +209,7 @@ class CheckpointTrigger(Trigger):
         loop.check_finite()  # every checkpoint is a finite state (TrainingDiverged otherwise)
         with loop.clock.paused():
             loop.metrics.sync()  # the rows this checkpoint counts reach the disk before it does
+            loop.capture_envs()
             ckpt.save_checkpoint(loop.run_dir.checkpoints, loop.state.iteration, loop.pipeline.state_dict(),
                                  keep=loop.config.checkpoint_keep)
 
