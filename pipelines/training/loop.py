@@ -89,6 +89,8 @@ class Loop:
         self.triggers = {t.name: t for t in triggers}
         self.logger, self.callbacks = logger, list(callbacks)
         self.clock, self.interval_stats, self.stop = Clock(), IntervalStats(), DeferredInterrupt()
+        if self.state.interval is not None:
+            self.interval_stats.load_state_dict(self.state.interval)
         self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
@@ -183,9 +185,11 @@ class Loop:
             self.collection = None
 
     def capture_envs(self) -> None:
-        """Note the collector's envs in their episodes (``state.envs``) for the next checkpoint, when they
-        are between two blocks and its workers are all alive; otherwise leave the last note."""
+        """Note for the next checkpoint the log interval so far and the collector's envs in their episodes
+        (``state.envs``), these when they are between two blocks and its workers are all alive (otherwise
+        the last note stays)."""
         collection, state = self.collection, self.state
+        state.interval = self.interval_stats.state_dict()
         backend = None if collection is None else collection.collector
         if backend is None or state.frames >= self.config.total_frames:  # finished: nothing more to collect
             return

@@ -45,6 +45,8 @@ class RunState:
     envs: dict[str, Any] | None = None
     """the collector's envs between two blocks (``CollectorBackend.snapshot``), for the next collector to go
     on from; None: it starts new episodes (a run's first start, asynchronous collection)"""
+    interval: dict[str, Any] | None = None
+    """the log interval's losses and episodes so far (``meters.IntervalStats.state_dict``)"""
     inexact: str | None = None
     """why the run can no longer equal an uninterrupted one of its seed (None: it still does)"""
 
@@ -91,6 +93,7 @@ class RunState:
                                  for at, w in self.pending_evals],
             **({"envs": self.envs} if self.envs is not None else {}),
             **({"inexact": self.inexact} if self.inexact is not None else {}),
+            **({"interval": self.interval} if self.interval is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -103,3 +106,4 @@ class RunState:
                                    for e in state.get("background_evals", []))
         self.envs = state.get("envs")  # a checkpoint from before envs were kept: None, new episodes
         self.inexact = state.get("inexact")
+        self.interval = state.get("interval")
