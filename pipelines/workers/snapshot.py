@@ -147,6 +147,12 @@ class SnapshotCollector(Collector):
 
 
 class WorkerSnapshotCollector(SnapshotCollector):
-    """``SnapshotCollector`` in a worker process of its own: its generators are part of its state."""
+    """``SnapshotCollector`` in a worker process of its own: its generators are part of its state, and
+    ``set_seed`` seeds them (TorchRL's multi-process workers do so themselves; its Ray actors do not)."""
 
     own_rng = True
+
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        torch.manual_seed(seed)
+        np.random.seed(seed % 2**32)
+        return super().set_seed(seed, static_seed=static_seed)
