@@ -92,6 +92,8 @@ class Loop:
         if self.state.interval is not None:
             self.interval_stats.load_state_dict(self.state.interval)
         self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)
+        if self.state.workers is not None:  # as last seen: the rows owed before the workers start again
+            self.supervisor.alive.update({role: tuple(seen) for role, seen in self.state.workers.items()})
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
         self._counts_at_start = (self.state.frames, self.state.updates)  # this session's speeds
@@ -190,6 +192,7 @@ class Loop:
         the last note stays)."""
         collection, state = self.collection, self.state
         state.interval = self.interval_stats.state_dict()
+        state.workers = {role: list(seen) for role, seen in self.supervisor.alive.items()}
         backend = None if collection is None else collection.collector
         if backend is None or state.frames >= self.config.total_frames:  # finished: nothing more to collect
             return

@@ -47,6 +47,9 @@ class RunState:
     on from; None: it starts new episodes (a run's first start, asynchronous collection)"""
     interval: dict[str, Any] | None = None
     """the log interval's losses and episodes so far (``meters.IntervalStats.state_dict``)"""
+    workers: dict[str, Any] | None = None
+    """the workers alive per role as last seen (``Supervisor.alive``): the rows a resumed run writes before
+    its workers start report them as the uninterrupted run's do"""
     inexact: str | None = None
     """why the run can no longer equal an uninterrupted one of its seed (None: it still does)"""
 
@@ -94,6 +97,7 @@ class RunState:
             **({"envs": self.envs} if self.envs is not None else {}),
             **({"inexact": self.inexact} if self.inexact is not None else {}),
             **({"interval": self.interval} if self.interval is not None else {}),
+            **({"workers": self.workers} if self.workers is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -107,3 +111,4 @@ class RunState:
         self.envs = state.get("envs")  # a checkpoint from before envs were kept: None, new episodes
         self.inexact = state.get("inexact")
         self.interval = state.get("interval")
+        self.workers = state.get("workers")
