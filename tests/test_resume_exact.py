@@ -256,3 +256,40 @@ def test_asynchronous_collection_records_that_it_is_not_exact(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads((run / "summary.json").read_text())
     assert summary["exact"] is False and "asynchronous" in summary["why"]
+
+
+SAC_ARGS = ["sac", "env=Pendulum-v1", "num_iterations=200", "initial_collect_steps=100", "eval_interval=100",
+            "num_eval_episodes=1", "log_interval=50", "checkpoint_interval=100", "collector.workers=2",
+            "collector.sync=true", "eval_in_background=false", "batch_size=64"]
+MINITAUR_ARGS = ["sac", "num_iterations=150", "initial_collect_steps=100", "eval_interval=0", "num_eval_episodes=1",
+                 "log_interval=50", "checkpoint_interval=100", "collector.workers=2", "collector.sync=true",
+                 "eval_in_background=false", "batch_size=64"]
+RAY_ARGS = ["td3", "num_iterations=200", "initial_collect_steps=100", "eval_interval=100", "num_eval_episodes=1",
+            "log_interval=50", "checkpoint_interval=100", "collector.backend=ray", "collector.workers=2",
+            "collector.sync=true", "eval_in_background=false", "batch_size=64", "num_threads=1"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stop", ["SIGINT", "SIGKILL"])
+def test_sac_with_collector_processes_stopped_and_resumed_equals_the_uninterrupted_run(uninterrupted, tmp_path,
+                                                                                       stop):
+    _assert_same_run(uninterrupted(SAC_ARGS), _stopped_and_resumed(SAC_ARGS, stop, 150, tmp_path))
+
+
+@pytest.mark.slow
+def test_minitaur_episodes_in_progress_are_replayed_at_a_resume(uninterrupted, tmp_path):
+    """The sac preset's pybullet Minitaur, in collector processes: stopped mid-episode (episodes are up
+    to 1000 steps), resumed, equal."""
+    _assert_same_run(uninterrupted(MINITAUR_ARGS), _stopped_and_resumed(MINITAUR_ARGS, "SIGTERM", 120, tmp_path))
+
+
+@pytest.mark.slow
+def test_ray_collectors_same_seed_twice_and_resumed_equal_the_uninterrupted_run(uninterrupted, tmp_path):
+    """Ray actors in sync mode: their generators are seeded (TorchRL's Ray set_seed seeds the env alone)
+    and their envs' episodes go through checkpoints as the processes' do."""
+    pytest.importorskip("ray")
+    again = tmp_path / "again"
+    done = _train(RAY_ARGS, again)
+    assert done.returncode == 0, done.stderr[-3000:]
+    _assert_same_run(uninterrupted(RAY_ARGS), again)
+    _assert_same_run(uninterrupted(RAY_ARGS), _stopped_and_resumed(RAY_ARGS, "SIGINT", 150, tmp_path))
