@@ -8,7 +8,8 @@ class. What it adds, under ``SNAPSHOT``, all tensors:
 
 * ``env/...``: each gymnasium env's own state (``rlpipe.envs.snapshot.capture``), where capturable;
 * ``carrier/...``: the collector's in-flight TensorDict (current observation, step count, the
-  episode's return so far, trajectory id): what the next step is taken from;
+  episode's return so far, trajectory id): what the next step is taken from; ``traj_pool``: the
+  next trajectory's id;
 * ``rng/...``: the worker process's torch and NumPy generators (exploration noise, random actions),
   only in a worker process of its own (``WorkerSnapshotCollector``): in-process, those are the
   learner's, which the checkpoint keeps already (and which updates made after the snapshot move on);
@@ -105,6 +106,8 @@ class SnapshotCollector(Collector):
         if carrier is not None:
             state.update({f"carrier/{k}": v.clone() for k, v in carrier.flatten_keys("/").items()
                           if isinstance(v, torch.Tensor)})
+        if getattr(self, "track_traj_ids", False):
+            state["traj_pool"] = self._traj_pool.state_dict()["traj_id"]  # the next trajectory's id
         if self.own_rng:
             state["rng/torch"] = torch.get_rng_state()
             state.update(_flat("rng/numpy", _numpy_state()))
@@ -127,6 +130,8 @@ class SnapshotCollector(Collector):
         if carrier:
             batch = self._carrier.batch_size
             self._carrier = TensorDict(carrier, batch_size=batch, device=self._carrier.device).unflatten_keys("/")
+        if "traj_pool" in state and getattr(self, "track_traj_ids", False):
+            self._traj_pool.load_state_dict({"traj_id": state["traj_pool"]})
         self._restore_rng(state)
         return True
 
