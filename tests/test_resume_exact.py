@@ -291,3 +291,21 @@ def test_ray_collectors_same_seed_twice_and_resumed_equal_the_uninterrupted_run(
     assert done.returncode == 0, done.stderr[-3000:]
     _assert_same_run(uninterrupted(RAY_ARGS), again)
     _assert_same_run(uninterrupted(RAY_ARGS), _stopped_and_resumed(RAY_ARGS, "SIGINT", 150, tmp_path))
+
+
+def _own_env():
+    from torchrl.envs import GymWrapper, StepCounter, TransformedEnv
+
+    return TransformedEnv(GymWrapper(_OwnEnv(), categorical_action_encoding=True), StepCounter())
+
+
+class _DQNOnOwnEnv(DQN):
+    def __init__(self, config):
+        super().__init__(config, env=_own_env)
+
+
+def test_a_users_own_env_restarts_its_episode_at_a_restore():
+    """Not capturable: the new collector starts new episodes (seeded as a first start's), and says it
+    did not restore (the loop then prints one line and records the run as not exact)."""
+    _, _, restored = _next_block_after_restore(_DQNOnOwnEnv, DQN.preset())
+    assert not restored
