@@ -140,6 +140,14 @@ class SnapshotCollector(Collector):
             torch.set_rng_state(state["rng/torch"])
             _set_numpy_state(_under("rng/numpy", state))
 
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        out = super().set_seed(seed, static_seed=static_seed)
+        # TorchRL's reseeds (resets) the env but keeps the in-flight step of the reset before it: the
+        # first transition's observation came from another episode (an entropy-seeded one in a Ray
+        # actor, so two runs of one seed differed there)
+        self.reset()
+        return out
+
     def state_dict(self) -> OrderedDict:
         # only what a resume needs: TorchRL's own adds the policy's weights, which the learner has
         return OrderedDict({SNAPSHOT: self.snapshot(), "frames": self._frames, "iter": self._iter})
