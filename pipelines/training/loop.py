@@ -196,6 +196,7 @@ class Loop:
         backend = None if collection is None else collection.collector
         if backend is None or state.frames >= self.config.total_frames:  # finished: nothing more to collect
             return
+        state.backend_metrics = backend.metrics_state()
         if collection.failed or backend.health().failure is not None:
             state.envs = None  # a lost worker's envs are lost: the next collector starts new episodes
             return
@@ -219,6 +220,9 @@ class Loop:
             backend = self.pipeline.make_backend().start(cfg.total_frames - state.frames,
                                                          max(0, cfg.initial_collect_steps - state.frames), seed,
                                                          restore=snapshot)
+        if state.backend_metrics and not restarts:  # what the last collector had gathered for its next row
+            backend.load_metrics_state(state.backend_metrics)
+        state.backend_metrics = None
         if snapshot is not None and not backend.restored:
             why = why_not_exact(self.pipeline.env) or "its state did not fit this collector"
             notice(f"{cfg.env}: the collector's env cannot be captured ({why}); its episode in progress restarts")

@@ -50,6 +50,8 @@ class RunState:
     workers: dict[str, Any] | None = None
     """the workers alive per role as last seen (``Supervisor.alive``): the rows a resumed run writes before
     its workers start report them as the uninterrupted run's do"""
+    backend_metrics: dict[str, Any] | None = None
+    """what the collector backend's ``metrics`` had gathered (``metrics_state``), for its next row"""
     inexact: str | None = None
     """why the run can no longer equal an uninterrupted one of its seed (None: it still does)"""
 
@@ -98,6 +100,7 @@ class RunState:
             **({"inexact": self.inexact} if self.inexact is not None else {}),
             **({"interval": self.interval} if self.interval is not None else {}),
             **({"workers": self.workers} if self.workers is not None else {}),
+            **({"backend_metrics": self.backend_metrics} if self.backend_metrics is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -112,3 +115,4 @@ class RunState:
         self.inexact = state.get("inexact")
         self.interval = state.get("interval")
         self.workers = state.get("workers")
+        self.backend_metrics = state.get("backend_metrics")

@@ -44,6 +44,7 @@ from rlpipe.pipelines.artifacts.export import export_policy
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.training.evaluations import Evaluations, eval_line
 from rlpipe.pipelines.training.state import EVAL, EXPORT, LOG, SAVE, VIDEO
+from rlpipe.pipelines.workers.factory import backend_class
 from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 if TYPE_CHECKING:
@@ -127,6 +128,9 @@ class LogTrigger(Trigger):
         row = {**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes, **loop.supervisor.columns()}
         if loop.collector is not None:  # the backend's own figures (Ray: weight versions)
             row.update(loop.collector.metrics())
+        elif loop.state.backend_metrics is not None:  # a resumed run's row owed before its collector starts
+            row.update(backend_class(loop.config).metrics_between(loop.state.backend_metrics, loop.state.updates))
+            loop.state.backend_metrics = None
         loop.log(row)
         if any(k.startswith("loss_") for k in row):  # nothing to say before the first update
             loop.echo(log_line(loop.state.iteration, row))

@@ -171,6 +171,20 @@ class CollectorBackend(abc.ABC):
         """This backend's own figures for a log row, keyed by ``metric_columns``."""
         return {}
 
+    def metrics_state(self) -> dict[str, Any]:
+        """What ``metrics`` has gathered since its last call (plain numbers, for a checkpoint)."""
+        return {}
+
+    def load_metrics_state(self, state: dict[str, Any]) -> None:
+        """Go on gathering from ``metrics_state``'s ``state`` (a resumed run's)."""
+        return None  # a backend without figures of its own has nothing to go on from
+
+    @classmethod
+    def metrics_between(cls, state: dict[str, Any], learner_version: int) -> dict[str, Any]:
+        """``metrics`` from ``metrics_state``'s ``state`` while no backend runs (the row a resumed run owes
+        before its collector starts), workers alive aside (the supervisor's last report has them)."""
+        return {}
+
     @property
     def collector(self):
         """What a loop of one's own iterates: a TorchRL collector (``shutdown`` when done; push weights

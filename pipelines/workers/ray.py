@@ -255,6 +255,20 @@ class RayBackend(CollectorBackend):
         return row
 
 
+    def metrics_state(self) -> dict[str, Any]:
+        return {"staleness_sum": float(self._staleness_sum), "staleness_frames": int(self._staleness_frames)}
+
+    def load_metrics_state(self, state: dict[str, Any]) -> None:
+        self._staleness_sum, self._staleness_frames = float(state["staleness_sum"]), int(state["staleness_frames"])
+
+    @classmethod
+    def metrics_between(cls, state: dict[str, Any], learner_version: int) -> dict[str, Any]:
+        row: dict[str, Any] = {"weight_version": learner_version}
+        if state.get("staleness_frames"):
+            row["weight_staleness"] = state["staleness_sum"] / state["staleness_frames"]
+        return row
+
+
 def _lost(message: str) -> WorkerFailure:
     return WorkerFailure("collector", message)
 
