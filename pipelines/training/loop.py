@@ -194,9 +194,11 @@ class Loop:
         state.interval = self.interval_stats.state_dict()
         state.workers = {role: list(seen) for role, seen in self.supervisor.alive.items()}
         backend = None if collection is None else collection.collector
-        if backend is None or state.frames >= self.config.total_frames:  # finished: nothing more to collect
+        if backend is None:
             return
-        state.backend_metrics = backend.metrics_state()
+        state.backend_metrics = backend.metrics_state()  # the last block's too
+        if state.frames >= self.config.total_frames:  # finished: nothing more to collect
+            return
         if collection.failed or backend.health().failure is not None:
             state.envs = None  # a lost worker's envs are lost: the next collector starts new episodes
             return
