@@ -76,6 +76,7 @@ from typing import Any
 
 import gymnasium
 import numpy as np
+import torch
 from gymnasium import spaces
 
 
@@ -110,6 +111,8 @@ with _c_output_silenced(2):
     import pybullet  # noqa: E402  (after the helper that quiets its import)
 import pybullet_data  # noqa: E402
 from pybullet_utils.bullet_client import BulletClient  # noqa: E402
+
+from rlpipe.envs.snapshot import generator_state, set_generator_state  # noqa: E402
 
 __all__ = [
     "MinitaurBulletEnv",
@@ -604,6 +607,12 @@ class MinitaurBulletEnv(gymnasium.Env):
         super().reset(seed=seed)
         if self._client is None:
             raise RuntimeError("reset() on a closed MinitaurBulletEnv")
+        # what `replay` needs to play this episode again (envs.snapshot: pybullet's saveState is in-process only)
+        self._episode_rng = generator_state(self.np_random)
+        self._episode_actions: list[np.ndarray] = []
+        return self._start_episode(seed)
+
+    def _start_episode(self, seed: int | None = None):
         if self._hard_reset or self.minitaur is None or seed is not None:
             self._build_world()
         else:
@@ -628,6 +637,7 @@ class MinitaurBulletEnv(gymnasium.Env):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (NUM_MOTORS,):
             raise ValueError(f"action must have shape ({NUM_MOTORS},), got {action.shape}")
+        self._episode_actions.append(action.copy())
         if self._leg_model_enabled:
             in_bounds = (action >= self._action_low) & (action <= self._action_high)
             if not in_bounds.all():
@@ -667,6 +677,31 @@ class MinitaurBulletEnv(gymnasium.Env):
             "shake_reward": shake_reward,
         }
         return self._observation(q, dq, tau, orientation), float(reward), bool(terminated), False, info
+
+    # -- the episode as data (envs.snapshot) ----------------------------------------------
+    def why_not_replayable(self) -> str | None:
+        """None when ``replay`` rebuilds the episode exactly: a hard reset builds the world anew each
+        episode, so the episode is a function of the generator at its reset and the actions since."""
+        return None if self._hard_reset else "a soft-reset Minitaur (hard_reset=False) keeps the last episode's world"
+
+    def replay_state(self) -> dict[str, torch.Tensor]:
+        """The generator's state at the episode's reset and the actions since (``replay`` plays them again)."""
+        actions = getattr(self, "_episode_actions", None)
+        if actions is None:
+            return {}
+        stacked = np.stack(actions) if actions else np.zeros((0, NUM_MOTORS))
+        return {**{f"rng/{k}": v for k, v in self._episode_rng.items()}, "actions": torch.from_numpy(stacked)}
+
+    def replay(self, state: dict[str, torch.Tensor]) -> None:
+        """Play the captured episode again in this env: the state it ends in is the captured one."""
+        if not state:
+            return
+        set_generator_state(self.np_random, {k[len("rng/"):]: v for k, v in state.items() if k.startswith("rng/")})
+        self._episode_rng = generator_state(self.np_random)
+        self._episode_actions = []
+        self._start_episode(seed=None)
+        for action in state["actions"].numpy():
+            self.step(action)
 
     def render(self):
         if self.render_mode is None:

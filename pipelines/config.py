@@ -27,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -36,6 +37,7 @@ __all__ = [
     "BASELINE_SEED_OFFSET",
     "COLLECTOR_BACKENDS",
     "EVAL_SEED_OFFSET",
+    "eval_seed",
     "GRADIENT_CLIPPING",
     "LAYER_SIZES",
     "LEARNING_RATE",
@@ -90,6 +92,14 @@ class PresetInfo:
     def target(self) -> float | None:
         """the first of ``targets`` (None without one)"""
         return self.targets[0] if self.targets else None
+
+
+def eval_seed(seed: int, step: int) -> int:
+    """The eval env's seed for the evaluation at iteration ``step``: from the run's seed and that step
+    alone, so an evaluation plays the same episodes whatever came before it (a resume, an evaluator
+    restarted, evaluations skipped). A hash, not ``seed + EVAL_SEED_OFFSET + step``, which would meet the
+    collectors' ``seed + frames``."""
+    return int(np.random.SeedSequence([seed, EVAL_SEED_OFFSET, step]).generate_state(1)[0])
 
 
 # --- rules on one key's value, declared with its field --------------------------------------------

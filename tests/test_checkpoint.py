@@ -733,8 +733,18 @@ def _resume_in_process(run: Path, monkeypatch, capsys, *overrides: str) -> tuple
 
 
 def _flip_a_byte(path: Path) -> None:
+    """A byte in the data of the file's largest member (the replay buffer's): torch.load would read it
+    without a word; the zip's CRC does not match. (A byte at the file's middle may land in a member's
+    alignment padding, which no checksum covers.)"""
+    import struct
+    import zipfile
+
+    with zipfile.ZipFile(path) as archive:
+        largest = max(archive.infolist(), key=lambda info: info.compress_size)
     data = bytearray(path.read_bytes())
-    data[len(data) // 2] ^= 0xFF  # torch.load would read this without a word; the zip's CRC does not match
+    name_len, extra_len = struct.unpack("<HH", data[largest.header_offset + 26:largest.header_offset + 30])
+    start = largest.header_offset + 30 + name_len + extra_len
+    data[start + largest.compress_size // 2] ^= 0xFF
     path.write_bytes(bytes(data))
 
 

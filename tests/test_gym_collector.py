@@ -21,6 +21,7 @@ from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.workers.gym_collector import GymCollector
 from rlpipe.pipelines.workers.local import direct_collection
+from rlpipe.pipelines.workers.snapshot import SNAPSHOT
 
 SMALL = {"dqn": ["fc_layer_params=[16]"], "td3": ["actor_fc_layer_params=[16]", "critic_fc_layer_params=[16]"],
          "sac": ["env=Pendulum-v1", "actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]"]}
@@ -62,7 +63,7 @@ def test_a_collector_process_steps_its_env_directly_too():
     p = pipeline("td3", "collector.sync=false")
     collector = p.make_collector(total_frames=150, init_random_frames=50)
     try:
-        assert collector.collector_class is GymCollector
+        assert issubclass(collector.collector_class, GymCollector)
         first, second = blocks(collector, 2)
     finally:
         collector.shutdown()
@@ -156,20 +157,42 @@ def test_user_envs_and_direct_false_keep_torchrls_collector():
     collector.shutdown()
 
 
-def test_its_state_dict_carries_the_bookkeeping_over():
+def test_a_restored_collector_goes_on_with_the_episode_under_way_as_if_never_stopped():
+    # issue 23: its snapshot (env state, episode under way, trajectory counter) travels in state_dict, and a
+    # new collector loaded with it gives the block the first one gives next, bit for bit
+    def collector():
+        p = pipeline("dqn", "env=CartPole-v1")
+        return p, GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1, **COLLECTOR_KWARGS)
+
+    torch.manual_seed(0)
+    _, first = collector()
+    first.set_seed(0)
+    iterator = iter(first)
+    seen = torch.cat([next(iterator), next(iterator)])
+    state = first.state_dict()
+    assert bool(state[SNAPSHOT]["capturable"]) and state[SNAPSHOT]["episode/observation"].shape == (4,)
+    rng = torch.get_rng_state()
+    expected = next(iterator)
+    torch.set_rng_state(rng)
+    with torch.random.fork_rng():
+        _, other = collector()
+    other.load_state_dict(state)
+    block = next(iter(other))
+    assert (block == expected).all(), "the restored collector's next block differs from the uninterrupted one"
+    assert not block["is_init"][0].item() or seen["next", "done"][-1].item()
+
+
+def test_a_collector_whose_env_cannot_be_restored_starts_a_new_trajectory():
     p = pipeline("dqn", "env=CartPole-v1")
     collector = GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1, **COLLECTOR_KWARGS)
     collector.set_seed(0)
     iterator = iter(collector)
     seen = torch.cat([next(iterator), next(iterator)])
-    state = collector.state_dict()
-    assert state["frames"] == 60 and state["gym_collector"]["env"] is None  # the env's state: envs.snapshot (issue 23)
-    assert state["gym_collector"]["observation"].shape == (4,)
+    state = {k: v for k, v in collector.snapshot().items() if not k.startswith(("env/", "episode/"))}
+    state["capturable"] = torch.tensor(False)
     other = GymCollector(p.env, p.collect_policy, frames_per_batch=30, total_frames=-1, **COLLECTOR_KWARGS)
-    other.load_state_dict(state)
+    assert not other.load_snapshot(state)
     block = next(iter(other))
-    assert other._frames == 90
-    # without the env's state the episode under way cannot go on: a new trajectory starts, numbered after the
-    # ones collected before
+    # the episode under way cannot go on: a new trajectory starts, numbered after the ones collected before
     assert block["is_init"][0].item() and block["step_count"][0].item() == 0
     assert block["collector", "traj_ids"][0].item() > seen["collector", "traj_ids"].max().item()

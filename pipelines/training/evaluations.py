@@ -17,7 +17,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import RandomPolicy
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
-from rlpipe.pipelines.config import BASELINE_SEED_OFFSET
+from rlpipe.pipelines.config import BASELINE_SEED_OFFSET, eval_seed
 from rlpipe.pipelines.system.runtime import fault_point, stop_signals_blocked
 from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, evaluate
 from rlpipe.pipelines.workers.factory import backend_class
@@ -70,6 +70,7 @@ class Evaluations:
             policy = copy.deepcopy(policy)
             weights.to_module(policy)
         with loop.clock.paused():
+            loop.pipeline.eval_env.set_seed(eval_seed(loop.config.seed, at["step"]))
             result = evaluate(loop.pipeline.eval_env, policy, loop.config.num_eval_episodes, interrupt=loop.stop.check)
         self.record(result, at)
 
@@ -105,6 +106,12 @@ class Evaluations:
         started with the stop signals blocked (its processes must not see them) and outside training time."""
         loop, cfg = self.loop, self.loop.config
         backend, supervisor = backend_class(cfg), loop.supervisor
+        if cfg.collector.backend == "local" and loop.state.iteration > 0:
+            # TorchRL's Evaluator process plays each evaluation on from where its last one left its env
+            # (it has no seed per request): a new one (a resume, a restart) plays other episodes
+            loop.not_exact("evaluations in a background process (eval_in_background=true, collector.backend=local) "
+                           "play on from the evaluator's last episode, and a new evaluator started mid-run "
+                           "plays others")
         with loop.clock.paused(), stop_signals_blocked():
             self.ray = self.ray or backend.hold(cfg)
             evaluator = backend.start_evaluator(cfg, env_fn=loop.pipeline.eval_env_fn, policy=loop.pipeline.policy,

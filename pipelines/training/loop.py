@@ -38,7 +38,7 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from rlpipe.pipelines.artifacts.files import FileWriteError
-from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir
+from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, notice
 from rlpipe.pipelines.system.runtime import (
     DeferredInterrupt,
     Interrupted,
@@ -52,6 +52,7 @@ from rlpipe.pipelines.training.divergence import check_finite
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
 from rlpipe.pipelines.training.page import ReportPage
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
+from rlpipe.pipelines.workers.snapshot import why_not_exact
 from rlpipe.pipelines.workers.supervision import NoRestartLeft, SupervisedCollector, Supervisor, Watchdog
 
 if TYPE_CHECKING:
@@ -94,7 +95,11 @@ class Loop:
         self.clock = Clock(self.state.wall_time_s, self.state.train_time_s)  # a resumed run's earlier stretches
         self.interval_stats, self.stop = IntervalStats(), DeferredInterrupt()
         self.page = ReportPage(run.path)
+        if self.state.interval is not None:
+            self.interval_stats.load_state_dict(self.state.interval)
         self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)
+        if self.state.workers is not None:  # as last seen: the rows owed before the workers start again
+            self.supervisor.alive.update({role: tuple(seen) for role, seen in self.state.workers.items()})
         self.collection: SupervisedCollector | None = None
         self.watchdog: Watchdog | None = None
         self._counts_at_start = (self.state.frames, self.state.updates)  # this session's speeds
@@ -191,8 +196,11 @@ class Loop:
         if cfg.total_frames - state.frames <= 0:
             return
         self.collection = SupervisedCollector(self._make_collector, self.supervisor, self.watchdog)
+        # held here: the for loop's own reference goes (and the generator closes its backend) as an
+        # exception leaves it, before `finally` has captured the envs
+        blocks = iter(self.collection)
         try:
-            for batch in self.collection:
+            for batch in blocks:
                 if self.first_block_unix is None:
                     self.first_block_unix = time.time()
                 yield batch
@@ -204,19 +212,59 @@ class Loop:
                 if state.frames >= cfg.total_frames:
                     break
         finally:
+            self.capture_envs()  # between two blocks: what a checkpoint at a stop goes on from
             self.collection.close()
             self.collection = None
 
+    def capture_envs(self) -> None:
+        """Note for the next checkpoint the log interval so far and the collector's envs in their episodes
+        (``state.envs``), these when they are between two blocks and its workers are all alive (otherwise
+        the last note stays)."""
+        collection, state = self.collection, self.state
+        state.interval = self.interval_stats.state_dict()
+        state.workers = {role: list(seen) for role, seen in self.supervisor.alive.items()}
+        backend = None if collection is None else collection.collector
+        if backend is None:
+            return
+        state.backend_metrics = backend.metrics_state()  # the last block's too
+        if state.frames >= self.config.total_frames:  # finished: nothing more to collect
+            return
+        if collection.failed or backend.health().failure is not None:
+            state.envs = None  # a lost worker's envs are lost: the next collector starts new episodes
+            return
+        state.envs = backend.snapshot()
+
     def _make_collector(self, restarts: int) -> CollectorBackend:
-        """A started collector backend for the frames still to collect, seeded; after a restart, with a seed
-        stream no earlier collector of the run used."""
+        """A started collector backend for the frames still to collect, going on from the envs' episodes
+        where the last one left them (``state.envs``), else seeded; after a restart, with a seed stream no
+        earlier collector of the run used (its workers' episodes died with them)."""
         cfg, state = self.config, self.state
-        seed = cfg.seed + state.frames
+        seed, snapshot = cfg.seed + state.frames, state.envs
         if restarts:
             seed = int(np.random.SeedSequence([cfg.seed, state.frames, restarts]).generate_state(1)[0])
+            snapshot = None
+            self.not_exact("a collector worker was restarted: the episodes in progress in its envs, and its "
+                           "random generators, died with it")
+        elif not cfg.collector.sync:
+            self.not_exact("asynchronous collection (collector.sync=false): which weights act in a block, and "
+                           "which worker's block comes first, depend on timing")
         with stop_signals_blocked(), self.clock.paused():  # worker start-up is not training time
-            return self.pipeline.make_backend().start(cfg.total_frames - state.frames,
-                                                      max(0, cfg.initial_collect_steps - state.frames), seed)
+            backend = self.pipeline.make_backend().start(cfg.total_frames - state.frames,
+                                                         max(0, cfg.initial_collect_steps - state.frames), seed,
+                                                         restore=snapshot)
+        if state.backend_metrics and not restarts:  # what the last collector had gathered for its next row
+            backend.load_metrics_state(state.backend_metrics)
+        state.backend_metrics = None
+        if snapshot is not None and not backend.restored:
+            why = why_not_exact(self.pipeline.env) or "its state did not fit this collector"
+            notice(f"{cfg.env}: the collector's env cannot be captured ({why}); its episode in progress restarts")
+            self.not_exact(f"the env's episode in progress restarted at a resume ({why})")
+        return backend
+
+    def not_exact(self, why: str) -> None:
+        """Record (once: the first reason) that this run no longer equals an uninterrupted one: summary.json says so."""
+        if self.state.inexact is None:
+            self.state.inexact = why
 
     def insert(self, batch: TensorDictBase) -> None:
         """Store a block in the replay buffer, count it, and note the triggers its iterations crossed."""

@@ -57,6 +57,18 @@ class IntervalStats:
     def __init__(self):
         self._reset(0.0)
 
+    def state_dict(self) -> dict[str, Any]:
+        """The interval's losses and episodes so far (not its speeds): a run stopped mid-interval and
+        resumed writes the row an uninterrupted run would."""
+        return {"loss_sums": dict(self.loss_sums), "loss_counts": dict(self.loss_counts),
+                "episode_returns": torch.tensor(self.episode_returns, dtype=torch.float64),
+                "episode_lengths": torch.tensor(self.episode_lengths, dtype=torch.float64)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.loss_sums, self.loss_counts = dict(state["loss_sums"]), dict(state["loss_counts"])
+        self.episode_returns = state["episode_returns"].tolist()
+        self.episode_lengths = state["episode_lengths"].tolist()
+
     def _reset(self, t: float) -> None:
         self.loss_sums: dict[str, torch.Tensor] = {}
         self.loss_counts: dict[str, int] = {}

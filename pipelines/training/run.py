@@ -212,6 +212,9 @@ class Run:
             "train_time_s": train_s,
             "env_steps_per_s": state.frames / train_s if train_s > 0 else None,
             "updates_per_s": state.updates / train_s if train_s > 0 else None,
+            # whether the run equals an uninterrupted one of its seed, and if not, why (README: resuming)
+            "exact": state.inexact is None,
+            **({"why": state.inexact} if state.inexact is not None else {}),
         }
 
 

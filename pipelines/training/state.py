@@ -47,6 +47,18 @@ class RunState:
     """the run's wall time when this state was saved (all its stretches so far): a resumed run adds to it"""
     train_time_s: float = 0.0
     """the run's training time (evaluations and saving left out) when this state was saved"""
+    envs: dict[str, Any] | None = None
+    """the collector's envs between two blocks (``CollectorBackend.snapshot``), for the next collector to go
+    on from; None: it starts new episodes (a run's first start, asynchronous collection)"""
+    interval: dict[str, Any] | None = None
+    """the log interval's losses and episodes so far (``meters.IntervalStats.state_dict``)"""
+    workers: dict[str, Any] | None = None
+    """the workers alive per role as last seen (``Supervisor.alive``): the rows a resumed run writes before
+    its workers start report them as the uninterrupted run's do"""
+    backend_metrics: dict[str, Any] | None = None
+    """what the collector backend's ``metrics`` had gathered (``metrics_state``), for its next row"""
+    inexact: str | None = None
+    """why the run can no longer equal an uninterrupted one of its seed (None: it still does)"""
 
     @classmethod
     def fresh(cls, cfg: TrainConfig) -> RunState:
@@ -90,6 +102,11 @@ class RunState:
             "limiter": self.limiter.state_dict(),
             "background_evals": [{"at": dict(at), "weights": dict(w.flatten_keys("/").items())}
                                  for at, w in self.pending_evals],
+            **({"envs": self.envs} if self.envs is not None else {}),
+            **({"inexact": self.inexact} if self.inexact is not None else {}),
+            **({"interval": self.interval} if self.interval is not None else {}),
+            **({"workers": self.workers} if self.workers is not None else {}),
+            **({"backend_metrics": self.backend_metrics} if self.backend_metrics is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -103,3 +120,8 @@ class RunState:
         self.limiter.load_state_dict(state["limiter"])
         self.pending_evals = deque((dict(e["at"]), TensorDict(e["weights"]).unflatten_keys("/"))
                                    for e in state.get("background_evals", []))
+        self.envs = state.get("envs")  # a checkpoint from before envs were kept: None, new episodes
+        self.inexact = state.get("inexact")
+        self.interval = state.get("interval")
+        self.workers = state.get("workers")
+        self.backend_metrics = state.get("backend_metrics")

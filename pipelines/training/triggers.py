@@ -51,6 +51,7 @@ from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.training.evaluations import Evaluations, eval_line
 from rlpipe.pipelines.training.state import EVAL, EXPORT, LOG, SAVE, TARGET, VIDEO
 from rlpipe.pipelines.workers.evaluation import evaluate
+from rlpipe.pipelines.workers.factory import backend_class
 from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 if TYPE_CHECKING:
@@ -139,6 +140,9 @@ class LogTrigger(Trigger):
         row = {**loop.interval_stats.flush(loop.clock), "episodes": loop.state.episodes, **loop.supervisor.columns()}
         if loop.collector is not None:  # the backend's own figures (Ray: weight versions)
             row.update(loop.collector.metrics())
+        elif loop.state.backend_metrics is not None:  # a resumed run's row owed before its collector starts
+            row.update(backend_class(loop.config).metrics_between(loop.state.backend_metrics, loop.state.updates))
+            loop.state.backend_metrics = None
         loop.log(row)
         if any(k.startswith("loss_") for k in row):  # nothing to say before the first update
             loop.echo(log_line(loop.state.iteration, row))
@@ -230,6 +234,7 @@ class CheckpointTrigger(Trigger):
         loop.state.wall_time_s, loop.state.train_time_s = loop.clock.wall(), loop.clock.train_seconds()
         with loop.clock.paused():
             loop.metrics.sync()  # the rows this checkpoint counts reach the disk before it does
+            loop.capture_envs()
             ckpt.save_checkpoint(loop.run_dir.checkpoints, loop.state.iteration, loop.pipeline.state_dict(),
                                  keep=loop.config.checkpoint_keep)
 

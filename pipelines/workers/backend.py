@@ -103,19 +103,37 @@ class CollectorBackend(abc.ABC):
             return BackgroundEvaluator(env_fn, policy, config.num_eval_episodes, pending, timeout=config.eval_timeout,
                                        ack_timeout=config.collector.timeout)
 
-    def start(self, total_frames: int, init_random_frames: int, seed: int | None = None) -> CollectorBackend:
+    def start(self, total_frames: int, init_random_frames: int, seed: int | None = None,
+              restore: dict[str, Any] | None = None) -> CollectorBackend:
         """Start the workers for ``total_frames`` frames, the first ``init_random_frames`` of them from
         random actions (none with ``initial_collect_policy=collect``), seeded with ``seed`` (None: as
-        TorchRL leaves them). Returns the backend, started; ``WorkerFailure`` if a worker is lost meanwhile."""
+        TorchRL leaves them), or, with ``restore`` (a ``snapshot``), going on from where that left its
+        envs, episodes and generators. Returns the backend, started; ``WorkerFailure`` if a worker is
+        lost meanwhile."""
         if self.started:
             raise RuntimeError(f"{type(self).__name__} was started already; make another (make_backend)")
         if self.config.initial_collect_policy == "collect":  # the initial steps come from the exploring policy
             init_random_frames = 0
         self._start(total_frames, init_random_frames)
         self.started = True
-        if seed is not None:
+        if restore is not None:
+            self.restored = self._restore(restore)
+        if not self.restored and seed is not None:  # new episodes, as a first start's
             self._seed(seed)
         return self
+
+    restored: bool = False
+    """whether ``start(restore=...)`` put back the envs' episodes in progress (False: they restarted)"""
+
+    def snapshot(self) -> dict[str, Any] | None:
+        """Between two blocks: what decides the next blocks (each worker's envs in their episodes, its
+        in-flight observation and counters, its generators), as tensors for a checkpoint; None where
+        the next blocks cannot be reproduced (asynchronous collection: the workers are mid-block)."""
+        return None
+
+    def _restore(self, snapshot: dict[str, Any]) -> bool:
+        """Put ``snapshot`` into the workers just started; False if their envs' episodes could not be."""
+        return False
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         return self.blocks()
@@ -151,6 +169,20 @@ class CollectorBackend(abc.ABC):
 
     def metrics(self) -> dict[str, Any]:
         """This backend's own figures for a log row, keyed by ``metric_columns``."""
+        return {}
+
+    def metrics_state(self) -> dict[str, Any]:
+        """What ``metrics`` has gathered since its last call (plain numbers, for a checkpoint)."""
+        return {}
+
+    def load_metrics_state(self, state: dict[str, Any]) -> None:
+        """Go on gathering from ``metrics_state``'s ``state`` (a resumed run's)."""
+        return None  # a backend without figures of its own has nothing to go on from
+
+    @classmethod
+    def metrics_between(cls, state: dict[str, Any], learner_version: int) -> dict[str, Any]:
+        """``metrics`` from ``metrics_state``'s ``state`` while no backend runs (the row a resumed run owes
+        before its collector starts), workers alive aside (the supervisor's last report has them)."""
         return {}
 
     @property

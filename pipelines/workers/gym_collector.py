@@ -25,22 +25,21 @@ once ``total_frames`` are collected (whole blocks; -1: never).
 
 from __future__ import annotations
 
-from typing import Any
-
 import gymnasium
 import numpy as np
 import torch
 from tensordict import TensorDict
 from torchrl._utils import seed_generator
-from torchrl.collectors import Collector
 from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase, GymWrapper, TransformedEnv
 from torchrl.envs.utils import set_exploration_type
 
 from rlpipe.envs import is_discrete
+from rlpipe.envs.snapshot import NotCapturable, capture, restore
 from rlpipe.modules.tensor_policy import tensor_step
+from rlpipe.pipelines.workers.snapshot import SnapshotCollector, seed_worker
 
-__all__ = ["GymCollector", "gym_env_of"]
+__all__ = ["GymCollector", "WorkerGymCollector", "gym_env_of"]
 
 _TRANSFORM_KEYS = {"step_count", "episode_reward", "is_init"}
 
@@ -60,7 +59,7 @@ def gym_env_of(env: EnvBase | None) -> gymnasium.Env | None:
     return gym_env if isinstance(gym_env, gymnasium.Env) else None
 
 
-class GymCollector(Collector):
+class GymCollector(SnapshotCollector):
     """TorchRL's ``Collector`` whose ``rollout`` steps the gymnasium env under ``make_env``'s env directly;
     see the module's docstring for why.
 
@@ -128,43 +127,45 @@ class GymCollector(Collector):
             self._shared_block.update_(block)
         return self._shared_block
 
-    # --- the state a resume needs -----------------------------------------------------------------
+    # --- the state a resume needs (SnapshotCollector's state_dict carries it) ------------------------
 
-    def state_dict(self) -> dict[str, Any]:
-        """TorchRL's (frames, trajectory counter, transforms) and this collector's own bookkeeping: the
-        episode under way (its observation, step, return, trajectory id) and the env's own state
-        (``capture_env_state``). The exploration's state is the policy's (its state dict: epsilon, noise
-        scale) and torch's global generator (the pipeline's checkpoint holds both)."""
-        return {**super().state_dict(), "gym_collector": {
-            "observation": None if self._obs is None else torch.as_tensor(self._obs.copy()),
-            "step_count": self._step_count,
-            "episode_reward": self._episode_reward,
-            "traj_id": self._traj_id,
-            "env": self.capture_env_state(),
-        }}
+    def snapshot(self) -> dict[str, torch.Tensor]:
+        """What decides the next block, as flat tensors: the gymnasium env's own state
+        (``rlpipe.envs.snapshot``), the episode under way (observation, step, return, trajectory id), the
+        next trajectory's id, and in a worker process of its own that process's generators. The
+        exploration's state is the policy's and the learner's generator (the pipeline's checkpoint)."""
+        state: dict[str, torch.Tensor] = {"capturable": torch.tensor(False)}
+        if self._obs is not None:
+            try:
+                state.update({f"env/0/{k}": v for k, v in capture(self.gym_env).items()})
+            except NotCapturable:
+                pass
+            else:
+                state.update({"capturable": torch.tensor(True),
+                              "episode/observation": torch.as_tensor(self._obs.copy()),
+                              "episode/step_count": torch.tensor(self._step_count),
+                              "episode/episode_reward": torch.tensor(self._episode_reward, dtype=torch.float64),
+                              "episode/traj_id": torch.tensor(self._traj_id)})
+        state["traj_pool"] = self._traj_pool.state_dict()["traj_id"]
+        state.update(self._rng_state())
+        return state
 
-    def load_state_dict(self, state_dict: dict[str, Any], **kwargs) -> None:
-        state_dict = dict(state_dict)
-        own = state_dict.pop("gym_collector")
-        super().load_state_dict(state_dict, **kwargs)  # TorchRL starts a new trajectory id
-        self._traj_id = int(self._carrier.get(("collector", "traj_ids")).reshape(-1)[0])
-        self._obs, self._step_count, self._episode_reward = None, 0, 0.0
-        if own.get("env") is not None and own["observation"] is not None:  # the episode goes on
-            self.restore_env_state(own["env"])
-            self._obs = np.asarray(own["observation"], dtype=self._obs_dtype).copy()
-            self._step_count, self._episode_reward = int(own["step_count"]), float(own["episode_reward"])
-            self._traj_id = int(own["traj_id"])
-
-    def capture_env_state(self) -> dict[str, torch.Tensor] | None:
-        """The gymnasium env's own state (physics, its random generator, the time limit's count), for an exact
-        resume. The one place it is captured: wire ``rlpipe.envs.snapshot.capture(self.gym_env)`` here
-        (issue 23). None: not captured, and a restored collector starts a new episode."""
-        return None
-
-    def restore_env_state(self, state: dict[str, torch.Tensor]) -> None:
-        """Put back what ``capture_env_state`` captured: ``rlpipe.envs.snapshot.restore(self.gym_env, state)``
-        (issue 23)."""
-        raise NotImplementedError("env-state restore is wired with rlpipe.envs.snapshot (issue 23)")
+    def load_snapshot(self, state: dict[str, torch.Tensor]) -> bool:
+        """Go on from ``snapshot``'s ``state``: the episode under way where it was captured (True), or a new
+        episode, numbered after the ones collected before (False)."""
+        self._restore_rng(state)
+        if "traj_pool" in state:
+            self._traj_pool.load_state_dict({"traj_id": state["traj_pool"]})
+        if not bool(state.get("capturable", False)) or "episode/observation" not in state:
+            self._obs, self._step_count, self._episode_reward = None, 0, 0.0
+            self._traj_id = int(self._traj_pool.get_traj_and_increment(1)[0])
+            return False
+        restore(self.gym_env, {k[len("env/0/"):]: v for k, v in state.items() if k.startswith("env/0/")})
+        self._obs = state["episode/observation"].numpy().astype(self._obs_dtype, copy=True)
+        self._step_count = int(state["episode/step_count"])
+        self._episode_reward = float(state["episode/episode_reward"])
+        self._traj_id = int(state["episode/traj_id"])
+        return True
 
     # --- stepping -----------------------------------------------------------------------------------
 
@@ -272,3 +273,14 @@ class GymCollector(Collector):
 
 def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
     return torch.empty((), dtype=dtype).numpy().dtype
+
+
+class WorkerGymCollector(GymCollector):
+    """``GymCollector`` in a worker process of its own: its generators are part of its state, and
+    ``set_seed`` seeds them (as ``snapshot.WorkerSnapshotCollector``)."""
+
+    own_rng = True
+
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        seed_worker(seed)
+        return super().set_seed(seed, static_seed=static_seed)

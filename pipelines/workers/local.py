@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import functools
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -25,7 +26,8 @@ from rlpipe.envs import make_env
 from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
-from rlpipe.pipelines.workers.gym_collector import GymCollector, gym_env_of
+from rlpipe.pipelines.workers.gym_collector import GymCollector, WorkerGymCollector, gym_env_of
+from rlpipe.pipelines.workers.snapshot import SNAPSHOT, SnapshotCollector, WorkerSnapshotCollector, why_not_exact
 from rlpipe.pipelines.workers.supervision import (
     TimedSharedMemScheme,
     close_weight_sync_queues,
@@ -58,9 +60,11 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
                   policy_device=device, storing_device=device)
     direct = direct_collection(config, env_fn, env)
     if c.workers == 1 and c.sync:
-        return (GymCollector if direct else Collector)(env if env is not None else env_fn(), policy, **common)
-    if direct:  # each worker process steps its gymnasium env directly
-        common["collector_class"] = GymCollector
+        # Its constructor runs the policy on a fake step (a draw of the exploring policy's): on the
+        # learner's generators, that draw would make a run resumed mid-way (a collector more) differ.
+        with torch.random.fork_rng(devices=[]):
+            return (GymCollector if direct else SnapshotCollector)(env if env is not None else env_fn(), policy,
+                                                                   **common)
     if not c.sync and init_random_frames > 0:
         # MultiAsyncCollector decides random-or-policy for a worker's next block when it hands
         # over that worker's last one, so the other workers' blocks in flight are random too:
@@ -69,7 +73,8 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
         common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
     cls = MultiSyncCollector if c.sync else MultiAsyncCollector
     scheme = TimedSharedMemScheme(ack_timeout=c.timeout)
-    return cls([env_fn] * c.workers, policy, weight_sync_schemes={"policy": scheme}, **common)
+    return cls([env_fn] * c.workers, policy, weight_sync_schemes={"policy": scheme},
+               collector_class=WorkerGymCollector if direct else WorkerSnapshotCollector, **common)
 
 
 def push_weights(collector) -> None:
@@ -91,6 +96,25 @@ class LocalBackend(CollectorBackend):
 
     def _seed(self, seed: int) -> None:
         self._collector.set_seed(seed)
+
+    def snapshot(self) -> dict[str, Any] | None:
+        collector = self._collector
+        if isinstance(collector, SnapshotCollector):
+            return {"workers": [collector.snapshot()]}
+        if isinstance(collector, MultiSyncCollector):  # its workers wait for the next "continue": between blocks
+            state = collector.state_dict()
+            return {"workers": [state[f"worker{i}"][SNAPSHOT] for i in range(collector.num_workers)]}
+        return None
+
+    def _restore(self, snapshot: dict[str, Any]) -> bool:
+        collector, workers = self._collector, snapshot["workers"]
+        if isinstance(collector, SnapshotCollector) and len(workers) == 1:
+            return collector.load_snapshot(workers[0])
+        if isinstance(collector, MultiSyncCollector) and len(workers) == collector.num_workers:
+            collector.load_state_dict({**{f"worker{i}": {SNAPSHOT: w} for i, w in enumerate(workers)},
+                                       "frames": collector._frames, "iter": collector._iter})
+            return why_not_exact(self.env) is None and all(bool(w["capturable"]) for w in workers)
+        return False
 
     @property
     def collector(self):

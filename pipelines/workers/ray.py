@@ -35,6 +35,7 @@ from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
 from rlpipe.pipelines.workers.ray_runtime import RayRuntime, check_address, check_cpus
+from rlpipe.pipelines.workers.snapshot import SNAPSHOT, WorkerSnapshotCollector, why_not_exact
 from rlpipe.pipelines.workers.supervision import MIN_START_TIMEOUT_S, WorkerFailure, first_line, start_timeout
 
 __all__ = ["METRIC_COLUMNS", "RayBackend", "RayRuntime", "check_address", "check_cpus"]
@@ -136,6 +137,25 @@ class RayBackend(CollectorBackend):
         except _lost_errors() as exc:
             raise _lost(f"a Ray collector actor was lost while starting ({first_line(exc)})") from exc
 
+    def snapshot(self) -> dict[str, Any] | None:
+        if not self.config.collector.sync:  # async actors are mid-block whenever the learner looks
+            return None
+        try:
+            states = self._ray_collector.state_dict()
+        except _lost_errors() as exc:
+            raise _lost(f"a Ray collector actor was lost ({first_line(exc)})") from exc
+        return {"workers": [state[SNAPSHOT] for state in states]}
+
+    def _restore(self, snapshot: dict[str, Any]) -> bool:
+        workers = snapshot["workers"]
+        if not self.config.collector.sync or len(workers) != len(self._actors):
+            return False
+        try:
+            self._ray_collector.load_state_dict([{SNAPSHOT: w} for w in workers])
+        except _lost_errors() as exc:
+            raise _lost(f"a Ray collector actor was lost while starting ({first_line(exc)})") from exc
+        return why_not_exact(self.env) is None and all(bool(w["capturable"]) for w in workers)
+
     def blocks(self) -> Iterator[TensorDictBase]:
         lost_errors = _lost_errors()
         blocks = iter(self._ray_collector)
@@ -235,6 +255,20 @@ class RayBackend(CollectorBackend):
         return row
 
 
+    def metrics_state(self) -> dict[str, Any]:
+        return {"staleness_sum": float(self._staleness_sum), "staleness_frames": int(self._staleness_frames)}
+
+    def load_metrics_state(self, state: dict[str, Any]) -> None:
+        self._staleness_sum, self._staleness_frames = float(state["staleness_sum"]), int(state["staleness_frames"])
+
+    @classmethod
+    def metrics_between(cls, state: dict[str, Any], learner_version: int) -> dict[str, Any]:
+        row: dict[str, Any] = {"weight_version": learner_version}
+        if state.get("staleness_frames"):
+            row["weight_staleness"] = state["staleness_sum"] / state["staleness_frames"]
+        return row
+
+
 def _lost(message: str) -> WorkerFailure:
     return WorkerFailure("collector", message)
 
@@ -284,7 +318,6 @@ def _ray_collectors(env_fn, policy, config: TrainConfig, *, total_frames: int, i
 
 def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_random_frames: int, scheme):
     """TorchRL's ``RayCollector``: one single-env ``Collector`` per actor, frames tagged with their weights' version."""
-    from torchrl.collectors import Collector
     from torchrl.collectors.distributed import RayCollector
 
     c, r = config.collector, config.ray
@@ -294,7 +327,10 @@ def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_
         warnings.filterwarnings("ignore", message="async distributed data collection with init_random_frames")
         return RayCollector(
             [env_fn] * c.workers, policy,
-            collector_class=Collector,
+            # its state_dict carries the actor's envs, episodes and generators (workers.snapshot), and its
+            # set_seed seeds the actor's torch and NumPy generators too (TorchRL's seeds the env alone, so
+            # the exploration noise of two runs of one seed differed)
+            collector_class=WorkerSnapshotCollector,
             collector_kwargs={"track_policy_version": True, **COLLECTOR_KWARGS},
             frames_per_batch=c.frames_per_batch, total_frames=total_frames, init_random_frames=init_random_frames,
             # the learner's device is not the actors' business: they step and act on CPU

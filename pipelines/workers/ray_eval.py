@@ -3,7 +3,7 @@
 ``RayEvaluator`` is an ``evaluation.AsyncEvaluator``, as ``BackgroundEvaluator`` is (``ask``, ``results``,
 ``check``, ``close``, ``worker_pid``, ``snapshot``), with the evaluation in a Ray actor that Ray
 places on any node with ``ray.num_cpus_per_worker`` CPUs free: one actor, ``EvalActor``, that makes
-the eval env (seeded ``seed + EVAL_SEED_OFFSET``, as the learner's own eval env is) and a CPU copy of the
+the eval env (seeded for each evaluation from the run's seed and its step, ``config.eval_seed``, as the learner's own is) and a CPU copy of the
 policy, and runs ``evaluation.evaluate`` on each snapshot of weights sent to it. The same weights on
 the same seed give the same result as an evaluation in the learner's process.
 
@@ -37,7 +37,7 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig
+from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig, eval_seed
 from rlpipe.pipelines.system.runtime import STOP_SIGNALS
 from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, _PolicyCopy, evaluate
 from rlpipe.pipelines.workers.ray_runtime import RayRuntime, check_cpus
@@ -68,8 +68,11 @@ class EvalActor:
     def pid(self) -> int:
         return os.getpid()
 
-    def evaluate(self, weights: TensorDictBase, num_episodes: int) -> dict:
+    def evaluate(self, weights: TensorDictBase, num_episodes: int, seed: int | None = None) -> dict:
+        """``seed``: the evaluation's own (``config.eval_seed``), so it plays what the learner's would."""
         weights.to_module(self.policy)
+        if seed is not None:
+            self.env.set_seed(seed)
         return evaluate(self.env, self.policy, num_episodes)
 
 
@@ -89,7 +92,7 @@ class RayEvaluator(AsyncEvaluator):
         import ray
 
         super().__init__(pending, timeout)
-        self.num_episodes = int(num_episodes)
+        self.num_episodes, self.seed = int(num_episodes), config.seed
         self._ref = None
         self._checked_at = 0.0
         self.worker_pid: int | None = None  # the actor's process on its node (the test hook kills it there)
@@ -112,7 +115,7 @@ class RayEvaluator(AsyncEvaluator):
             raise
 
     def _send(self, at: dict, weights: TensorDictBase) -> None:
-        self._ref = self._actor.evaluate.remote(weights, self.num_episodes)
+        self._ref = self._actor.evaluate.remote(weights, self.num_episodes, eval_seed(self.seed, at["step"]))
 
     def _take(self, timeout: float) -> dict | None:
         import ray

@@ -330,6 +330,11 @@ class SupervisedCollector:
     def close(self) -> None:
         self._stop()
 
+    @property
+    def failed(self) -> bool:
+        """Whether the backend collecting now has failed (a lost worker, a wait past its deadline)."""
+        return self._failure is not None or self._timed_out is not None
+
     # --- inside ---------------------------------------------------------------------------------------
 
     def _start(self) -> None:
