@@ -12,6 +12,7 @@ import csv
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -239,7 +240,7 @@ def test_a_lost_actor_is_replaced_and_the_run_finishes(tmp_path, sync):
         while not ((run / "metrics.csv").exists() and any(r["workers_alive"] for r in metrics_rows(run))):
             assert proc.poll() is None and time.monotonic() < deadline, "the run ended or stalled before logging"
             time.sleep(0.2)
-        actors = [p for p in Path("/proc").glob("[0-9]*") if _cmdline(p).startswith("ray::Collector")
+        actors = [p for p in Path("/proc").glob("[0-9]*") if _is_collector_actor(p)
                   and _session(p) == proc.pid]
         assert len(actors) == 2, [_cmdline(p) for p in actors]
         os.kill(int(actors[0].name), signal.SIGKILL)
@@ -255,6 +256,12 @@ def test_a_lost_actor_is_replaced_and_the_run_finishes(tmp_path, sync):
     logged = [r for r in rows if r["collector_restarts"]]  # log rows (evaluation rows leave it blank)
     assert logged[-1]["collector_restarts"] == "1", logged[-1]
     assert_no_leftovers(proc.pid)
+
+
+def _is_collector_actor(proc_dir: Path) -> bool:
+    """A Ray collector actor's process: Ray titles it ``ray::CLASS[.method]``, the class being the collector
+    class the backend gives TorchRL's RayCollector (``WorkerSnapshotCollector``) or TorchRL's ``Collector``."""
+    return re.match(r"ray::\w*Collector\b", _cmdline(proc_dir)) is not None
 
 
 def _cmdline(proc_dir: Path) -> str:

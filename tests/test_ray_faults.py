@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -103,13 +104,19 @@ def collector_actors(cluster) -> dict[int, object]:
     found = {}
     for p in _procs():
         stat = _stat(p)
-        if stat[0] != "Z" and stat[1] in raylets and _cmdline(p).startswith("ray::Collector"):
+        if stat[0] != "Z" and stat[1] in raylets and _is_collector_actor(p):
             found[int(p.name)] = raylets[stat[1]]
     return found
 
 
 def _procs():
     return Path("/proc").glob("[0-9]*")
+
+
+def _is_collector_actor(proc_dir: Path) -> bool:
+    """A Ray collector actor's process: Ray titles it ``ray::CLASS[.method]``, the class being the collector
+    class the backend gives TorchRL's RayCollector (``WorkerSnapshotCollector``) or TorchRL's ``Collector``."""
+    return re.match(r"ray::\w*Collector\b", _cmdline(proc_dir)) is not None
 
 
 def _cmdline(proc_dir: Path) -> str:
@@ -249,7 +256,7 @@ def test_an_actor_that_stops_answering_is_killed_at_the_deadline_and_replaced(tm
                  tmp_path, fault="collected@100:SIGSTOP:self")
     try:
         wait_stopped(proc)
-        actors = [int(p.name) for p in _procs() if _stat(p)[4] == proc.pid and _cmdline(p).startswith("ray::Collector")]
+        actors = [int(p.name) for p in _procs() if _stat(p)[4] == proc.pid and _is_collector_actor(p)]
         assert len(actors) == 1, actors
         os.kill(actors[0], signal.SIGSTOP)
         os.kill(proc.pid, signal.SIGCONT)

@@ -144,10 +144,13 @@ def copy_of(trained: Path, dest: Path) -> Path:
 @pytest.mark.parametrize("point", ["checkpoint.written", "checkpoint.exchanged"])
 @pytest.mark.slow
 def test_kill_inside_a_checkpoint_overwrite_leaves_a_resumable_run(trained, tmp_path, point):
-    """Resuming a finished run saves its last checkpoint again (an overwrite): killed before the new one
+    """Resuming a run killed before its summary saves its last checkpoint again (an overwrite): killed before the new one
     is in, or after it is in and before the old one is removed, the run resumes, and the next start
     clears what the kill left (the temporary folder, a temporary export file)."""
     run = copy_of(trained, tmp_path / "run")
+    # killed after its last checkpoint and before its summary: a resume owes the run's end again, and saves
+    # that checkpoint again (a finished run, summary written, owes nothing and is left as it is)
+    (run / "summary.json").unlink()
     code, _, err = rlpipe(["train", "dqn", "--resume", run, "--no-progress"], tmp_path, fault=f"{point}@{N}:SIGKILL")
     assert code == -signal.SIGKILL, f"not killed at {point}: exit {code}\n{err}"
     assert [p.name.split("-")[0] for p in (run / "checkpoints").glob(".tmp-*")] == [".tmp"], "the kill left no trace?"
