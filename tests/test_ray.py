@@ -26,7 +26,7 @@ import pytest
 import torch
 
 from rlpipe.pipelines import td3
-from rlpipe.pipelines.config import apply_overrides
+from rlpipe.pipelines.config import apply_overrides, eval_seed
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.workers.evaluation import evaluate
 
@@ -367,7 +367,9 @@ def test_an_evaluation_on_the_ray_actor_is_the_one_the_learner_makes(local_ray):
         evaluator.close()
     policy = copy.deepcopy(pipeline.policy)
     weights.to_module(policy)
-    local = evaluate(pipeline.eval_env, policy, 3)  # seeded seed + 10000 by the pipeline, not used before
+    # each evaluation's episodes come from the run's seed and that evaluation's step (issue 23)
+    pipeline.eval_env.set_seed(eval_seed(cfg.seed, 7))
+    local = evaluate(pipeline.eval_env, policy, 3)
     assert at["step"] == 7 and not pending
     assert result["returns"] == pytest.approx(local["returns"], rel=1e-6)
     assert result["average_episode_length"] == local["average_episode_length"] == 200
