@@ -156,9 +156,11 @@ def test_collector_processes_go_on_from_the_snapshot():
 
 
 def _rows(run: Path) -> list[dict[str, str]]:
-    """metrics.csv without what depends on the clock (times, speeds)."""
+    """metrics.csv without what depends on the clock (times, speeds), by step: where an evaluation's row
+    lands among the log rows depends on when a background evaluator answered, not on the run."""
     with open(run / "metrics.csv", newline="") as fh:
-        return [{k: v for k, v in row.items() if "time" not in k and "per_s" not in k} for row in csv.DictReader(fh)]
+        rows = [{k: v for k, v in row.items() if "time" not in k and "per_s" not in k} for row in csv.DictReader(fh)]
+    return sorted(rows, key=lambda row: (int(row["step"]), sorted(row.items())))
 
 
 def _final_state(run: Path) -> dict:
@@ -267,11 +269,23 @@ RAY_ARGS = ["td3", "num_iterations=200", "initial_collect_steps=100", "eval_inte
             "collector.sync=true", "eval_in_background=false", "batch_size=64", "num_threads=1"]
 
 
+SAC_BACKGROUND_EVAL_ARGS = [*SAC_ARGS[:-2], "eval_in_background=true", "batch_size=64"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("stop", ["SIGINT", "SIGKILL"])
 def test_sac_with_collector_processes_stopped_and_resumed_equals_the_uninterrupted_run(uninterrupted, tmp_path,
                                                                                        stop):
     _assert_same_run(uninterrupted(SAC_ARGS), _stopped_and_resumed(SAC_ARGS, stop, 150, tmp_path))
+
+
+@pytest.mark.slow
+def test_sac_evaluating_in_a_background_process_stopped_and_resumed_equals_the_uninterrupted_run(uninterrupted,
+                                                                                                tmp_path):
+    """The sac preset's own evaluations (eval_in_background=true): each seeded by its step in the
+    evaluator's process, so a new evaluator after the resume plays what the old one would have."""
+    _assert_same_run(uninterrupted(SAC_BACKGROUND_EVAL_ARGS),
+                     _stopped_and_resumed(SAC_BACKGROUND_EVAL_ARGS, "SIGTERM", 150, tmp_path))
 
 
 @pytest.mark.slow

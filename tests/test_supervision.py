@@ -28,8 +28,8 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from rlpipe.pipelines import td3
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
-from rlpipe.pipelines.config import apply_overrides
-from rlpipe.pipelines.workers.evaluation import BackgroundEvaluator
+from rlpipe.pipelines.config import apply_overrides, eval_seed
+from rlpipe.pipelines.workers.evaluation import BackgroundEvaluator, evaluate
 from rlpipe.pipelines.workers.supervision import NoRestartLeft, Supervisor, Watchdog, WorkerFailure
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -264,26 +264,43 @@ def test_a_stop_signal_saves_a_checkpoint_and_resume_finishes(fault, status, tmp
 # --- the parts, in this process --------------------------------------------------------------------------
 
 
-def test_closing_an_evaluator_with_an_evaluation_in_flight_ends_its_threads_and_process():
-    """TorchRL's evaluator threads left running at the interpreter's exit abort the process (issue 11's
-    "Fatal Python error: Aborted"): close() ends them, and the worker, however busy."""
+def test_closing_an_evaluator_with_an_evaluation_in_flight_ends_its_process_and_keeps_the_evaluation_owed():
+    """close() with an evaluation in flight ends the worker at once (the run stops without waiting for the
+    episodes), and the evaluation stays in ``pending``, which a checkpoint keeps."""
     cfg = apply_overrides(td3.preset("td3"), [*SMALL_TD3])
     pipeline = td3.TD3(cfg)
     pending = deque()
-    evaluator = BackgroundEvaluator(pipeline.eval_env_fn, pipeline.policy, 5, pending)
+    evaluator = BackgroundEvaluator(pipeline.eval_env_fn, pipeline.policy, 1000, pending)  # 1,000 episodes: busy
     try:
         worker = psutil.Process(evaluator.worker_pid)
         evaluator.ask({"step": 1, "frames": 1, "updates": 1}, evaluator.snapshot(pipeline.policy))
-        deadline = time.monotonic() + 60  # TorchRL starts its two threads on the first request
-        while not (len(evaluator._threads()) == 2 and all(t.is_alive() for t in evaluator._threads())):
-            assert time.monotonic() < deadline, evaluator._threads()
-            time.sleep(0.01)
-        threads = evaluator._threads()
+        assert list(evaluator.results()) == []  # not back yet
     finally:
         evaluator.close()
-    assert not any(t.is_alive() for t in threads)
     assert not worker.is_running() or worker.status() == psutil.STATUS_ZOMBIE
-    assert len(pending) == 1  # the evaluation in flight is still owed (a checkpoint keeps it)
+    assert len(pending) == 1
+
+
+def test_the_background_evaluator_plays_the_episodes_the_learner_would_at_that_step():
+    """An evaluation in the background process is seeded from the run's seed and its step
+    (``config.eval_seed``): the same weights at the same step give the learner's own evaluation's
+    episodes, return for return, so a resumed run evaluates as the uninterrupted one did."""
+    cfg = apply_overrides(td3.preset("td3"), [*SMALL_TD3, "seed=7"])
+    pipeline = td3.TD3(cfg)
+    evaluator = BackgroundEvaluator(pipeline.eval_env_fn, pipeline.policy, 3, deque(), seed=7)
+    try:
+        results = {}
+        for step in (100, 200, 100):
+            evaluator.ask({"step": step, "frames": step, "updates": step}, evaluator.snapshot(pipeline.policy))
+            results.setdefault(step, []).append(next(evaluator.results(block=True))[1]["returns"])
+    finally:
+        evaluator.close()
+    here = {}
+    for step in (100, 200):
+        pipeline.eval_env.set_seed(eval_seed(7, step))
+        here[step] = evaluate(pipeline.eval_env, pipeline.policy, 3)["returns"]
+    assert results[100] == [here[100], here[100]]  # the same step twice: the same episodes
+    assert results[200] == [here[200]] and here[200] != here[100]
 
 
 @pytest.mark.unit

@@ -9,12 +9,9 @@ from __future__ import annotations
 import contextlib
 import queue
 import sys
-import threading
 import time
 
-__all__ = ["COLLECTOR_KWARGS", "EVALUATOR_COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "evaluator_collector",
-           "evaluator_threads", "set_model_version", "start_evaluator_worker", "stop_evaluator_threads",
-           "write_cursor"]
+__all__ = ["COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "set_model_version", "write_cursor"]
 
 
 class AckDeadline:
@@ -92,44 +89,6 @@ def write_cursor(replay_buffer) -> int:
     return int(replay_buffer._writer._cursor)
 
 
-# --- torchrl.collectors.Evaluator (process backend) --------------------------------------------------
-
-
-def start_evaluator_worker(evaluator) -> None:
-    """Start an ``Evaluator``'s worker process now. TorchRL 0.14 starts it at the first request, from the
-    evaluator's thread, where its seconds of start-up can be neither waited for briefly nor stopped.
-    Delete when the evaluator starts its worker in its constructor or has a public ``start()``."""
-    evaluator._backend._ensure_collector()
-
-
-def evaluator_collector(evaluator):
-    """The collector running an ``Evaluator``'s episodes (None before its worker started); 0.14 has no
-    public accessor for it or its processes."""
-    return evaluator._backend._collector
-
-
-def evaluator_threads(evaluator) -> list[threading.Thread]:
-    """An ``Evaluator``'s threads: the one feeding requests, the one running them (0.14: private)."""
-    return [t for t in (evaluator._async_thread, evaluator._backend._thread) if t is not None]
-
-
-def stop_evaluator_threads(evaluator) -> None:
-    """Tell both of an ``Evaluator``'s threads to end at their next wake-up, and wake them.
-
-    TorchRL 0.14's ``Evaluator.shutdown`` joins them for a few seconds only, and a loaded machine left
-    them running past that; the caller joins them for as long as it needs instead. Delete when
-    ``shutdown`` takes a timeout it honours."""
-    backend = evaluator._backend
-    evaluator._async_shutdown = backend._shutdown_flag = True
-    evaluator._async_trigger.set()
-    backend._eval_ready.set()
-
-
 # TorchRL 0.14's collectors leave a user's env without the transforms the policy reads (InitTracker)
 # unless asked to append them; 0.15 appends them by default. Delete when torchrl>=0.15 is the floor.
 COLLECTOR_KWARGS = {"auto_register_policy_transforms": True}
-
-# TorchRL 0.14's Evaluator pads trajectories by default and warns (FutureWarning) that the default will
-# change; asking for "padded" keeps 0.14's behaviour without the warning. Delete at the upgrade that
-# changes the default (check which format the evaluator's reply then needs).
-EVALUATOR_COLLECTOR_KWARGS = {"traj_format": "padded"}

@@ -106,12 +106,6 @@ class Evaluations:
         started with the stop signals blocked (its processes must not see them) and outside training time."""
         loop, cfg = self.loop, self.loop.config
         backend, supervisor = backend_class(cfg), loop.supervisor
-        if cfg.collector.backend == "local" and loop.state.iteration > 0:
-            # TorchRL's Evaluator process plays each evaluation on from where its last one left its env
-            # (it has no seed per request): a new one (a resume, a restart) plays other episodes
-            loop.not_exact("evaluations in a background process (eval_in_background=true, collector.backend=local) "
-                           "play on from the evaluator's last episode, and a new evaluator started mid-run "
-                           "plays others")
         with loop.clock.paused(), stop_signals_blocked():
             self.ray = self.ray or backend.hold(cfg)
             evaluator = backend.start_evaluator(cfg, env_fn=loop.pipeline.eval_env_fn, policy=loop.pipeline.policy,

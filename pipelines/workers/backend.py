@@ -95,13 +95,13 @@ class CollectorBackend(abc.ABC):
     def start_evaluator(cls, config: TrainConfig, *, env_fn: Callable[[], EnvBase], policy: nn.Module,
                         pending: deque, start_timeout: float, watchdog: Watchdog) -> AsyncEvaluator:
         """The background evaluator (``eval_in_background=true``) beside this backend's workers, started:
-        here a child process (TorchRL's ``Evaluator``); ``watchdog`` kills it if it takes longer than
-        ``start_timeout`` to start (TorchRL reads the new worker's first message with no timeout)."""
+        here a child process (``evaluation.BackgroundEvaluator``), which must say it is ready within
+        ``start_timeout`` seconds (``watchdog`` kills it too, should anything else hang there)."""
         from rlpipe.pipelines.workers.evaluation import BackgroundEvaluator
 
         with watchdog.limit(start_timeout, kill_new_children()):
             return BackgroundEvaluator(env_fn, policy, config.num_eval_episodes, pending, timeout=config.eval_timeout,
-                                       ack_timeout=config.collector.timeout)
+                                       seed=config.seed, start_timeout=start_timeout)
 
     def start(self, total_frames: int, init_random_frames: int, seed: int | None = None,
               restore: dict[str, Any] | None = None) -> CollectorBackend:

@@ -1,13 +1,12 @@
 """Evaluation of the deterministic policy: TF-Agents' AverageReturn and AverageEpisodeLength, in the
 learner's process (``evaluate``) or elsewhere while training goes on (``AsyncEvaluator``, the queue
-of requests; ``BackgroundEvaluator``, TorchRL's ``Evaluator`` in a process of its own, with the one
-workaround it needs; ``ray_eval.RayEvaluator``, on a Ray actor)."""
+of requests; ``BackgroundEvaluator``, in a process of its own; ``ray_eval.RayEvaluator``, on a Ray actor)."""
 
 from __future__ import annotations
 
+import contextlib
 import copy
-import sys
-import threading
+import signal
 import time
 from collections import deque
 from collections.abc import Callable
@@ -19,16 +18,15 @@ from torchrl.collectors import Evaluator
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from rlpipe.pipelines.compat.torchrl import (
-    EVALUATOR_COLLECTOR_KWARGS,
-    close_weight_sync_queues,
-    evaluator_collector,
-    evaluator_threads,
-    start_evaluator_worker,
-    stop_evaluator_threads,
+from rlpipe.pipelines.config import EVAL_SEED_OFFSET, eval_seed
+from rlpipe.pipelines.system.runtime import STOP_SIGNALS, stop_signals_blocked
+from rlpipe.pipelines.workers.supervision import (
+    MIN_START_TIMEOUT_S,
+    WorkerFailure,
+    dead_worker,
+    first_line,
+    kill_processes,
 )
-from rlpipe.pipelines.system.runtime import stop_signals_blocked
-from rlpipe.pipelines.workers.supervision import TimedMultiProcessScheme, WorkerFailure, dead_worker, kill_processes
 
 __all__ = ["AsyncEvaluator", "BackgroundEvaluator", "evaluate"]
 
@@ -159,127 +157,115 @@ class AsyncEvaluator:
 
 
 class BackgroundEvaluator(AsyncEvaluator):
-    """Evaluations in a child process: TorchRL's ``Evaluator`` (process backend) behind ``AsyncEvaluator``'s queue.
+    """Evaluations in a child process of their own, behind ``AsyncEvaluator``'s queue: the process
+    makes the eval env and a CPU copy of the policy once, then for each request loads the weights,
+    seeds the env with that evaluation's own seed (``config.eval_seed(seed, step)``, as the learner's
+    and the Ray actor's evaluations are) and plays ``num_episodes`` full episodes with ``evaluate``.
+    The same weights at the same step give the same episodes wherever they are played, so a run
+    resumed from a checkpoint evaluates as the uninterrupted one did.
 
-    TorchRL 0.14's ``Evaluator`` loses a request when a second one is queued while the first
-    finishes (its backend's poll clears the pending flag of the next request), and the run then
-    waits forever for that result: ``AsyncEvaluator`` hands it one request at a time (which
-    ``eval_timeout`` needs too, so nothing is left to delete when TorchRL's queue holds).
+    Why not TorchRL's ``Evaluator(backend="process")``, used here until issue 23: in 0.14 it takes no
+    seed per request (each evaluation plays on from where the last one left the env, so a resumed
+    run's evaluations differ from the uninterrupted run's), returns the mean return only (not the
+    episodes' returns), loses a request queued while another finishes, starts its worker only at the
+    first request, from a thread, and its shutdown leaves that thread running (aborting the
+    interpreter at exit); the four workarounds that took (``compat.torchrl``) went with it.
+
+    The process starts with the stop signals blocked and ignores them (the learner stops it);
+    ``check`` finds it dead, ``close`` kills it (an evaluation has nothing to save).
     """
 
     def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
-                 pending: deque[tuple[dict, TensorDictBase]], timeout: float = 600.0, ack_timeout: float = 60.0):
+                 pending: deque[tuple[dict, TensorDictBase]], timeout: float = 600.0, *, seed: int = 0,
+                 start_timeout: float = MIN_START_TIMEOUT_S):
         super().__init__(pending, timeout)
-        self._evaluator = Evaluator(
-            env_fn,
-            policy_factory=_PolicyCopy(policy),
-            num_trajectories=num_episodes,
-            max_steps=None,  # our envs end episodes themselves (time limits)
-            backend="process",
-            busy_policy="queue",
-            collector_kwargs=EVALUATOR_COLLECTOR_KWARGS,
-            # TorchRL's default for the process backend, with a deadline on its acknowledgements
-            weight_sync_schemes={"policy": TimedMultiProcessScheme(ack_timeout, role=self.role)},
-        )
-        self._thread_errors = _ThreadErrors(self._threads)
+        self.num_episodes, self.seed = int(num_episodes), int(seed)
+        ctx = torch.multiprocessing.get_context(torch.multiprocessing.get_start_method(allow_none=True) or "spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_evaluator_process, name="rlpipe-evaluator", daemon=True,
+                                 args=(child, env_fn, _PolicyCopy(policy), self.seed + EVAL_SEED_OFFSET))
         with stop_signals_blocked():
-            start_evaluator_worker(self._evaluator)
+            self._proc.start()
+        child.close()
+        try:
+            self._reply(start_timeout, "to start")  # its env made: a start that fails is a failure now
+        except BaseException:
+            self.close()
+            raise
 
     @property
     def worker_pid(self) -> int | None:
-        procs = self._procs()
-        return procs[0].pid if procs else None
+        return self._proc.pid
 
     def _send(self, at: dict, weights: TensorDictBase) -> None:
-        with stop_signals_blocked():  # the evaluator starts its thread at the first request
-            self._evaluator.trigger_eval(weights, step=at["step"])
+        try:
+            self._conn.send((weights, self.num_episodes, eval_seed(self.seed, at["step"])))
+        except (BrokenPipeError, ConnectionError, OSError):
+            pass  # the process is gone: check() and _take() say so
 
     def _take(self, timeout: float) -> dict | None:
-        reply = self._evaluator.poll(timeout=timeout)
-        if reply is None:
+        if not self._conn.poll(timeout):
             return None
-        at, _ = self._in_flight
-        if int(reply["eval/step"]) != at["step"]:
-            raise RuntimeError(f"the background evaluator answered for step {int(reply['eval/step'])}, "
-                               f"expected step {at['step']}")
-        return {"average_return": float(reply["eval/reward"]),
-                "average_episode_length": float(reply["eval/episode_length"]), "returns": None}
+        return self._reply(0, "")
+
+    def _reply(self, timeout: float, what: str) -> dict:
+        """The worker's next message (waiting up to ``timeout`` seconds for it): a result, or a failure."""
+        try:
+            if not self._conn.poll(timeout):
+                raise WorkerFailure(self.role, f"the {self.role} did not start within {timeout:g} s")
+            kind, payload = self._conn.recv()
+        except (EOFError, ConnectionError, OSError):
+            self._proc.join(timeout=5)
+            raise dead_worker(self.role, [self._proc]) or WorkerFailure(
+                self.role, f"the {self.role} closed its pipe {what}".rstrip()) from None
+        if kind == "error":
+            raise WorkerFailure(self.role, f"the {self.role} stopped on {payload}")
+        return payload
 
     def check(self) -> None:
-        """Raise ``WorkerFailure`` if the evaluator cannot answer: its process is gone, one of its
-        threads ended on an error, or the evaluation in flight is past ``timeout``."""
-        failure = dead_worker(self.role, self._procs())
-        error = self._thread_errors.first
-        if failure is None and isinstance(error, WorkerFailure):  # its weight push timed out
-            failure = error
-        elif failure is None and error is not None:
-            first = str(error).strip().splitlines()[0] if str(error).strip() else ""
-            failure = WorkerFailure(self.role, f"the {self.role} stopped on {type(error).__name__}: {first}")
-        if failure is None:
-            failure = self._overdue()
+        """Raise ``WorkerFailure`` if the evaluator cannot answer: its process is gone, or the evaluation
+        in flight is past ``timeout``."""
+        failure = dead_worker(self.role, [self._proc]) or self._overdue()
         if failure is not None:
             raise failure
 
     def close(self, timeout: float = 30.0) -> None:
-        """Stop the evaluator, its threads and its worker process, within about ``timeout`` seconds; an
-        evaluation in flight is dropped (the run's ``pending`` still lists it, so a checkpoint keeps it).
-
-        The order matters. The worker is killed first (an evaluation has nothing to save; asked to close,
-        it would finish its episodes first), which ends every wait of TorchRL's two evaluator threads
-        within a second; the threads are then joined until they have ended, before anything they use is
-        closed. A thread left running when Python exits is stopped mid-call by the interpreter
-        (``pthread_exit`` at its next take of the GIL), which aborts the process when that call is in
-        torch's C++ ("terminate called without an active exception", "Fatal Python error: Aborted"):
-        TorchRL 0.14's ``Evaluator.shutdown`` joins them for a few seconds only (``compat.torchrl``).
-        """
-        deadline = time.monotonic() + timeout
-        evaluator = self._evaluator
-        with self._thread_errors:  # an error that ends a thread now is the shutdown itself: not printed
-            stop_evaluator_threads(evaluator)
-            kill_processes(self._procs(), timeout=max(0.0, deadline - time.monotonic()))
-            for thread in self._threads():
-                thread.join(timeout=max(0.0, deadline - time.monotonic()))
-            collector = evaluator_collector(evaluator)
-            if collector is not None:
-                collector.shutdown(timeout=2.0, raise_on_error=False)
-            evaluator.shutdown(timeout=max(0.0, deadline - time.monotonic()))
-            close_weight_sync_queues(collector)
-        left = [t.name for t in self._threads() if t.is_alive()]
-        if left:
-            print(f"rlpipe: warning: the evaluator's threads {', '.join(left)} did not stop within {timeout:g} s",
-                  file=sys.stderr, flush=True)
-
-    def _procs(self) -> list:
-        return list(getattr(evaluator_collector(self._evaluator), "procs", None) or [])
-
-    def _threads(self) -> list[threading.Thread]:
-        """TorchRL's evaluator threads: the one feeding requests, the one running them."""
-        return evaluator_threads(self._evaluator)
+        """Kill the worker and reap it within ``timeout`` seconds; an evaluation in flight is dropped
+        (the run's ``pending`` still lists it, so a checkpoint keeps it)."""
+        self._in_flight = None
+        kill_processes([self._proc], timeout=timeout)
+        self._conn.close()
 
 
-class _ThreadErrors:
-    """Records (instead of printing) the exception that ends one of ``threads()``; as a context
-    manager, also restores ``threading.excepthook`` on leaving (installed from construction on)."""
-
-    def __init__(self, threads: Callable[[], list[threading.Thread]]):
-        self.threads = threads
-        self.first: BaseException | None = None
-        self._previous = threading.excepthook
-        threading.excepthook = self._hook
-
-    def _hook(self, args) -> None:
-        if args.thread is not None and any(args.thread is t for t in self.threads()):
-            if self.first is None:
-                self.first = args.exc_value
+def _evaluator_process(conn, env_fn: Callable[[], EnvBase], policy_factory: Callable[[], nn.Module],
+                       seed: int) -> None:
+    """``BackgroundEvaluator``'s process: "ready" once its env and policy are made, then one result
+    (or "error" and the exception's first line, after which it ends) per request, until the pipe closes."""
+    for signum in STOP_SIGNALS:  # deaf to Ctrl-C and SIGTERM: the learner stops it
+        with contextlib.suppress(ValueError, OSError):
+            signal.signal(signum, signal.SIG_IGN)
+    torch.set_num_threads(1)  # beside the learner's threads: episodes of one env, one step at a time
+    try:
+        env = env_fn()
+        env.set_seed(seed)
+        policy = policy_factory()
+    except Exception as exc:
+        conn.send(("error", f"{type(exc).__name__}: {first_line(exc)}"))
+        return
+    conn.send(("ready", None))
+    while True:
+        try:
+            weights, num_episodes, eval_seed_ = conn.recv()
+        except (EOFError, OSError):
             return
-        self._previous(args)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if threading.excepthook is self._hook:
-            threading.excepthook = self._previous
+        try:
+            weights.to_module(policy)
+            env.set_seed(eval_seed_)
+            result = evaluate(env, policy, num_episodes)
+        except Exception as exc:
+            conn.send(("error", f"{type(exc).__name__}: {first_line(exc)}"))
+            return
+        conn.send(("result", result))
 
 
 class _PolicyCopy:

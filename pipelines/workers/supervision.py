@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import psutil
 from tensordict import TensorDictBase
-from torchrl.weight_update import MultiProcessWeightSyncScheme, SharedMemWeightSyncScheme
+from torchrl.weight_update import SharedMemWeightSyncScheme
 
 from rlpipe.pipelines.compat.torchrl import AckDeadline, close_weight_sync_queues
 
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MIN_START_TIMEOUT_S", "NoRestartLeft", "Supervisor", "SupervisedCollector", "close_weight_sync_queues",
-    "TimedMultiProcessScheme", "TimedSharedMemScheme", "Watchdog", "WorkerFailure", "dead_worker", "describe_exit",
+    "TimedSharedMemScheme", "Watchdog", "WorkerFailure", "dead_worker", "describe_exit",
     "first_line", "is_running", "kill_new_children", "kill_processes", "start_timeout",
 ]
 
@@ -162,14 +162,6 @@ class TimedSharedMemScheme(_SupervisedAcks, SharedMemWeightSyncScheme):
     """TorchRL's weight sync for multi-process collectors (shared memory), with a deadline on its acks."""
 
     def __init__(self, ack_timeout: float, role: str = "collector", **kwargs):
-        super().__init__(**kwargs)
-        self.ack_timeout, self.role = float(ack_timeout), role
-
-
-class TimedMultiProcessScheme(_SupervisedAcks, MultiProcessWeightSyncScheme):
-    """TorchRL's weight sync through queues (the evaluator's), with a deadline on its acks."""
-
-    def __init__(self, ack_timeout: float, role: str = "evaluator", **kwargs):
         super().__init__(**kwargs)
         self.ack_timeout, self.role = float(ack_timeout), role
 
