@@ -8,8 +8,8 @@ Runs the full agent and the six leave-one-out variants on every env and seed, ea
 ``--workers`` at a time (default: one per core). Rerunning the same command skips finished runs and
 starts the unfinished ones again (``--continue restart``: a stopped and continued study ends with the
 same results as an uninterrupted one), or resumes them from their checkpoints (``--continue
-checkpoint``: less work lost, but a resumed run's returns differ from an uninterrupted one's, as the
-envs' state is not checkpointed). Then it writes ``ablation.csv``, ``ablation.md``,
+checkpoint``: less work lost; a run resumed from its checkpoint is exact too, as its envs' state is
+checkpointed, except on an env rlpipe cannot capture, such as Box2D's). Then it writes ``ablation.csv``, ``ablation.md``,
 ``curves_<env>.png``, ``ecdf_final_returns.png``, the across-env statistics (``aggregate.csv``,
 ``aggregate_iqm.png``, ``performance_profile.png``, ``probability_of_improvement.png``) and
 ``report.html`` into ``--out``; each run's log (``seedN.log``) holds its live log lines.
@@ -62,8 +62,9 @@ def add_parser(sub) -> None:
     ablate.add_argument("--variants", help="comma-separated subset of variants: full, and no_INGREDIENT or "
                         "INGREDIENT for each ingredient left out (default: full and all six)")
     ablate.add_argument("--continue", dest="continue_mode", choices=["restart", "checkpoint"], default="restart",
-                        help="what a rerun does with a run that did not finish: start it again (default; the "
-                             "results equal an uninterrupted study's) or resume it from its checkpoint")
+                        help="what a rerun does with a run that did not finish: start it again (default) or resume "
+                             "it from its checkpoint (less work lost); either way the results equal an "
+                             "uninterrupted study's, except on an env whose state rlpipe cannot capture (Box2D)")
     ablate.add_argument("--out", type=Path, default=Path("runs/ablation-td3"), help="study directory")
     ablate.set_defaults(func=run)
 
