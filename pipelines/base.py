@@ -17,6 +17,7 @@ Adding an algorithm is one new module with such a class and one line in ``pipeli
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import warnings
@@ -34,6 +35,8 @@ from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 
 from rlpipe.envs import EnvError, env_id_of, env_label, is_discrete, make_env, resolve_env_id
+from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
+from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, PresetInfo, TrainConfig, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
@@ -58,7 +61,7 @@ from rlpipe.pipelines.workers.backend import CollectorBackend
 from rlpipe.pipelines.workers.factory import backend_class, make_backend
 from rlpipe.pipelines.workers.local import push_weights as push_collector_weights
 
-__all__ = ["Agent", "OffPolicyPipeline", "observation_key_of", "own_env_label", "seed_everything"]
+__all__ = ["Agent", "OffPolicyPipeline", "TanhNormalPipeline", "observation_key_of", "own_env_label", "seed_everything"]
 
 
 def own_env_label(env: EnvBase, configured: str) -> str:
@@ -302,3 +305,37 @@ class OffPolicyPipeline:
         warnings.warn("OffPolicyPipeline.summary moved to rlpipe.pipelines.training.run.Run.summary",
                       DeprecationWarning, stacklevel=2)
         return Run(self).summary(state, evaluations, clock)
+
+
+class TanhNormalPipeline(OffPolicyPipeline):
+    """SAC's and CrossQ's shared shape: a tanh-normal actor that explores by sampling (collection) and acts
+    by its mode (evaluation, export), and a TorchRL loss that holds the actor and its twin critics."""
+
+    _export_network_only = False
+    """the actor is the one ``build_agent`` made, so its export is ``TanhNormalMode`` of its MLP alone"""
+
+    def build_agent(self, *, actor: nn.Module | None, qvalue: nn.Module | None, loss_module: LossModule | None,
+                    make_qvalue: Callable[[], nn.Module],
+                    make_loss: Callable[[nn.Module, nn.Module], LossModule]) -> Agent:
+        """The agent from a user's ``loss_module`` (its actor, unless ``actor`` names another), or from
+        ``actor`` and ``qvalue`` (each made here when not given: ``make_qvalue()``), in ``make_loss(actor,
+        qvalue)`` with the config's discount."""
+        cfg = self.config
+        if loss_module is not None:
+            if qvalue is not None:
+                raise InputError("qvalue is unused when loss_module is given (the loss holds its critics); pass one of them")
+            # The same module explores (samples) in collection and acts deterministically in evaluation.
+            actor = actor if actor is not None else loss_module.actor_network
+            return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
+        if actor is None:
+            actor = make_tanh_normal_actor(self.observation_dim, self.action_spec, cfg.actor_fc_layer_params,
+                                           observation_key=self.observation_key)
+            self._export_network_only = True
+        loss_module = make_loss(actor, qvalue if qvalue is not None else make_qvalue())
+        loss_module.make_value_estimator(gamma=cfg.gamma)
+        return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
+
+    def export_module(self) -> nn.Module:
+        if self._export_network_only:
+            return TanhNormalMode.from_actor(self.policy, self.action_spec)
+        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)

@@ -14,7 +14,6 @@ critics. TorchRL's ``CrossQLoss`` computes exactly that; this pipeline adds sb3-
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 
 import torch
@@ -22,11 +21,9 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.objectives import CrossQLoss
 
-from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
 from rlpipe.modules.critics import make_batchrenorm_critic
 from rlpipe.modules.optim import LeanAdam
-from rlpipe.modules.plain_policy import TensorDictPolicy
-from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
+from rlpipe.pipelines.base import Agent, TanhNormalPipeline, observation_key_of
 from rlpipe.pipelines.config import (
     LAYER_SIZES,
     LEARNING_RATE,
@@ -38,7 +35,6 @@ from rlpipe.pipelines.config import (
     TrainConfig,
     checked,
 )
-from rlpipe.pipelines.errors import InputError
 
 __all__ = ["CrossQConfig", "CrossQ", "PRESETS", "PRESET_INFO", "preset"]
 
@@ -132,7 +128,7 @@ PRESET_INFO = {
 """each preset's task (env, targets); ``rlpipe presets`` and the time-to-return bench read it"""
 
 
-class CrossQ(OffPolicyPipeline):
+class CrossQ(TanhNormalPipeline):
     """CrossQ: TorchRL's ``CrossQLoss`` (TanhNormal actor, twin batch-renormalised critics, learned
     temperature, no target networks), the actor and temperature updated every ``policy_delay`` updates.
 
@@ -166,25 +162,18 @@ class CrossQ(OffPolicyPipeline):
         self.assemble(lambda: self.build(actor=actor, qvalue=qvalue, loss_module=loss_module))
 
     def build(self, *, actor=None, qvalue=None, loss_module=None) -> Agent:
-        cfg, spec, key = self.config, self.action_spec, self.observation_key
+        cfg, spec = self.config, self.action_spec
         action_dim = int(spec.shape[-1])
-        if loss_module is not None:
-            if qvalue is not None:
-                raise InputError("qvalue is unused when loss_module is given (the loss holds its critics); pass one of them")
-            actor = actor if actor is not None else loss_module.actor_network
-            return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
-        if actor is None:
-            actor = make_tanh_normal_actor(self.observation_dim, spec, cfg.actor_fc_layer_params, observation_key=key)
-            self._export_network_only = True  # its deterministic action is TanhNormalMode of its MLP
-        if qvalue is None:
-            qvalue = make_batchrenorm_critic(self.observation_dim, action_dim, cfg.critic_fc_layer_params,
-                                             observation_key=key, momentum=cfg.batch_renorm_momentum,
-                                             warmup_steps=cfg.batch_renorm_warmup_steps)
         target_entropy = cfg.target_entropy if cfg.target_entropy is not None else -float(action_dim)
-        loss_module = CrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=cfg.initial_alpha,
-                                 target_entropy=target_entropy, action_spec=spec)
-        loss_module.make_value_estimator(gamma=cfg.gamma)
-        return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
+        return self.build_agent(
+            actor=actor, qvalue=qvalue, loss_module=loss_module,
+            make_qvalue=lambda: make_batchrenorm_critic(self.observation_dim, action_dim, cfg.critic_fc_layer_params,
+                                                        observation_key=self.observation_key,
+                                                        momentum=cfg.batch_renorm_momentum,
+                                                        warmup_steps=cfg.batch_renorm_warmup_steps),
+            make_loss=lambda actor, qvalue: CrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2",
+                                                       alpha_init=cfg.initial_alpha, target_entropy=target_entropy,
+                                                       action_spec=spec))
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         cfg, loss = self.config, self.loss_module
@@ -219,13 +208,6 @@ class CrossQ(OffPolicyPipeline):
             self.optimizers[name].step()
             self.optimizers[name].zero_grad(set_to_none=True)
         return out
-
-    _export_network_only = False
-
-    def export_module(self) -> nn.Module:
-        if self._export_network_only:
-            return TanhNormalMode.from_actor(self.policy, self.action_spec)
-        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
 
 
 preset = CrossQ.preset

@@ -12,7 +12,6 @@ with a soft target update; its Learner and triggers are the shared loop.
 
 from __future__ import annotations
 
-import copy
 import warnings
 from dataclasses import dataclass
 
@@ -22,14 +21,12 @@ from torch import nn
 from torchrl.objectives import SACLoss
 
 from rlpipe.modules import optim
-from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
 from rlpipe.modules.critics import INITIALIZERS, make_qvalue_critic
 from rlpipe.modules.optim import LeanAdam
-from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.sac_loss import LeanSACLoss
 from rlpipe.modules.target_updates import make_target_updater
 from rlpipe.modules.tensor_nets import importance_weights
-from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
+from rlpipe.pipelines.base import Agent, TanhNormalPipeline, observation_key_of
 from rlpipe.pipelines.config import (
     GRADIENT_CLIPPING,
     LAYER_SIZES,
@@ -41,7 +38,6 @@ from rlpipe.pipelines.config import (
     checked,
     one_of,
 )
-from rlpipe.pipelines.errors import InputError
 
 __all__ = ["SACConfig", "SAC", "PRESETS", "PRESET_INFO", "preset"]
 
@@ -192,7 +188,7 @@ PRESET_INFO = {
 """each preset's task (env, targets); ``rlpipe presets`` and the time-to-return bench read it"""
 
 
-class SAC(OffPolicyPipeline):
+class SAC(TanhNormalPipeline):
     """Soft actor-critic with learned temperature: TorchRL's ``SACLoss`` + ``SoftUpdate``.
 
     Args:
@@ -222,25 +218,16 @@ class SAC(OffPolicyPipeline):
         self.assemble(lambda: self.build(actor=actor, qvalue=qvalue, loss_module=loss_module))
 
     def build(self, *, actor=None, qvalue=None, loss_module=None) -> Agent:
-        cfg, spec, key = self.config, self.action_spec, self.observation_key
-        action_dim = int(spec.shape[-1])
-        if loss_module is not None:
-            if qvalue is not None:
-                raise InputError("qvalue is unused when loss_module is given (the loss holds its critics); pass one of them")
-            # The same module explores (samples) in collection and acts deterministically in evaluation.
-            actor = actor if actor is not None else loss_module.actor_network
-            return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
-        if actor is None:
-            actor = make_tanh_normal_actor(self.observation_dim, spec, cfg.actor_fc_layer_params, observation_key=key)
-            self._export_network_only = True  # its deterministic action is TanhNormalMode of its MLP
-        if qvalue is None:
-            qvalue = make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_joint_fc_layer_params,
-                                        observation_key=key, init=cfg.critic_kernel_initializer)
+        cfg, key = self.config, self.observation_key
+        action_dim = int(self.action_spec.shape[-1])
         target_entropy = cfg.target_entropy if cfg.target_entropy is not None else -action_dim / 2
-        loss_module = LeanSACLoss(actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2, loss_function="l2",
-                              alpha_init=cfg.initial_alpha, target_entropy=target_entropy, delay_qvalue=True)
-        loss_module.make_value_estimator(gamma=cfg.gamma)
-        return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
+        return self.build_agent(
+            actor=actor, qvalue=qvalue, loss_module=loss_module,
+            make_qvalue=lambda: make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_joint_fc_layer_params,
+                                                   observation_key=key, init=cfg.critic_kernel_initializer),
+            make_loss=lambda actor, qvalue: LeanSACLoss(actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2,
+                                                        loss_function="l2", alpha_init=cfg.initial_alpha,
+                                                        target_entropy=target_entropy, delay_qvalue=True))
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         # Adam's fused kernel without Optimizer.step's per-call Python (modules/optim.py); the
@@ -282,13 +269,6 @@ class SAC(OffPolicyPipeline):
         return {"actor": out["loss_actor"].detach(), "qvalue": out["loss_qvalue"].detach(),
                 "alpha": out["loss_alpha"].detach(), "alpha_value": out["alpha"].detach(),
                 "entropy": out["entropy"].detach()}
-
-    _export_network_only = False
-
-    def export_module(self) -> nn.Module:
-        if self._export_network_only:
-            return TanhNormalMode.from_actor(self.policy, self.action_spec)
-        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
 
 
 preset = SAC.preset
