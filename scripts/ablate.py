@@ -127,7 +127,9 @@ class StudyEnv:
 # (seed 0). Hopper: where the TD3 paper's ingredients matter (its Table 2), with the paper's lr 1e-3
 # and batch 100, and 128-unit layers instead of (400, 300), which learn ~2.3x as many steps per second
 # here. 10,000 random steps (updates from 1,000 on, as the paper's): 1043 at 50,000 steps (seed 0),
-# where the paper's 1,000 random steps gave 317 (the random agent: 28).
+# where the paper's 1,000 random steps gave 317 (the random agent: 28). These seed-0 figures predate issue
+# 23's collector seeding; the study itself (2026-11-25, scripts/results/ablation-td3): full agent -154, 1000
+# and 309, means over 5 seeds.
 STUDY_ENVS = {
     "Pendulum-v1": StudyEnv(20_000, 1000, 10, ("actor_fc_layer_params=[64,64]", "critic_fc_layer_params=[64,64]",
                                                 "batch_size=256", "learning_rate=1e-3")),
