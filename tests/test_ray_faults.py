@@ -14,7 +14,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -22,6 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
+from test_ray import _is_collector_actor  # Ray's title for a collector actor's process
 
 from rlpipe.pipelines import sac, td3
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
@@ -111,12 +111,6 @@ def collector_actors(cluster) -> dict[int, object]:
 
 def _procs():
     return Path("/proc").glob("[0-9]*")
-
-
-def _is_collector_actor(proc_dir: Path) -> bool:
-    """A Ray collector actor's process: Ray titles it ``ray::CLASS[.method]``, the class being the collector
-    class the backend gives TorchRL's RayCollector (``WorkerSnapshotCollector``) or TorchRL's ``Collector``."""
-    return re.match(r"ray::\w*Collector\b", _cmdline(proc_dir)) is not None
 
 
 def _cmdline(proc_dir: Path) -> str:

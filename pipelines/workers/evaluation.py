@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import io
+import os
 import signal
 import time
 from collections import deque
 from collections.abc import Callable
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.collectors import Evaluator
 from torchrl.envs import EnvBase
@@ -28,7 +30,7 @@ from rlpipe.pipelines.workers.supervision import (
     kill_processes,
 )
 
-__all__ = ["AsyncEvaluator", "BackgroundEvaluator", "evaluate"]
+__all__ = ["AsyncEvaluator", "BackgroundEvaluator", "EvalActor", "evaluate"]
 
 
 @torch.no_grad()
@@ -198,8 +200,14 @@ class BackgroundEvaluator(AsyncEvaluator):
         return self._proc.pid
 
     def _send(self, at: dict, weights: TensorDictBase) -> None:
+        # As bytes (torch.save), not a pickled TensorDict: torch's pickler would hand the tensors over as
+        # shared-memory file descriptors, served by a thread in this process that prints a traceback when
+        # the evaluator is killed while fetching them (a restart, the run's end). Once per evaluation.
+        request = io.BytesIO()
+        torch.save({"weights": weights.to_dict(), "episodes": self.num_episodes,
+                    "seed": eval_seed(self.seed, at["step"])}, request)
         try:
-            self._conn.send((weights, self.num_episodes, eval_seed(self.seed, at["step"])))
+            self._conn.send_bytes(request.getvalue())
         except (BrokenPipeError, ConnectionError, OSError):
             pass  # the process is gone: check() and _take() say so
 
@@ -237,31 +245,49 @@ class BackgroundEvaluator(AsyncEvaluator):
         self._conn.close()
 
 
+class EvalActor:
+    """The eval env and a CPU copy of the policy, evaluating the weights sent to it, each evaluation on its
+    own seed: what ``BackgroundEvaluator``'s process and ``ray_eval.RayEvaluator``'s Ray actor run."""
+
+    def __init__(self, env_fn: Callable[[], EnvBase], policy_factory: Callable[[], nn.Module], seed: int):
+        # Deaf to the stop signals, as the learner's other workers are (runtime.stop_signals_blocked):
+        # a Ctrl-C to the terminal's process group reaches the learner, which stops this worker itself.
+        for signum in STOP_SIGNALS:
+            with contextlib.suppress(ValueError, OSError):
+                signal.signal(signum, signal.SIG_IGN)
+        self.env = env_fn()
+        self.env.set_seed(seed)
+        self.policy = policy_factory()
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def evaluate(self, weights: TensorDictBase, num_episodes: int, seed: int | None = None) -> dict:
+        """``seed``: the evaluation's own (``config.eval_seed``), so it plays what the learner's would."""
+        weights.to_module(self.policy)
+        if seed is not None:
+            self.env.set_seed(seed)
+        return evaluate(self.env, self.policy, num_episodes)
+
+
 def _evaluator_process(conn, env_fn: Callable[[], EnvBase], policy_factory: Callable[[], nn.Module],
                        seed: int) -> None:
-    """``BackgroundEvaluator``'s process: "ready" once its env and policy are made, then one result
-    (or "error" and the exception's first line, after which it ends) per request, until the pipe closes."""
-    for signum in STOP_SIGNALS:  # deaf to Ctrl-C and SIGTERM: the learner stops it
-        with contextlib.suppress(ValueError, OSError):
-            signal.signal(signum, signal.SIG_IGN)
+    """``BackgroundEvaluator``'s process: an ``EvalActor``; "ready" once it is made, then one result (or
+    "error" and the exception's first line, after which it ends) per request, until the pipe closes."""
     torch.set_num_threads(1)  # beside the learner's threads: episodes of one env, one step at a time
     try:
-        env = env_fn()
-        env.set_seed(seed)
-        policy = policy_factory()
+        worker = EvalActor(env_fn, policy_factory, seed)
     except Exception as exc:
         conn.send(("error", f"{type(exc).__name__}: {first_line(exc)}"))
         return
     conn.send(("ready", None))
     while True:
         try:
-            weights, num_episodes, eval_seed_ = conn.recv()
+            request = torch.load(io.BytesIO(conn.recv_bytes()), weights_only=True)
         except (EOFError, OSError):
             return
         try:
-            weights.to_module(policy)
-            env.set_seed(eval_seed_)
-            result = evaluate(env, policy, num_episodes)
+            result = worker.evaluate(TensorDict(request["weights"]), request["episodes"], request["seed"])
         except Exception as exc:
             conn.send(("error", f"{type(exc).__name__}: {first_line(exc)}"))
             return

@@ -26,8 +26,6 @@ and go on it (each restart of one leaves the other running), and it is let go at
 from __future__ import annotations
 
 import contextlib
-import os
-import signal
 import sys
 import time
 from collections import deque
@@ -38,8 +36,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig, eval_seed
-from rlpipe.pipelines.system.runtime import STOP_SIGNALS
-from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, _PolicyCopy, evaluate
+from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, EvalActor, _PolicyCopy
 from rlpipe.pipelines.workers.ray_runtime import RayRuntime, check_cpus
 from rlpipe.pipelines.workers.supervision import MIN_START_TIMEOUT_S, WorkerFailure, first_line
 
@@ -50,30 +47,6 @@ def hold_ray(config: TrainConfig) -> RayRuntime:
     instance with a CPU for each collector actor and one for the evaluator; ``close()`` lets go."""
     c, r = config.collector, config.ray
     return RayRuntime(r.address, (c.workers + 1) * r.num_cpus_per_worker)
-
-
-class EvalActor:
-    """Runs in a Ray worker process: the eval env and a copy of the policy, evaluating weights sent to it."""
-
-    def __init__(self, env_fn: Callable[[], EnvBase], policy_factory: Callable[[], nn.Module], seed: int):
-        # Deaf to the stop signals, as the learner's other workers are (runtime.stop_signals_blocked):
-        # a Ctrl-C to the terminal's process group reaches the learner, which stops this actor itself.
-        for signum in STOP_SIGNALS:
-            with contextlib.suppress(ValueError, OSError):
-                signal.signal(signum, signal.SIG_IGN)
-        self.env = env_fn()
-        self.env.set_seed(seed)
-        self.policy = policy_factory()
-
-    def pid(self) -> int:
-        return os.getpid()
-
-    def evaluate(self, weights: TensorDictBase, num_episodes: int, seed: int | None = None) -> dict:
-        """``seed``: the evaluation's own (``config.eval_seed``), so it plays what the learner's would."""
-        weights.to_module(self.policy)
-        if seed is not None:
-            self.env.set_seed(seed)
-        return evaluate(self.env, self.policy, num_episodes)
 
 
 class RayEvaluator(AsyncEvaluator):
