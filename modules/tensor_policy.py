@@ -19,17 +19,20 @@ from tensordict import TensorDict
 from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded, Composite
-from torchrl.envs.utils import ExplorationType, exploration_type
-from torchrl.modules import AdditiveGaussianModule, TanhNormal
+from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
+from torchrl.modules import AdditiveGaussianModule, QValueActor, QValueModule, TanhNormal
 
 from rlpipe.modules.exploration import EGreedyQPolicy
 from rlpipe.modules.sac_loss import tanh_normal_rsample
 from rlpipe.modules.tensor_nets import is_plain_module
 
-__all__ = ["TensorStep", "tensor_step"]
+__all__ = ["GreedyStep", "TensorStep", "greedy_step", "tensor_step"]
 
 TensorStep = Callable[[torch.Tensor], dict]
 """``act(observation) -> {output key: tensor}`` for one env (no batch dimension)"""
+
+GreedyStep = Callable[[torch.Tensor], torch.Tensor]
+"""``act(observation) -> action`` for one env: the policy's action under ``ExplorationType.DETERMINISTIC``"""
 
 
 def _exploring() -> bool:
@@ -127,5 +130,78 @@ def _tanh_normal_step(policy: nn.Module, observation_key: str) -> TensorStep | N
         if log_prob_key is not None:
             out[log_prob_key] = log_prob
         return out
+
+    return act
+
+
+def greedy_step(policy: nn.Module, observation_key: str = "observation") -> GreedyStep:
+    """``policy``'s deterministic action (``ExplorationType.DETERMINISTIC``) as ``act(observation) -> action``.
+
+    What an evaluation plays, one env step at a time (``rlpipe.pipelines.workers.evaluation.evaluate``
+    on a gymnasium env): the built-in evaluation policies on tensors, each computing what TorchRL
+    computes for it (a ``QValueActor``'s argmax, TD3's actor, SAC's TanhNormal through TorchRL's own
+    transforms of ``loc``), so the actions are the same numbers; any other policy through a TensorDict
+    under ``ExplorationType.DETERMINISTIC``.
+    """
+    for make in (_greedy_qvalue_step, _greedy_plain_step, _greedy_tanh_normal_step):
+        step = make(policy, observation_key)
+        if step is not None:
+            return step
+    full = _tensordict_step(policy, observation_key)
+
+    def act(observation: torch.Tensor) -> torch.Tensor:
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return full(observation)["action"]
+
+    return act
+
+
+def _greedy_qvalue_step(policy: nn.Module, observation_key: str) -> GreedyStep | None:
+    """A ``QValueActor`` over a plain Q-network with a categorical action: DQN's greedy policy."""
+    if not isinstance(policy, QValueActor) or len(policy.module) != 2:
+        return None
+    net, qvalue = policy.module
+    if not (is_plain_module(net) and type(qvalue) is QValueModule) or list(net.in_keys) != [observation_key]:
+        return None
+    if (qvalue.action_space != "categorical" or qvalue.action_mask_key is not None
+            or list(net.out_keys) != list(qvalue.in_keys) or qvalue.out_keys[0] != "action"):
+        return None
+    qnet = net.module
+    return lambda observation: qnet(observation).argmax(-1)  # QValueModule's categorical action
+
+
+def _greedy_plain_step(policy: nn.Module, observation_key: str) -> GreedyStep | None:
+    """One network from the observation to the action (TD3's deterministic actor)."""
+    if not (is_plain_module(policy) and list(policy.in_keys) == [observation_key]
+            and list(policy.out_keys) == ["action"]):
+        return None
+    return policy.module
+
+
+def _greedy_tanh_normal_step(policy: nn.Module, observation_key: str) -> GreedyStep | None:
+    """SAC's actor: TanhNormal's deterministic sample, TorchRL's transforms (safe tanh, then the affine map
+    to the bounds) applied to ``loc``, as ``TanhNormal.deterministic_sample`` does."""
+    if not isinstance(policy, ProbabilisticTensorDictSequential) or len(policy.module) != 2:
+        return None
+    net, dist = policy.module
+    if not (is_plain_module(net) and isinstance(dist, ProbabilisticTensorDictModule)):
+        return None
+    if list(net.in_keys) != [observation_key] or list(net.out_keys) != list(dist.in_keys):
+        return None
+    kwargs = dict(dist.distribution_kwargs)
+    if not (dist.distribution_class is TanhNormal and set(kwargs) <= {"low", "high", "tanh_loc", "safe_tanh", "upscale"}
+            and not kwargs.get("tanh_loc", False) and sorted(dist.dist_keys) == ["loc", "scale"]
+            and list(dist.dist_sample_keys) == ["action"]):
+        return None
+    low = torch.as_tensor(kwargs.get("low", -1.0), dtype=torch.float32)
+    # the transforms depend on the bounds only: made once, from a distribution of the action's shape
+    transforms = TanhNormal(torch.zeros(low.shape), torch.ones(low.shape), **kwargs).transforms
+    module, loc_index = net.module, list(net.out_keys).index("loc")
+
+    def act(observation: torch.Tensor) -> torch.Tensor:
+        action = module(observation)[loc_index]
+        for transform in transforms:
+            action = transform(action)
+        return action
 
     return act

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import io
+import itertools
 import os
 import signal
 import time
@@ -17,10 +18,14 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.collectors import Evaluator
+from torchrl.data import OneHot
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from rlpipe.envs import is_discrete
+from rlpipe.modules.tensor_policy import greedy_step
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, eval_seed
+from rlpipe.pipelines.workers.gym_collector import gym_env_of
 from rlpipe.pipelines.system.runtime import STOP_SIGNALS, stop_signals_blocked
 from rlpipe.pipelines.workers.supervision import (
     MIN_START_TIMEOUT_S,
@@ -39,12 +44,24 @@ def evaluate(env: EnvBase, policy, num_episodes: int, max_steps: int = 100_000, 
 
     ``env`` may be batched (``SerialEnv``, ``ParallelEnv``): each rollout then plays one episode
     in every sub-env, and the first ``num_episodes`` episodes count. ``interrupt``, if given, is
-    called before every env step; an exception it raises ends the evaluation (the training loop
+    called at every env step; an exception it raises ends the evaluation (the training loop
     uses it to stop at Ctrl-C in the middle of a long evaluation).
 
     Returns ``average_return``, ``average_episode_length`` and the per-episode ``returns``.
     Episodes end when the env says done (terminated or truncated by its time limit).
+
+    On ``rlpipe.envs.make_env``'s one-copy env with a policy on the CPU, the episodes are played on the
+    gymnasium env under it directly (``_evaluate_directly``): the same episodes and returns, number for
+    number, at a fraction of the cost.
     """
+    gym_env = gym_env_of(env)
+    if gym_env is not None and not isinstance(env.action_spec_unbatched, OneHot) and _on_cpu(policy):
+        return _evaluate_directly(env, gym_env, policy, num_episodes, max_steps, interrupt)
+    return _evaluate_rollouts(env, policy, num_episodes, max_steps, interrupt)
+
+
+def _evaluate_rollouts(env: EnvBase, policy, num_episodes: int, max_steps: int, interrupt) -> dict:
+    """``evaluate`` through TorchRL's ``env.rollout``: any TorchRL env, batched ones too."""
     returns: list[float] = []
     lengths: list[int] = []
     callback = None if interrupt is None else (lambda *_: interrupt())
@@ -59,11 +76,58 @@ def evaluate(env: EnvBase, policy, num_episodes: int, max_steps: int = 100_000, 
             returns += (reward * before_first_done).sum(-1).flatten().tolist()
             lengths += before_first_done.sum(-1).flatten().tolist()
     returns, lengths = returns[:num_episodes], lengths[:num_episodes]
+    return _result(returns, lengths)
+
+
+def _result(returns: list[float], lengths: list[int]) -> dict:
     return {
         "average_return": sum(returns) / len(returns),
         "average_episode_length": sum(lengths) / len(lengths),
         "returns": returns,
     }
+
+
+def _on_cpu(policy) -> bool:
+    """``policy`` is a module whose parameters and buffers are all on the CPU."""
+    return isinstance(policy, nn.Module) and all(p.device.type == "cpu" for p in itertools.chain(policy.parameters(), policy.buffers()))
+
+
+def _evaluate_directly(env: EnvBase, gym_env, policy: nn.Module, num_episodes: int, max_steps: int,
+                       interrupt) -> dict:
+    """``evaluate`` on the gymnasium env under ``make_env``'s ``env``, stepped with numpy and the policy's
+    deterministic action on one observation tensor (``modules.tensor_policy.greedy_step``).
+
+    Why: TorchRL's ``env.rollout`` through ``GymEnv`` and the standard transforms costs ~600-700 us a
+    step on this 2-core CPU where CartPole's own step takes ~8 us (the same per-step TensorDict path that
+    ``GymCollector`` avoids, BENCHMARKS.md); an evaluation of 10 CartPole-v1 episodes is 5,000 steps.
+    What ``rollout`` does is kept: each episode starts with an unseeded ``reset()`` (``env.set_seed``
+    seeded the generator), the observation is cast to the observation spec's dtype (``DoubleToFloat``),
+    an episode ends at the first done or after ``max_steps`` steps, and its return is the float sum of
+    its rewards cast to the reward spec's dtype, summed as ``evaluate`` sums them
+    (``tests/test_evaluation.py`` compares both paths return for return).
+    """
+    obs_key = next(k for k in env.observation_spec.keys() if k not in ("step_count", "episode_reward", "is_init"))
+    obs_dtype = env.observation_spec[obs_key].dtype
+    reward_dtype = env.reward_spec.dtype
+    discrete = is_discrete(env.action_spec_unbatched)
+    act = greedy_step(policy, obs_key)
+    returns: list[float] = []
+    lengths: list[int] = []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        while len(returns) < num_episodes:
+            obs, _ = gym_env.reset()
+            rewards: list[float] = []
+            for _ in range(max_steps):
+                action = act(torch.as_tensor(obs).to(obs_dtype))
+                obs, reward, terminated, truncated, _ = gym_env.step(action.item() if discrete else action.numpy())
+                rewards.append(reward)
+                if interrupt is not None:
+                    interrupt()
+                if terminated or truncated:
+                    break
+            returns.append(torch.tensor(rewards, dtype=torch.float64).to(reward_dtype).sum(-1).item())
+            lengths.append(len(rewards))
+    return _result(returns, lengths)
 
 
 class AsyncEvaluator:

@@ -31,7 +31,7 @@ import torch
 from tensordict import TensorDict
 from torchrl._utils import seed_generator
 from torchrl.data import TensorSpec
-from torchrl.envs import EnvBase, GymWrapper, TransformedEnv
+from torchrl.envs import Compose, EnvBase, GymWrapper, TransformedEnv
 from torchrl.envs.utils import set_exploration_type
 
 from rlpipe.envs import is_discrete
@@ -52,7 +52,8 @@ def gym_env_of(env: EnvBase | None) -> gymnasium.Env | None:
     base = env.base_env
     if not isinstance(base, GymWrapper) or base.batch_size != torch.Size([]):
         return None
-    names = {type(t).__name__ for t in env.transform}
+    transforms = env.transform if isinstance(env.transform, Compose) else [env.transform]
+    names = {type(t).__name__ for t in transforms}
     if not names <= {"StepCounter", "RewardSum", "InitTracker", "DoubleToFloat"} or "RewardSum" not in names:
         return None
     gym_env = base._env
