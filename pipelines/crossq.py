@@ -88,7 +88,7 @@ def _sized(env: str, **keys) -> CrossQConfig:
     # What the sized SAC presets share (sac._sized): the env in the learner's process, no untrained
     # evaluation or random baseline, the thread count named (no timing of the loss at start), sparse
     # evaluations, exports only at the end.
-    defaults = dict(initial_eval=False, baseline_episodes=0, num_eval_episodes=10, num_threads=1,
+    defaults = dict(initial_eval=False, baseline_episodes=0, live_report=False, num_eval_episodes=10, num_threads=1,
                     collector=CollectorConfig(workers=1, sync=True))
     return CrossQConfig(env=env, **{**defaults, **keys})
 

@@ -151,7 +151,7 @@ def _cartpole_fast(env: str) -> DQNConfig:
     return DQNConfig(
         env=env, num_iterations=25_000, initial_collect_steps=1000, gamma=0.99, learning_rate=2.3e-3,
         fc_layer_params=[64, 64], epsilon_greedy=1.0, epsilon_greedy_end=0.04, epsilon_decay_steps=5000,
-        target_update_period=20, initial_eval=False, baseline_episodes=0, num_threads=1,
+        target_update_period=20, initial_eval=False, baseline_episodes=0, live_report=False, num_threads=1,
         eval_interval=5000, log_interval=250, policy_save_interval=25_000, checkpoint_interval=25_000,
         collector=CollectorConfig(workers=1, sync=True),
     )

@@ -121,12 +121,14 @@ def _sized(env: str, **keys) -> SACConfig:
     """A preset sized for time to a target on a small CPU machine: what every such preset shares.
 
     No untrained evaluation, no random baseline, exports only at the end, the thread count named
-    (no timing of the loss at start), learning rates 1e-3; each preset adds what its task needs.
+    (no timing of the loss at start), learning rates 1e-3, the report page written at evaluations and
+    at the end, not from log rows (its first write is 1-2 s of a 10-s Pendulum run; runs of many
+    minutes keep ``live_report``); each preset adds what its task needs.
     Evaluations are sparse: 10 greedy Pendulum episodes in the learner's process are 2,000 env
     steps, the cost of ~1,000 iterations when the target comes at ~3,000-4,000.
     """
     defaults = dict(actor_learning_rate=1e-3, critic_learning_rate=1e-3, alpha_learning_rate=1e-3,
-                    initial_eval=False, baseline_episodes=0, num_eval_episodes=10, num_threads=1,
+                    initial_eval=False, baseline_episodes=0, live_report=False, num_eval_episodes=10, num_threads=1,
                     collector=CollectorConfig(workers=1, sync=True))
     return SACConfig(env=env, **{**defaults, **keys})
 
@@ -155,7 +157,7 @@ def _halfcheetah_100k() -> SACConfig:
     # bound, so MuJoCo steps in a collector process beside it and the learner keeps one core.
     return _sized("HalfCheetah-v5", num_iterations=95_000, initial_collect_steps=5000,
                   replay_buffer_capacity=100_000, target_entropy=-6.0, eval_interval=10_000,
-                  log_interval=1000, policy_save_interval=95_000, checkpoint_interval=25_000,
+                  log_interval=1000, policy_save_interval=95_000, checkpoint_interval=25_000, live_report=True,
                   collector=CollectorConfig(workers=1, sync=False))
 
 
@@ -165,7 +167,7 @@ def _minitaur_fast() -> SACConfig:
     # steps (two episodes) instead of 10,000; lr 1e-3; evaluation in its own process as in `sac`.
     return _sized("MinitaurBulletEnv-v0", num_iterations=200_000, initial_collect_steps=2000,
                   replay_buffer_capacity=200_000, eval_interval=10_000, num_eval_episodes=5,
-                  eval_in_background=True, log_interval=1000, policy_save_interval=50_000,
+                  eval_in_background=True, log_interval=1000, policy_save_interval=50_000, live_report=True,
                   checkpoint_interval=25_000, collector=CollectorConfig(workers=1, sync=False))
 
 

@@ -160,7 +160,7 @@ def _sized(env: str, **keys) -> TD3Config:
     keys.setdefault("num_iterations", 20_000)
     defaults = dict(initial_collect_steps=1000, learning_starts=1000, replay_buffer_capacity=100_000,
                     learning_rate=1e-3, actor_fc_layer_params=[64, 64], critic_fc_layer_params=[64, 64],
-                    initial_eval=False, baseline_episodes=0, num_threads=1, eval_interval=5000, log_interval=500,
+                    initial_eval=False, baseline_episodes=0, live_report=False, num_threads=1, eval_interval=5000, log_interval=500,
                     policy_save_interval=keys["num_iterations"], checkpoint_interval=keys["num_iterations"])
     return TD3Config(env=env, **{**defaults, **keys})
 

@@ -400,3 +400,17 @@ def test_a_stopped_runs_page_and_figures_tell_the_truth_through_its_resume(tmp_p
     page = (run / "report.html").read_text()
     assert facts_of(page)["status"] == "finished" and "to continue it" not in facts_of(page)
     assert "no policy to film" not in page and "makes one" in page  # exported at the end: `rlpipe video run` works
+
+
+def test_live_report_false_writes_the_page_at_the_end_only(tmp_path):
+    """The sized presets' setting: no page from the log rows (the first costs 1-2 s of a 10-s run), one at the end."""
+    args = ["train", "dqn", *TINY, "eval_interval=0", "initial_eval=false", "live_report=false", "log_interval=50",
+            "--no-progress", "--out", "run"]
+    run = tmp_path / "run"
+    with held(args, tmp_path, "collected@150") as proc:
+        assert [int(r["step"]) for r in metric_rows(run) if r["steps_per_s"]][:2] == [50, 100]  # log rows were written
+        assert not (run / "report.html").exists()
+        resume_go_on(proc)
+        code, _, err = finish(proc)
+    assert code == 0, err
+    assert facts_of((run / "report.html").read_text())["status"] == "finished"

@@ -147,7 +147,8 @@ class LogTrigger(Trigger):
         if any(k.startswith("loss_") for k in row):  # nothing to say before the first update
             loop.echo(log_line(loop.state.iteration, row))
         with loop.clock.paused():
-            loop.page.refresh()  # the page's losses and speeds between evaluations, at a bounded cost
+            if loop.config.live_report:
+                loop.page.refresh()  # the page's losses and speeds between evaluations, at a bounded cost
 
 
 class EvalTrigger(Trigger):
