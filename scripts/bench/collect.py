@@ -154,8 +154,10 @@ def collect_steps_per_s(preset: str, overrides: list[str], envs_per_worker: int,
     import torch
 
     from rlpipe.pipelines import resolve_preset
+    from rlpipe.pipelines.config import apply_overrides
 
     _, cfg = resolve_preset(preset)
+    cfg = apply_overrides(cfg, list(overrides))  # a collector.frames_per_batch=N given on the command line counts
     fpb = frames_per_batch(cfg.collector.frames_per_batch, envs_per_worker)
     pipeline = pipeline_for_collection(preset, [
         *overrides, "collector.backend=local", "collector.workers=1", f"collector.sync={str(not process).lower()}",
