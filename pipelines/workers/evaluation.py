@@ -25,8 +25,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from rlpipe.envs import is_discrete
 from rlpipe.modules.tensor_policy import greedy_step
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, eval_seed
-from rlpipe.pipelines.workers.gym_collector import gym_env_of
 from rlpipe.pipelines.system.runtime import STOP_SIGNALS, stop_signals_blocked
+from rlpipe.pipelines.workers.gym_collector import gym_env_of
 from rlpipe.pipelines.workers.supervision import (
     MIN_START_TIMEOUT_S,
     WorkerFailure,
