@@ -398,6 +398,10 @@ def test_a_dead_or_late_evaluator_actor_is_a_worker_failure(local_ray):
     assert len(pending) == 1  # still owed: the next evaluator asks again
     evaluator = RayEvaluator(pipeline.eval_env_fn, pipeline.policy, long, pending, config=cfg, timeout=0.5)
     worker = psutil.Process(evaluator.worker_pid)
+    # Frozen before it is asked (results() sends the request): its evaluation cannot be back within
+    # eval_timeout, however fast evaluations get (50 episodes took "seconds" until they were played on the
+    # gymnasium env directly, ~0.6 s now, and the test then raced the timeout).
+    worker.suspend()
     try:
         with pytest.raises(WorkerFailure, match=r"evaluation at step 1 was not back within eval_timeout=0.5 s"):
             list(evaluator.results(block=True))
