@@ -99,19 +99,11 @@ def _additive_gaussian_step(policy: nn.Module, observation_key: str) -> TensorSt
 
 def _tanh_normal_step(policy: nn.Module, observation_key: str) -> TensorStep | None:
     """A ``ProbabilisticActor`` of a network on tensors and a plain TanhNormal: SAC's collect policy."""
-    if not isinstance(policy, ProbabilisticTensorDictSequential) or len(policy.module) != 2:
+    parts = _tanh_normal_parts(policy, observation_key)
+    if parts is None:
         return None
-    net, dist = policy.module
-    if not (is_plain_module(net) and isinstance(dist, ProbabilisticTensorDictModule)):
-        return None
-    if list(net.in_keys) != [observation_key] or list(net.out_keys) != list(dist.in_keys):
-        return None
-    kwargs = dict(dist.distribution_kwargs)
-    if not (dist.distribution_class is TanhNormal and set(kwargs) <= {"low", "high", "tanh_loc", "safe_tanh", "upscale"}
-            and not kwargs.get("tanh_loc", False) and kwargs.get("safe_tanh", True)
-            and sorted(dist.dist_keys) == ["loc", "scale"] and list(dist.dist_sample_keys) == ["action"]):
-        return None
-    if dist.default_interaction_type is not ExplorationType.RANDOM:
+    net, dist, kwargs = parts
+    if not kwargs.get("safe_tanh", True) or dist.default_interaction_type is not ExplorationType.RANDOM:
         return None
     low = torch.as_tensor(kwargs.get("low", -1.0), dtype=torch.float32)
     high = torch.as_tensor(kwargs.get("high", 1.0), dtype=torch.float32)
@@ -181,18 +173,10 @@ def _greedy_plain_step(policy: nn.Module, observation_key: str) -> GreedyStep | 
 def _greedy_tanh_normal_step(policy: nn.Module, observation_key: str) -> GreedyStep | None:
     """SAC's actor: TanhNormal's deterministic sample, TorchRL's transforms (safe tanh, then the affine map
     to the bounds) applied to ``loc``, as ``TanhNormal.deterministic_sample`` does."""
-    if not isinstance(policy, ProbabilisticTensorDictSequential) or len(policy.module) != 2:
+    parts = _tanh_normal_parts(policy, observation_key)
+    if parts is None:
         return None
-    net, dist = policy.module
-    if not (is_plain_module(net) and isinstance(dist, ProbabilisticTensorDictModule)):
-        return None
-    if list(net.in_keys) != [observation_key] or list(net.out_keys) != list(dist.in_keys):
-        return None
-    kwargs = dict(dist.distribution_kwargs)
-    if not (dist.distribution_class is TanhNormal and set(kwargs) <= {"low", "high", "tanh_loc", "safe_tanh", "upscale"}
-            and not kwargs.get("tanh_loc", False) and sorted(dist.dist_keys) == ["loc", "scale"]
-            and list(dist.dist_sample_keys) == ["action"]):
-        return None
+    net, _, kwargs = parts
     low = torch.as_tensor(kwargs.get("low", -1.0), dtype=torch.float32)
     # the transforms depend on the bounds only: made once, from a distribution of the action's shape
     transforms = TanhNormal(torch.zeros(low.shape), torch.ones(low.shape), **kwargs).transforms
@@ -205,3 +189,22 @@ def _greedy_tanh_normal_step(policy: nn.Module, observation_key: str) -> GreedyS
         return action
 
     return act
+
+
+def _tanh_normal_parts(policy: nn.Module, observation_key: str):
+    """``(network module, distribution module, TanhNormal's kwargs)`` of a ``ProbabilisticActor`` whose network
+    maps ``observation_key`` to ``loc``/``scale`` on tensors and whose distribution is a plain TanhNormal
+    sampling ``action`` (no ``tanh_loc``), else None: what both SAC fast paths need."""
+    if not isinstance(policy, ProbabilisticTensorDictSequential) or len(policy.module) != 2:
+        return None
+    net, dist = policy.module
+    if not (is_plain_module(net) and isinstance(dist, ProbabilisticTensorDictModule)):
+        return None
+    if list(net.in_keys) != [observation_key] or list(net.out_keys) != list(dist.in_keys):
+        return None
+    kwargs = dict(dist.distribution_kwargs)
+    if not (dist.distribution_class is TanhNormal and set(kwargs) <= {"low", "high", "tanh_loc", "safe_tanh", "upscale"}
+            and not kwargs.get("tanh_loc", False) and sorted(dist.dist_keys) == ["loc", "scale"]
+            and list(dist.dist_sample_keys) == ["action"]):
+        return None
+    return net, dist, kwargs
