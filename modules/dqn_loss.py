@@ -50,6 +50,11 @@ class LeanDQNLoss(DQNLoss):
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         if not self.lean:
             return super().forward(tensordict)
+        return TensorDict(loss=self.lean_loss(tensordict))
+
+    def lean_loss(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``forward(tensordict)["loss"]`` without the TensorDict around it (only where ``lean``): what
+        rlpipe's DQN update calls, ~15 us less a call than the module call and the TensorDict."""
         keys = self.tensor_keys
         observation, action, next_obs, reward, terminated = transition_tensors(tensordict, self._observation_key, keys)
         q = self._q("value_network_params", observation)
@@ -70,4 +75,4 @@ class LeanDQNLoss(DQNLoss):
         weights = None
         if self.use_prioritized_weights in (True, "auto") and keys.priority_weight in tensordict.keys():
             weights = tensordict.get(keys.priority_weight)
-        return TensorDict(loss=self._reduce_loss(loss, tensordict=tensordict, weights=weights))
+        return self._reduce_loss(loss, tensordict=tensordict, weights=weights)

@@ -18,7 +18,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.modules import MLP
 
 __all__ = ["importance_weights", "is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
-           "transition_tensors"]
+           "transition_tensors", "module_forward"]
 
 Layers = list[tuple[str, object]]
 
@@ -137,3 +137,47 @@ def run_stacked_mlp(layers: Layers, params: dict[str, torch.Tensor], x: torch.Te
             weight, bias = params[f"{layer}.weight"], params.get(f"{layer}.bias")
             x = torch.matmul(weight, x) if bias is None else torch.baddbmm(bias.unsqueeze(-1), weight, x)
     return x.mT.reshape(copies, *batch_shape, -1)
+
+
+def module_forward(module: torch.nn.Module):
+    """``module``'s forward as a function of one tensor, without ``nn.Module.__call__`` per layer where it
+    is a TorchRL ``MLP`` or a ``Sequential`` of them (``sequential_layers``); ``module`` itself otherwise.
+
+    A collector calls the collect policy once per env step, on one observation: for the tutorials'
+    small networks the calls around the arithmetic are most of it (CartPole's 120-84 Q-network: 36 us
+    through the modules, 18 us layer by layer under ``no_grad`` on this 2-core CPU; ``F.linear`` and
+    ``relu`` are what the modules' own ``forward`` call). The layers' current parameters are read at
+    each call (an optimiser, ``load_state_dict`` or TorchRL's weight updaters may replace them), and
+    while any module has a forward hook (its own or a global one) the call goes through ``module``.
+    """
+    layers = sequential_layers(module)
+    if layers is None:
+        return module
+    named = dict(module.named_modules())
+    steps = []
+    for kind, layer in layers:
+        if kind == "linear":
+            steps.append(named[layer])  # the Linear's module path is its parameters' prefix
+        else:
+            steps.append(layer)
+    modules = list(named.values())
+    relu = torch.nn.ReLU
+
+    def hooked() -> bool:
+        mod = torch.nn.modules.module
+        return bool(mod._global_forward_hooks or mod._global_forward_pre_hooks
+                    or any(m._forward_hooks or m._forward_pre_hooks for m in modules))
+
+    def forward(x: torch.Tensor):
+        if hooked():
+            return module(x)
+        for step in steps:
+            if type(step) is torch.nn.Linear:
+                x = F.linear(x, step.weight, step.bias)
+            elif type(step) is relu and not step.inplace:
+                x = torch.relu(x)
+            else:
+                x = step(x)
+        return x
+
+    return forward

@@ -24,7 +24,7 @@ from torchrl.modules import AdditiveGaussianModule, QValueActor, QValueModule, T
 
 from rlpipe.modules.exploration import EGreedyQPolicy
 from rlpipe.modules.sac_loss import tanh_normal_rsample
-from rlpipe.modules.tensor_nets import is_plain_module
+from rlpipe.modules.tensor_nets import is_plain_module, module_forward
 
 __all__ = ["GreedyStep", "TensorStep", "greedy_step", "tensor_step"]
 
@@ -44,6 +44,7 @@ def tensor_step(policy: nn.Module, observation_key: str = "observation") -> Tens
     for make in (_egreedy_step, _additive_gaussian_step, _tanh_normal_step):
         step = make(policy, observation_key)
         if step is not None:
+            step.inference_safe = True  # it creates no state: a collector may call it under inference mode
             return step
     return _tensordict_step(policy, observation_key)
 
@@ -83,7 +84,7 @@ def _additive_gaussian_step(policy: nn.Module, observation_key: str) -> TensorSt
     spec = spec["action"] if isinstance(spec, Composite) else spec
     if not isinstance(spec, Bounded) or spec.domain != "continuous":
         return None
-    net = actor.module
+    net = module_forward(actor.module)
 
     def act(observation: torch.Tensor) -> dict:
         action = net(observation)
@@ -110,7 +111,7 @@ def _tanh_normal_step(policy: nn.Module, observation_key: str) -> TensorStep | N
     trivial = bool((low == -1.0).all()) and bool((high == 1.0).all())
     center, radius = (None, None) if trivial else ((high + low) / 2, (high - low) / 2)
     log_prob_key = dist.log_prob_key if dist.return_log_prob else None
-    module, out_keys = net.module, list(net.out_keys)
+    module, out_keys = module_forward(net.module), list(net.out_keys)
     deterministic = policy  # anything but sampling goes through the module itself
 
     def act(observation: torch.Tensor) -> dict:
@@ -158,7 +159,7 @@ def _greedy_qvalue_step(policy: nn.Module, observation_key: str) -> GreedyStep |
     if (qvalue.action_space != "categorical" or qvalue.action_mask_key is not None
             or list(net.out_keys) != list(qvalue.in_keys) or qvalue.out_keys[0] != "action"):
         return None
-    qnet = net.module
+    qnet = module_forward(net.module)
     return lambda observation: qnet(observation).argmax(-1)  # QValueModule's categorical action
 
 
@@ -167,7 +168,7 @@ def _greedy_plain_step(policy: nn.Module, observation_key: str) -> GreedyStep | 
     if not (is_plain_module(policy) and list(policy.in_keys) == [observation_key]
             and list(policy.out_keys) == ["action"]):
         return None
-    return policy.module
+    return module_forward(policy.module)
 
 
 def _greedy_tanh_normal_step(policy: nn.Module, observation_key: str) -> GreedyStep | None:
@@ -180,7 +181,7 @@ def _greedy_tanh_normal_step(policy: nn.Module, observation_key: str) -> GreedyS
     low = torch.as_tensor(kwargs.get("low", -1.0), dtype=torch.float32)
     # the transforms depend on the bounds only: made once, from a distribution of the action's shape
     transforms = TanhNormal(torch.zeros(low.shape), torch.ones(low.shape), **kwargs).transforms
-    module, loc_index = net.module, list(net.out_keys).index("loc")
+    module, loc_index = module_forward(net.module), list(net.out_keys).index("loc")
 
     def act(observation: torch.Tensor) -> torch.Tensor:
         action = module(observation)[loc_index]

@@ -25,6 +25,7 @@ from torchrl.objectives import DQNLoss
 
 from rlpipe.modules import epsilon_greedy, make_qvalue_actor
 from rlpipe.modules.dqn_loss import LeanDQNLoss
+from rlpipe.modules.exploration import anneal_epsilon
 from rlpipe.modules.optim import LeanAdam, clip_gradient_norms
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.target_updates import make_target_updater
@@ -257,7 +258,10 @@ class DQN(OffPolicyPipeline):
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         optimizer = self.optimizers["q"]
-        loss = self.loss_module(batch)["loss"]
+        loss_module = self.loss_module
+        lean = type(loss_module) is LeanDQNLoss and loss_module.lean and not (loss_module._forward_hooks
+                                                                            or loss_module._forward_pre_hooks)
+        loss = loss_module.lean_loss(batch) if lean else loss_module(batch)["loss"]
         loss.backward()
         if self.config.gradient_clipping is not None:
             clip_gradient_norms(self.loss_module.parameters(), self.config.gradient_clipping)
@@ -269,7 +273,7 @@ class DQN(OffPolicyPipeline):
 
     def on_frames(self, frames: int) -> None:
         if self.config.epsilon_greedy_end is not None:
-            self.collect_policy[-1].step(frames)
+            anneal_epsilon(self.collect_policy[-1], frames)  # EGreedyModule.step's values, ~100x cheaper
 
     def export_module(self) -> nn.Module:
         if isinstance(self.policy, QValueActor):

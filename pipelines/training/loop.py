@@ -51,6 +51,7 @@ from rlpipe.pipelines.system.runtime import (
 from rlpipe.pipelines.training.divergence import check_finite
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
 from rlpipe.pipelines.training.page import ReportPage
+from rlpipe.pipelines.training.sampling import sample
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
 from rlpipe.pipelines.workers.snapshot import why_not_exact
 from rlpipe.pipelines.workers.supervision import NoRestartLeft, SupervisedCollector, Supervisor, Watchdog
@@ -287,7 +288,7 @@ class Loop:
         made = 0
         while self.state.limiter.owed:
             self.stop.check()
-            losses = self.pipeline.update_step(self.pipeline.replay_buffer.sample(), self.state.updates + 1)
+            losses = self.pipeline.update_step(sample(self.pipeline.replay_buffer), self.state.updates + 1)
             self.state.updated()
             if fault_point("update", self.state.updates):  # the test hook: a parameter turns NaN here
                 next(self.pipeline.loss_module.parameters()).data.fill_(math.nan)

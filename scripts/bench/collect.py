@@ -203,7 +203,7 @@ def plain_loop_steps_per_s(preset: str, overrides: list[str], steps: int, seed: 
     policy = pipeline.collect_policy
     low = high = None
     if isinstance(policy, EGreedyQPolicy):
-        qnet, epsilon = policy._lean_parts()[0], float(policy._lean_parts()[3].eps)
+        qnet, epsilon = policy.module[0].module[0].module, float(policy._lean_parts()[3].eps)  # the nn.Module
 
         def act(obs):
             if random.random() < epsilon:
