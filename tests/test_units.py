@@ -249,3 +249,50 @@ def test_an_old_module_path_gives_the_moved_module_with_a_deprecation_warning(ol
     with pytest.warns(DeprecationWarning, match=f"rlpipe.pipelines.{new}"):
         module = importlib.import_module(f"rlpipe.pipelines.{old}")
     assert module is importlib.import_module(f"rlpipe.pipelines.{new}")
+
+
+@pytest.mark.parametrize("init,end,steps", [(1.0, 0.05, 250_000), (1.0, 0.04, 5000), (0.1, 0.1, 1), (1.0, 0.01, 7),
+                                            (0.9, 0.013, 33_333_337)])
+def test_epsilon_is_annealed_to_egreedymodules_own_values(init, end, steps):
+    """DQN anneals epsilon with ``anneal_epsilon`` (numpy float32) in place of ``EGreedyModule.step``: the
+    same float32 value after every block, past the end of the schedule too."""
+    import random
+
+    from torchrl.data import Categorical
+    from torchrl.modules import EGreedyModule
+
+    from rlpipe.modules.exploration import anneal_epsilon
+
+    stock, ours = (EGreedyModule(Categorical(2), eps_init=init, eps_end=end, annealing_num_steps=steps) for _ in "ab")
+    rng, total = random.Random(0), 0
+    while total < min(2 * steps + 50, 300_000):
+        frames = rng.choice([1, 10, 160, 1000])
+        total += frames
+        stock.step(frames)
+        anneal_epsilon(ours, frames)
+        assert ours.eps.item() == stock.eps.item(), total
+
+
+def test_module_forward_is_the_modules_forward_and_respects_hooks():
+    """The collect policies run their MLPs layer by layer (``module_forward``): the module's numbers, and the
+    module's own call while it has a forward hook."""
+    from torchrl.modules import MLP, NormalParamExtractor
+
+    from rlpipe.modules.tensor_nets import module_forward
+
+    torch.manual_seed(0)
+    for net in (MLP(in_features=4, out_features=2, num_cells=[16, 8]),
+                torch.nn.Sequential(MLP(in_features=4, out_features=4, num_cells=[16]), NormalParamExtractor())):
+        run, x = module_forward(net), torch.randn(5, 4)
+        assert run is not net
+        expected, got = net(x), run(x)
+        for a, b in zip(expected if isinstance(expected, tuple) else (expected,),
+                        got if isinstance(got, tuple) else (got,), strict=True):
+            assert torch.equal(a, b)
+        calls = []
+        handle = net.register_forward_hook(lambda *args: calls.append(1))
+        run(x)
+        assert calls == [1]
+        handle.remove()
+    other = torch.nn.Linear(4, 2)
+    assert module_forward(other) is other
