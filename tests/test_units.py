@@ -289,8 +289,8 @@ def test_module_forward_is_the_modules_forward_and_respects_hooks():
         for a, b in zip(expected if isinstance(expected, tuple) else (expected,),
                         got if isinstance(got, tuple) else (got,), strict=True):
             assert torch.equal(a, b)
-        calls = []
-        handle = net.register_forward_hook(lambda *args: calls.append(1))
+        calls: list[int] = []
+        handle = net.register_forward_hook(lambda *args, calls=calls: calls.append(1))
         run(x)
         assert calls == [1]
         handle.remove()
