@@ -11,7 +11,8 @@ import queue
 import sys
 import time
 
-__all__ = ["COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "set_model_version", "write_cursor"]
+__all__ = ["COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "prompt_block_hand_over", "set_model_version",
+           "write_cursor"]
 
 
 class AckDeadline:
@@ -75,6 +76,23 @@ def close_weight_sync_queues(collector) -> None:
                 for q in (getattr(scheme, name, None) or {}).values():
                     q.cancel_join_thread()
             scheme.shutdown()
+
+
+def prompt_block_hand_over() -> None:
+    """In a collector worker process: hand each block over as soon as it is collected.
+
+    TorchRL 0.14's worker loop (``collectors/_runner.py``) polls its pipe for ``_MIN_TIMEOUT`` (1 ms)
+    after every block before sending it, in case the learner sent a message meanwhile; with no message
+    it waits the whole millisecond, every block. For one CartPole env in a worker that is a quarter of a
+    50-frame block (~4 ms of stepping). A poll of 0 s sees a message that has arrived as well; one that
+    arrives later is read at the top of the loop, after the block is queued (the queue does not block).
+    Call it where the worker's collector is built (``WorkerGymCollector``, ``WorkerSnapshotCollector``).
+    Delete when TorchRL's wait is configurable or gone (not in 0.14; check at each TorchRL upgrade).
+    """
+    from torchrl.collectors import _runner
+
+    if getattr(_runner, "_MIN_TIMEOUT", None) is not None:
+        _runner._MIN_TIMEOUT = 0.0
 
 
 def set_model_version(scheme, version: int) -> None:

@@ -39,6 +39,7 @@ from torchrl.envs.utils import set_exploration_type
 from rlpipe.envs import is_discrete
 from rlpipe.envs.snapshot import NotCapturable, capture, restore
 from rlpipe.modules.tensor_policy import tensor_step
+from rlpipe.pipelines.compat.torchrl import prompt_block_hand_over
 from rlpipe.pipelines.workers.snapshot import SnapshotCollector, seed_worker
 
 __all__ = ["GymCollector", "WorkerGymCollector", "gym_env_of"]
@@ -294,6 +295,10 @@ class WorkerGymCollector(GymCollector):
     ``set_seed`` seeds them (as ``snapshot.WorkerSnapshotCollector``)."""
 
     own_rng = True
+
+    def __init__(self, *args, **kwargs):
+        prompt_block_hand_over()  # no 1-ms wait after each block in TorchRL's worker loop
+        super().__init__(*args, **kwargs)
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         seed_worker(seed)

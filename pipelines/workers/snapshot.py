@@ -31,6 +31,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, TransformedEnv
 
 from rlpipe.envs.snapshot import NotCapturable, capture, restore, why_not_capturable
+from rlpipe.pipelines.compat.torchrl import prompt_block_hand_over
 
 __all__ = ["SNAPSHOT", "SnapshotCollector", "WorkerSnapshotCollector", "gym_envs_of", "seed_worker", "why_not_exact"]
 
@@ -167,6 +168,10 @@ class WorkerSnapshotCollector(SnapshotCollector):
     ``set_seed`` seeds them (TorchRL's multi-process workers do so themselves; its Ray actors do not)."""
 
     own_rng = True
+
+    def __init__(self, *args, **kwargs):
+        prompt_block_hand_over()  # no 1-ms wait after each block in TorchRL's worker loop
+        super().__init__(*args, **kwargs)
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         seed_worker(seed)
