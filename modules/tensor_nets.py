@@ -144,9 +144,9 @@ def module_forward(module: torch.nn.Module):
     is a TorchRL ``MLP`` or a ``Sequential`` of them (``sequential_layers``); ``module`` itself otherwise.
 
     A collector calls the collect policy once per env step, on one observation: for the tutorials'
-    small networks the calls around the arithmetic are most of it (CartPole's 120-84 Q-network: 36 us
-    through the modules, 18 us layer by layer under ``no_grad`` on this 2-core CPU; ``F.linear`` and
-    ``relu`` are what the modules' own ``forward`` call). The layers' current parameters are read at
+    small networks the calls around the arithmetic are a large part of it (DQN's epsilon-greedy step on
+    CartPole's 120-84 Q-network, under ``no_grad`` on this 2-core CPU: 47 us with the modules called, 39 us
+    layer by layer; ``F.linear`` and ``relu`` are what the modules' own ``forward`` call). The layers' current parameters are read at
     each call (an optimiser, ``load_state_dict`` or TorchRL's weight updaters may replace them), and
     while any module has a forward hook (its own or a global one) the call goes through ``module``.
     """
