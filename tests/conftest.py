@@ -19,6 +19,11 @@ torch.set_num_threads(1)
 # give it Python's usual handler, which its child processes get back as the default.
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
+# Likewise the terminal closing (test_supervision sends SIGHUP): under nohup the suite starts with SIGHUP
+# ignored, every run it starts inherits that, and rlpipe keeps a signal ignored at its start ignored (a
+# nohup user asked for it), so the run would never stop. A CI run under nohup failed so on 2026-11-27.
+if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
 @pytest.fixture
