@@ -136,13 +136,14 @@ def anneal_epsilon(module: EGreedyModule, frames: int) -> None:
     end = np.float32(module.eps_end.item())
     delta = (np.float32(module.eps_init.item()) - end) / np.float32(module.annealing_num_steps)
     value = start = np.float32(eps.item())
+    if np.isnan(value) or np.isnan(delta) or np.isnan(end):  # torch.maximum propagates NaN: the stock path
+        module.step(frames)
+        return
     for _ in range(frames):
         new = value - delta  # float32 - float32: float32
-        new = end if not new > end else new  # torch.maximum(eps_end, new); NaN: see below
+        new = end if not new > end else new  # torch.maximum(eps_end, new)
         if new == value:
             break
         value = new
-    if np.isnan(value) or np.isnan(delta) or np.isnan(end):  # torch.maximum propagates NaN: the stock path
-        module.step(frames)
-    elif value != start:
+    if value != start:
         eps.fill_(float(value))

@@ -55,23 +55,10 @@ def main() -> None:
 
     sides = (("before", True), ("after", False))
     if args.what == "dqn":
-        from rlpipe.scripts.bench.cleanrl import rlpipe_overrides, rlpipe_speed
-        from rlpipe.scripts.bench.dqn_one_env import IN_PROCESS
-        from rlpipe.scripts.bench.peers import cleanrl
+        from rlpipe.scripts.bench.dqn_one_env import rounds
 
-        preset, overrides = rlpipe_overrides("dqn", "CartPole-v1", cleanrl.defaults("dqn"), 0)
-        lengths = (5000, 25000)
-        for i in range(args.rounds):
-            side(False)
-            peer = cleanrl.cleanrl_speed("dqn", "CartPole-v1", lengths, seed=0, threads=1)
-            print(f"round {i + 1} CleanRL: {peer['updates_per_s']:.0f} updates/s (in-run {peer.get('updates_per_s_in_run')})",
-                  flush=True)
-            for label, before in sides:
-                side(before)
-                r = rlpipe_speed(preset, [*overrides, *IN_PROCESS, "collector.direct=true"], lengths, 10, 0,
-                                 out / f"{label}-{i}")
-                print(f"round {i + 1} rlpipe {label}: {r['updates_per_s']:.0f} updates/s "
-                      f"(in-run {r['updates_per_s_in_run']:.0f})", flush=True)
+        rounds({label: (["collector.direct=true"], (lambda on, b=before: side(b and on))) for label, before in sides},
+               args.rounds, out=out, label="rlpipe ")
     else:
         preset, *extra = args.rest
         for i in range(args.rounds):
