@@ -32,7 +32,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential
 from torch.func import functional_call
 from torchrl.modules import TanhNormal
-from torchrl.modules.distributions.utils import safetanh_noeps
+from torchrl.modules.distributions.utils import safetanh_noeps, sample_and_log_prob
 from torchrl.objectives import SACLoss
 from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import distance_loss
@@ -48,7 +48,7 @@ from rlpipe.modules.tensor_nets import (
     transition_tensors,
 )
 
-__all__ = ["LeanSACLoss", "tanh_normal_rsample"]
+__all__ = ["LeanSACLoss", "LeanTanhNormalActor", "tanh_normal_rsample", "tanh_normal_sample"]
 
 # ProbabilisticActor -> ("module", "0", "module", ...): the first module's own parameter names.
 _ACTOR_PREFIX = 3
@@ -79,21 +79,34 @@ def tanh_normal_rsample(
     return center + radius * squashed, base_log_prob.sum(-1) - log_det.sum(-1)
 
 
-class LeanSACLoss(SACLoss):
-    """TorchRL's ``SACLoss`` whose losses are computed on tensors when the networks allow it.
+@torch.no_grad()
+def tanh_normal_sample(
+    loc: torch.Tensor, scale: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``TanhNormal(loc, scale, low, high).sample_and_log_prob()`` (no gradients) in plain tensor ops.
 
-    Same arguments as ``SACLoss``. ``lean`` says whether the fast path is taken; ``losses`` is
-    the tensor-level entry point (``forward``, ``qvalue_v2_loss`` and ``actor_loss`` use it too).
+    As ``tanh_normal_rsample`` but with the draw ``Normal.sample`` makes (``torch.normal(loc, scale)``),
+    which is what TorchRL's ``sample_and_log_prob`` uses (CrossQLoss's next action, for one).
+    """
+    pre_tanh = torch.normal(loc, scale)
+    squashed = safetanh_noeps(pre_tanh)
+    base_log_prob = -((pre_tanh - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI
+    log_det = 2.0 * (_LOG_2 - pre_tanh - torch.nn.functional.softplus(-2.0 * pre_tanh))
+    if center is None:
+        return squashed, base_log_prob.sum(-1) - log_det.sum(-1)
+    log_det = log_det + radius.abs().log().expand_as(log_det)
+    return center + radius * squashed, base_log_prob.sum(-1) - log_det.sum(-1)
+
+
+class LeanTanhNormalActor:
+    """What a lean loss needs of TorchRL's ``ProbabilisticActor`` over a plain module: its network
+    run on the loss's parameter tensors and its TanhNormal sampled in tensor ops (``sample_action``).
+
+    A mix-in for a TorchRL loss holding ``actor_network`` and ``actor_network_params`` (``SACLoss``,
+    ``CrossQLoss``); ``_actor_parts`` is set by the loss's ``__init__`` from ``_lean_actor()``.
     """
 
-    def __init__(self, actor_network, qvalue_network, *args, **kwargs):
-        super().__init__(actor_network, qvalue_network, *args, **kwargs)
-        self._actor_parts = self._lean_actor()
-        self._critic_layers = (
-            mlp_layers(self.qvalue_network.module) if is_plain_module(self.qvalue_network) else None
-        )
-        # Built now rather than on first use (the default TD0, gamma 0.99), as TD3AblationLoss does.
-        self.value_estimator  # noqa: B018
+    _actor_parts = None
 
     def _lean_actor(self):
         """``(network module, its layers or None, distribution module, observation key)`` or None."""
@@ -107,23 +120,9 @@ class LeanSACLoss(SACLoss):
             return None
         return net.module, sequential_layers(net.module), dist, net.in_keys[0]
 
-    @property
-    def lean(self) -> bool:
-        """True when ``losses`` runs on tensors (plain actor and MLP critics, SAC v2, TD0, mean)."""
-        return (
-            self._actor_parts is not None
-            and self._critic_layers is not None
-            and self._version == 2
-            and self.reduction == "mean"
-            and not self.skip_done_states
-            and type(self.value_estimator) is TD0Estimator
-            and list(self.qvalue_network.in_keys) == [self._actor_parts[3], self.tensor_keys.action]
-        )
-
-    # -- networks on tensors ------------------------------------------------------------------
-
-    def sample_action(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """A reparameterised action of the online actor at ``observation`` and its log-probability."""
+    def sample_action(self, observation: torch.Tensor, reparameterize: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+        """An action of the online actor at ``observation`` and its log-probability: reparameterised
+        (``rsample_and_log_prob``) or not (``sample_and_log_prob``, TorchRL's functions of those names)."""
         module, layers, dist_module, _ = self._actor_parts
         params = cached_flat_params(self, "actor_network_params", _ACTOR_PREFIX)
         if layers is not None:
@@ -135,9 +134,12 @@ class LeanSACLoss(SACLoss):
         kwargs = {key[-1] if isinstance(key, tuple) else key: value for key, value in zip(dist_module.dist_keys, out, strict=True)}
         bounds = self._tanh_normal_bounds()
         if bounds is not None and set(kwargs) == {"loc", "scale"}:
-            return tanh_normal_rsample(kwargs["loc"], kwargs["scale"], *bounds)
+            draw = tanh_normal_rsample if reparameterize else tanh_normal_sample
+            return draw(kwargs["loc"], kwargs["scale"], *bounds)
         dist = dist_module.distribution_class(**kwargs, **dist_module.distribution_kwargs)
-        return compute_rsample_log_prob(dist)
+        if reparameterize:
+            return compute_rsample_log_prob(dist)
+        return sample_and_log_prob(dist)
 
     def _tanh_normal_bounds(self):
         """``(center, radius)`` (None, None for [-1, 1]) of a plain TanhNormal actor, else None; cached."""
@@ -160,6 +162,38 @@ class LeanSACLoss(SACLoss):
                 bounds = (None, None) if trivial else ((high + low) / 2, (high - low) / 2)
             cache["bounds"] = bounds
         return cache["bounds"]
+
+
+class LeanSACLoss(LeanTanhNormalActor, SACLoss):
+    """TorchRL's ``SACLoss`` whose losses are computed on tensors when the networks allow it.
+
+    Same arguments as ``SACLoss``. ``lean`` says whether the fast path is taken; ``losses`` is
+    the tensor-level entry point (``forward``, ``qvalue_v2_loss`` and ``actor_loss`` use it too).
+    """
+
+    def __init__(self, actor_network, qvalue_network, *args, **kwargs):
+        super().__init__(actor_network, qvalue_network, *args, **kwargs)
+        self._actor_parts = self._lean_actor()
+        self._critic_layers = (
+            mlp_layers(self.qvalue_network.module) if is_plain_module(self.qvalue_network) else None
+        )
+        # Built now rather than on first use (the default TD0, gamma 0.99), as TD3AblationLoss does.
+        self.value_estimator  # noqa: B018
+
+    @property
+    def lean(self) -> bool:
+        """True when ``losses`` runs on tensors (plain actor and MLP critics, SAC v2, TD0, mean)."""
+        return (
+            self._actor_parts is not None
+            and self._critic_layers is not None
+            and self._version == 2
+            and self.reduction == "mean"
+            and not self.skip_done_states
+            and type(self.value_estimator) is TD0Estimator
+            and list(self.qvalue_network.in_keys) == [self._actor_parts[3], self.tensor_keys.action]
+        )
+
+    # -- networks on tensors ------------------------------------------------------------------
 
     def qvalues(self, params: dict[str, torch.Tensor], observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """All critics at ``(observation, action)``: ``[num_qvalue_nets, *batch]``."""

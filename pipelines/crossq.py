@@ -22,6 +22,7 @@ from torch import nn
 from torchrl.objectives import CrossQLoss
 
 from rlpipe.modules.critics import make_batchrenorm_critic
+from rlpipe.modules.crossq_loss import LeanCrossQLoss
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.pipelines.base import Agent, TanhNormalPipeline, observation_key_of
 from rlpipe.pipelines.config import (
@@ -177,9 +178,9 @@ class CrossQ(TanhNormalPipeline):
                                                         observation_key=self.observation_key,
                                                         momentum=cfg.batch_renorm_momentum,
                                                         warmup_steps=cfg.batch_renorm_warmup_steps),
-            make_loss=lambda actor, qvalue: CrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2",
-                                                       alpha_init=cfg.initial_alpha, target_entropy=target_entropy,
-                                                       action_spec=spec))
+            make_loss=lambda actor, qvalue: LeanCrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2",
+                                                           alpha_init=cfg.initial_alpha, target_entropy=target_entropy,
+                                                           action_spec=spec))
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         cfg, loss = self.config, self.loss_module

@@ -15,9 +15,11 @@ import numpy as np
 import pytest
 import torch
 from torchrl.modules import BatchRenorm1d as TorchRLBatchRenorm1d
+from torchrl.objectives import CrossQLoss
 
 from rlpipe.modules import TanhNormalMode
 from rlpipe.modules.critics import BatchRenorm1d
+from rlpipe.modules.crossq_loss import LeanCrossQLoss
 from rlpipe.pipelines import crossq, resolve_preset
 from rlpipe.pipelines.artifacts.checkpoint import latest_checkpoint, load_checkpoint
 from rlpipe.pipelines.config import apply_overrides
@@ -122,12 +124,22 @@ def test_critics_update_every_time_and_the_actor_and_temperature_every_policy_de
     assert loss.qvalue_network_params["module", "0", "num_batches_tracked"].tolist() == [3, 3]
 
 
+def stock_twin(pipeline) -> CrossQLoss:
+    """TorchRL's own ``CrossQLoss`` over copies of ``pipeline``'s networks, holding its loss's values."""
+    lean = pipeline.loss_module
+    stock = CrossQLoss(copy.deepcopy(lean.actor_network), copy.deepcopy(lean.qvalue_network), num_qvalue_nets=2,
+                       loss_function="l2", alpha_init=1.0, target_entropy=float(lean.target_entropy),
+                       action_spec=pipeline.action_spec)
+    stock.make_value_estimator(gamma=float(lean.value_estimator.gamma))
+    stock.load_state_dict(lean.state_dict())
+    return stock
+
+
 def test_the_update_computes_torchrls_crossq_loss():
     pipeline = small("policy_delay=1")
+    assert isinstance(pipeline.loss_module, LeanCrossQLoss) and pipeline.loss_module.lean
     batch = batch_of(pipeline)
-    # the same networks (built from the config's seed); not a deepcopy: CrossQLoss's vmapped critic
-    # call keeps the module it was made with, whose train/eval mode the copy would no longer set
-    reference = small("policy_delay=1").loss_module
+    reference = stock_twin(pipeline)
     torch.manual_seed(7)
     expected = reference(batch.clone())
     torch.manual_seed(7)
@@ -137,6 +149,36 @@ def test_the_update_computes_torchrls_crossq_loss():
     # and the statistics moved as the reference's forward moved them
     torch.testing.assert_close(pipeline.loss_module.qvalue_network_params["module", "2", "running_var"],
                                reference.qvalue_network_params["module", "2", "running_var"])
+
+
+@pytest.mark.parametrize("warmup", [0, 2])
+def test_lean_loss_gives_crossqlosss_values_gradients_and_statistics(warmup):
+    # 2: the fourth pass is past the warm-up, where the renorm corrections r and d act
+    pipeline = small(f"batch_renorm_warmup_steps={warmup}", "critic_fc_layer_params=[32,32]")
+    lean = pipeline.loss_module
+    stock = stock_twin(pipeline)
+    for index in range(4):
+        batch = batch_of(pipeline)
+        for loss in (lean, stock):
+            loss.zero_grad(set_to_none=True)
+            torch.manual_seed(index)
+            q_loss, q_meta = loss.qvalue_loss(batch.clone())
+            a_loss, a_meta = loss.actor_loss(batch.clone())
+            alpha_loss = loss.alpha_loss(a_meta["log_prob"], tensordict=batch)
+            (q_loss + a_loss + alpha_loss).backward()
+            loss.__dict__["_seen"] = (q_loss.detach(), a_loss.detach(), alpha_loss.detach(), q_meta["td_error"])
+        for a, b in zip(lean.__dict__["_seen"], stock.__dict__["_seen"], strict=True):
+            torch.testing.assert_close(a, b)
+        ours, theirs = dict(lean.named_parameters()), dict(stock.named_parameters())
+        assert ours.keys() == theirs.keys()
+        for name, p in ours.items():
+            # A Linear's bias ahead of a batch norm has a zero gradient up to rounding (~1e-7): hence atol.
+            torch.testing.assert_close(p.grad, theirs[name].grad, rtol=1e-5, atol=1e-6, msg=name)
+        buffers = dict(stock.named_buffers())
+        for name, b in lean.named_buffers():
+            torch.testing.assert_close(b, buffers[name], msg=name)
+    # four training passes, the count held at the warm-up (at 1 without one), for each critic
+    assert lean.qvalue_network_params["module", "0", "num_batches_tracked"].tolist() == [max(warmup, 1)] * 2
 
 
 def test_the_thread_probe_leaves_the_batch_statistics_alone():
