@@ -8,6 +8,7 @@ This package never imports ``rlpipe.pipelines``: everything here is a plain Torc
     tensor_policy     a collect policy as a function on one observation tensor (a collector's per-step call)
     td3_loss          TorchRL's TD3Loss with TD3's six ingredients as switches, and one TD3 step
     sac_loss          TorchRL's SACLoss terms on plain tensors (LeanSACLoss), importance weights included
+    crossq_loss       TorchRL's CrossQLoss on plain tensors (LeanCrossQLoss), batch-renorm statistics included
     dqn_loss          TorchRL's DQNLoss on plain tensors (LeanDQNLoss)
     target_updates    SoftUpdate with a one-kernel step, for any loss with target networks
     optim             LeanAdam: fused Adam without Optimizer.step's per-call Python;
