@@ -33,7 +33,7 @@ from torchrl.objectives import CrossQLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
-from rlpipe.modules.critics import BatchRenorm1d
+from rlpipe.modules.critics import BatchRenorm1d, _Joined
 from rlpipe.modules.sac_loss import LeanTanhNormalActor
 from rlpipe.modules.tensor_nets import cached_flat_params, is_plain_module, transition_tensors
 
@@ -48,7 +48,7 @@ def renorm_critic_layers(qvalue_network) -> list[tuple[str, str, nn.Module]] | N
     if not is_plain_module(qvalue_network):
         return None
     seq = qvalue_network.module
-    if not isinstance(seq, nn.Sequential) or type(seq).__name__ != "_Joined" or seq._forward_hooks or seq._forward_pre_hooks:
+    if type(seq) is not _Joined or seq._forward_hooks or seq._forward_pre_hooks:
         return None
     layers = []
     for name, module in seq.named_children():
