@@ -296,16 +296,18 @@ LEARN = ["initial_eval=true", "eval_interval=500", "num_eval_episodes=5", "log_i
 
 @pytest.mark.slow
 def test_crossq_learns_pendulum(run_dir):
-    # Its evaluations swing between updates (as SAC's do on Pendulum): the check is that it got there,
-    # and that the policy it ends with is far past random (-1300 to -1500). Tried with the preset's 64x64
-    # networks (evaluations every 500, 2026-11-25): seed 0 -567 at 1500 updates, -105 at 2000, -120 at 3000
-    # (the test's seed); seed 1 -644 at 2500, -458 at 3000; seed 2 -278 at 2000, -229 at 3000.
-    cfg = apply_overrides(crossq.preset("crossq-pendulum"), [*LEARN, "num_iterations=3000"])
+    # Its evaluations swing between updates (as SAC's do on Pendulum): the check is that it got well past
+    # random (-1200 to -1600) and that the policy it ends with is too. Tried with the preset's 64x64 networks
+    # and LeanCrossQLoss (evaluations every 500, 2026-11-27): the best evaluation by 5000 updates on seeds
+    # 0-4, 6, 7, 9: -258 (seed 0, the test's), -123, -150, -129, -520, -226, -700, -101; by 3000 only half
+    # of seeds 0-11 were past -400, with the stock CrossQLoss as with the lean one (the old check, 3000
+    # updates and -400, held on seed 0 by luck: the lean loss's rounding moved it to -595).
+    cfg = apply_overrides(crossq.preset("crossq-pendulum"), [*LEARN, "num_iterations=5000"])
     result = crossq.CrossQ(cfg).train(run_dir, progress=False)
     returns = [e["average_return"] for e in result.evaluations]
     assert result.evaluations[0]["step"] == 0 and returns[0] < -900, returns
-    assert result.evaluations[-1]["step"] == 3000
-    assert max(returns[1:]) > -400, f"CrossQ did not learn Pendulum-v1: {returns}"
+    assert result.evaluations[-1]["step"] == 5000
+    assert max(returns[1:]) > -600, f"CrossQ did not learn Pendulum-v1: {returns}"
     assert _play(run_dir / "policy" / "policy.pt2", "Pendulum-v1", 3) > -1100
 
 
