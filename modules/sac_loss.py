@@ -69,14 +69,7 @@ def tanh_normal_rsample(
     bounds are [-1, 1] (TanhNormal then skips the affine map too).
     """
     eps = torch.empty_like(loc).normal_()
-    pre_tanh = loc + eps * scale
-    squashed = safetanh_noeps(pre_tanh)
-    base_log_prob = -((pre_tanh - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI
-    log_det = 2.0 * (_LOG_2 - pre_tanh - torch.nn.functional.softplus(-2.0 * pre_tanh))
-    if center is None:
-        return squashed, base_log_prob.sum(-1) - log_det.sum(-1)
-    log_det = log_det + radius.abs().log().expand_as(log_det)
-    return center + radius * squashed, base_log_prob.sum(-1) - log_det.sum(-1)
+    return _squashed_and_log_prob(loc + eps * scale, loc, scale, center, radius)
 
 
 @torch.no_grad()
@@ -88,7 +81,11 @@ def tanh_normal_sample(
     As ``tanh_normal_rsample`` but with the draw ``Normal.sample`` makes (``torch.normal(loc, scale)``),
     which is what TorchRL's ``sample_and_log_prob`` uses (CrossQLoss's next action, for one).
     """
-    pre_tanh = torch.normal(loc, scale)
+    return _squashed_and_log_prob(torch.normal(loc, scale), loc, scale, center, radius)
+
+
+def _squashed_and_log_prob(pre_tanh, loc, scale, center, radius) -> tuple[torch.Tensor, torch.Tensor]:
+    """The action a pre-tanh Normal draw gives, and its log-probability (TanhNormal's arithmetic)."""
     squashed = safetanh_noeps(pre_tanh)
     base_log_prob = -((pre_tanh - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI
     log_det = 2.0 * (_LOG_2 - pre_tanh - torch.nn.functional.softplus(-2.0 * pre_tanh))
