@@ -35,7 +35,7 @@ from torchrl.objectives.value import TD0Estimator
 
 from rlpipe.modules.critics import BatchRenorm1d, _Joined
 from rlpipe.modules.sac_loss import LeanTanhNormalActor
-from rlpipe.modules.tensor_nets import cached_flat_params, is_plain_module, transition_tensors
+from rlpipe.modules.tensor_nets import cached_detached_params, cached_flat_params, is_plain_module, transition_tensors
 
 __all__ = ["LeanCrossQLoss", "renorm_critic_layers"]
 
@@ -166,13 +166,6 @@ class LeanCrossQLoss(LeanTanhNormalActor, CrossQLoss):
                 x = renorm(module, params, name, x)
         return x.mT.reshape(self.num_qvalue_nets, *batch_shape, -1).squeeze(-1)
 
-    def _detached_qvalue_params(self) -> dict[str, torch.Tensor]:
-        # Detached views of in-place-updated tensors stay current, so they are cached with the rest.
-        cache = self.__dict__.setdefault("_cache_detached_qvalue", {})
-        if not cache:
-            cache.update({k: v.detach() for k, v in cached_flat_params(self, "qvalue_network_params").items()})
-        return cache
-
     def qvalue_loss(self, tensordict: TensorDictBase):
         if not self.lean:
             return super().qvalue_loss(tensordict)
@@ -199,5 +192,5 @@ class LeanCrossQLoss(LeanTanhNormalActor, CrossQLoss):
         observation = tensordict.get(self._actor_parts[3])
         action, log_prob = self.sample_action(observation)
         # the critics in eval mode with their parameters detached: the gradient reaches the actor only
-        min_q = self.qvalues(self._detached_qvalue_params(), observation, action, training=False).amin(0)
+        min_q = self.qvalues(cached_detached_params(self, "qvalue_network_params"), observation, action, training=False).amin(0)
         return self._reduce_loss(self._alpha * log_prob - min_q, tensordict=tensordict), {"log_prob": log_prob.detach()}

@@ -39,6 +39,7 @@ from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
 from rlpipe.modules.tensor_nets import (
+    cached_detached_params,
     cached_flat_params,
     is_plain_module,
     mlp_layers,
@@ -197,13 +198,6 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
         x = torch.cat([observation, action], -1)
         return run_stacked_mlp(self._critic_layers, params, x, self.num_qvalue_nets).squeeze(-1)
 
-    def _detached_qvalue_params(self) -> dict[str, torch.Tensor]:
-        # Detached views of in-place-updated tensors stay current, so they are cached with the rest.
-        cache = self.__dict__.setdefault("_cache_detached_qvalue", {})
-        if not cache:
-            cache.update({k: v.detach() for k, v in cached_flat_params(self, "qvalue_network_params").items()})
-        return cache
-
     # -- SAC on tensors -------------------------------------------------------------------------
 
     @torch.no_grad()
@@ -227,7 +221,7 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
         action_sample, log_prob = self.sample_action(observation)
         # The critics judge the actor's action with their parameters detached: the gradient
         # reaches the actor only, as in SACLoss.actor_loss.
-        min_q = self.qvalues(self._detached_qvalue_params(), observation, action_sample).amin(0)
+        min_q = self.qvalues(cached_detached_params(self, "qvalue_network_params"), observation, action_sample).amin(0)
         alpha = self._alpha
         log_prob_detached = log_prob.detach()
         return {

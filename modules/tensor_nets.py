@@ -90,6 +90,16 @@ def cached_flat_params(loss: torch.nn.Module, params_name: str, drop: int = 1) -
     return flat
 
 
+def cached_detached_params(loss: torch.nn.Module, params_name: str) -> dict[str, torch.Tensor]:
+    """``cached_flat_params(loss, params_name)`` detached (a critic read by the actor's loss): detached
+    views of tensors updated in place stay current, so they are cached too (erased with the rest)."""
+    cache = loss.__dict__.setdefault("_cache_detached_params", {})
+    flat = cache.get(params_name)
+    if flat is None:
+        flat = cache[params_name] = {k: v.detach() for k, v in cached_flat_params(loss, params_name).items()}
+    return flat
+
+
 def transition_tensors(tensordict, observation_key, tensor_keys) -> tuple[torch.Tensor, ...]:
     """``(observation, action, next observation, next reward, next terminated)`` of a replay batch,
     under a TorchRL loss's ``tensor_keys`` (``action``, ``reward``, ``terminated``)."""
