@@ -76,7 +76,6 @@ from typing import Any
 
 import gymnasium
 import numpy as np
-import torch
 from gymnasium import spaces
 
 
@@ -111,8 +110,6 @@ with _c_output_silenced(2):
     import pybullet  # noqa: E402  (after the helper that quiets its import)
 import pybullet_data  # noqa: E402
 from pybullet_utils.bullet_client import BulletClient  # noqa: E402
-
-from rlpipe.envs.snapshot import generator_state, set_generator_state  # noqa: E402
 
 __all__ = [
     "MinitaurBulletEnv",
@@ -607,8 +604,9 @@ class MinitaurBulletEnv(gymnasium.Env):
         super().reset(seed=seed)
         if self._client is None:
             raise RuntimeError("reset() on a closed MinitaurBulletEnv")
-        # what `replay` needs to play this episode again (envs.snapshot: pybullet's saveState is in-process only)
-        self._episode_rng = generator_state(self.np_random)
+        # what `replay` needs to play this episode again (envs.snapshot: pybullet's saveState is in-process only),
+        # kept as numpy's own dict: this module imports neither torch nor rlpipe (the peers' venvs load it as a file)
+        self._episode_rng = self.np_random.bit_generator.state
         self._episode_actions: list[np.ndarray] = []
         return self._start_episode(seed)
 
@@ -684,20 +682,29 @@ class MinitaurBulletEnv(gymnasium.Env):
         episode, so the episode is a function of the generator at its reset and the actions since."""
         return None if self._hard_reset else "a soft-reset Minitaur (hard_reset=False) keeps the last episode's world"
 
-    def replay_state(self) -> dict[str, torch.Tensor]:
-        """The generator's state at the episode's reset and the actions since (``replay`` plays them again)."""
+    def replay_state(self) -> dict[str, Any]:
+        """The generator's state at the episode's reset and the actions since (``replay`` plays them again),
+        as tensors (``dict[str, torch.Tensor]``)."""
+        import torch
+
+        from rlpipe.envs.snapshot import generator_state
+
         actions = getattr(self, "_episode_actions", None)
         if actions is None:
             return {}
         stacked = np.stack(actions) if actions else np.zeros((0, NUM_MOTORS))
-        return {**{f"rng/{k}": v for k, v in self._episode_rng.items()}, "actions": torch.from_numpy(stacked)}
+        rng = np.random.Generator(np.random.PCG64())
+        rng.bit_generator.state = self._episode_rng
+        return {**{f"rng/{k}": v for k, v in generator_state(rng).items()}, "actions": torch.from_numpy(stacked)}
 
-    def replay(self, state: dict[str, torch.Tensor]) -> None:
+    def replay(self, state: dict[str, Any]) -> None:
         """Play the captured episode again in this env: the state it ends in is the captured one."""
         if not state:
             return
+        from rlpipe.envs.snapshot import set_generator_state
+
         set_generator_state(self.np_random, {k[len("rng/"):]: v for k, v in state.items() if k.startswith("rng/")})
-        self._episode_rng = generator_state(self.np_random)
+        self._episode_rng = self.np_random.bit_generator.state
         self._episode_actions = []
         self._start_episode(seed=None)
         for action in state["actions"].numpy():

@@ -83,6 +83,28 @@ def test_the_peers_rule_is_rlpipes_rule():
     assert result["confirmations"] == 2 and result["eval_seconds"] >= 0
 
 
+def test_the_peers_load_minitaur_from_its_file_without_torch_or_rlpipe(tmp_path):
+    # SBX's and TF-Agents' venvs have neither torch nor rlpipe: ttr_rule.register_minitaur loads
+    # envs/minitaur.py as a file there (a torch import in it once made every peer's Minitaur run fail).
+    script = tmp_path / "peer.py"
+    script.write_text(
+        "import sys\n"
+        "sys.modules['torch'] = None; sys.modules['rlpipe'] = None  # an import of either raises\n"
+        f"sys.path.insert(0, {str(PEERS_DIR)!r})\n"
+        "import gymnasium, ttr_rule\n"
+        f"ttr_rule.register_minitaur({ttr._minitaur_module()!r})\n"
+        "env = gymnasium.make('MinitaurBulletEnv-v0')\n"
+        "obs, _ = env.reset(seed=0)\n"
+        "obs, reward, terminated, truncated, _ = env.step(env.action_space.sample())\n"
+        "print('stepped', obs.shape, type(reward).__name__)\n")
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "stepped (28,) float" in done.stdout
+
+
 def test_a_tiny_run_of_the_harness_times_rlpipe_to_a_low_target(tmp_path, capsys):
     from rlpipe.scripts.cli import main
 
