@@ -57,6 +57,12 @@ def test_a_run_not_reached_counts_as_never_in_the_median_and_is_never_dropped():
     assert s["b"]["median_s"] is None and (s["b"]["reached"], s["b"]["runs"]) == (1, 3)
 
 
+def test_no_crossq_leaves_out_only_the_crossq_side():
+    task = ttr.TASKS["minitaur-sac-1"]
+    assert ttr.task_sides(task, ["sbx", "cleanrl"]) == ["rlpipe", "crossq", "sbx"]  # CleanRL has no Minitaur
+    assert ttr.task_sides(task, ["sbx"], crossq=False) == ["rlpipe", "sbx"]
+
+
 def test_the_peers_rule_is_rlpipes_rule():
     spec = importlib.util.spec_from_file_location("ttr_rule", PEERS_DIR / "ttr_rule.py")
     module = importlib.util.module_from_spec(spec)

@@ -10,7 +10,7 @@
     rlpipe bench collect [--envs CartPole-v1 ...] [--envs-per-worker 1 8 32] [--frames 3000]
     rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
-                                [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [key=value ...]
+                                [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [--no-crossq] [key=value ...]
 
 ``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
 started and prints the share of each part (replay sample, update forward/backward, optimiser,
@@ -80,6 +80,8 @@ def add_parser(sub) -> None:
     bench.add_argument("--target-return", type=float, help="time-to-return: one target return for every task chosen "
                        "instead of the task's (a quick check)")
     bench.add_argument("--cap-scale", type=float, help="time-to-return: scale every task's env-step cap")
+    bench.add_argument("--no-crossq", action="store_true", help="time-to-return: leave out the CrossQ side "
+                       "(played by default on every task that has a CrossQ preset)")
     bench.set_defaults(func=run)
 
 

@@ -2,7 +2,7 @@
 
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [key=value ...]
-                                [--out DIR] [--json FILE]
+                                [--no-crossq] [--out DIR] [--json FILE]
 
 Every side is judged by one rule (rlpipe's ``target_return``, ``pipelines/training/triggers.py``
 ``TargetTrigger``; the peers' runners apply the same rule, ``peers/ttr_rule.py``): the mean return of
@@ -16,7 +16,7 @@ the first env step (rlpipe: to its first block of env steps), and the end of tra
 
 Sides, interleaved per seed (for each seed, every side once, in order): ``rlpipe`` (the preset sized
 for the task; the tutorial preset with the env set where that preset does not exist yet), ``crossq``
-(the task's CrossQ preset, where the task has one and it exists), and the peers, each in a venv of
+(the task's CrossQ preset, where the task has one and it exists; ``--no-crossq`` leaves it out), and the peers, each in a venv of
 its own built on first use: ``cleanrl`` (CleanRL 1.2.0's scripts on their defaults, ``peers/cleanrl.py``),
 ``sb3`` and ``sbx`` (RL-Zoo's hyperparameters for the env, ``peers/sb3.py``), ``tfagents`` (its
 tutorials' tasks only). Each side runs on the thread count ``--threads`` names for it; by default
@@ -352,11 +352,12 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     scale = args.cap_scale or 1.0
     runs: list[dict[str, Any]] = []
     settings: dict[str, dict[str, str]] = {}
-    total = sum(len(task_sides(TASKS[name], peers)) for name in tasks) * args.seeds
+    crossq = not getattr(args, "no_crossq", False)
+    total = sum(len(task_sides(TASKS[name], peers, crossq)) for name in tasks) * args.seeds
     n = 0
     for name in tasks:
         task = TASKS[name]
-        sides = task_sides(task, peers)
+        sides = task_sides(task, peers, crossq)
         target = task.target if args.target_return is None else float(args.target_return)
         cap = max(1, int(task.cap * scale))
         settings[name] = {}
@@ -395,9 +396,10 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     return figures
 
 
-def task_sides(task: Task, peers: list[str]) -> list[str]:
-    """The sides that play ``task``: rlpipe, CrossQ where the task has a CrossQ preset, the peers chosen that play it."""
-    return ["rlpipe", *(["crossq"] if task.crossq else []), *(p for p in peers if p in task.peers)]
+def task_sides(task: Task, peers: list[str], crossq: bool = True) -> list[str]:
+    """The sides that play ``task``: rlpipe, CrossQ where the task has a CrossQ preset (unless ``--no-crossq``),
+    the peers chosen that play it."""
+    return ["rlpipe", *(["crossq"] if task.crossq and crossq else []), *(p for p in peers if p in task.peers)]
 
 
 def progress_line(n: int, total: int, r: dict[str, Any]) -> str:
