@@ -82,10 +82,11 @@ def test_the_peers_rule_is_rlpipes_rule():
     rule.episode(12)
     assert not rule.check(lambda n: evaluate(n, 20), 70, 30)  # one episode since: no new evaluation yet
     rule.episode(12)
-    assert rule.check(lambda n: evaluate(n, 20), 80, 40)
+    assert rule.check(lambda n: (evaluate(n, 20), [7] * n), 80, 40)  # (returns, lengths) too
     assert evaluations == [3, 3]
     result = rule.result(80, 40)
     assert result["reached"] and (result["env_steps"], result["updates"], result["eval_return"]) == (80, 40, 20)
+    assert result["eval_episode_length"] == 7
     assert result["confirmations"] == 2 and result["eval_seconds"] >= 0
 
 

@@ -437,6 +437,7 @@ def test_a_reachable_target_stops_training_early_and_the_summary_says_when(tmp_p
     target = json.loads((result.run_dir / "summary.json").read_text())["target"]
     assert target["reached"] is True and target["return"] == 30.0
     assert target["train_mean"] >= 30 and target["eval_return"] >= 30
+    assert target["eval_episode_length"] == target["eval_return"]  # CartPole pays 1 a step: return is length
     assert target["iteration"] == result.summary["iterations"] < 5000  # stopped at that block, long before the end
     assert target["env_steps"] == result.summary["frames"] and target["updates"] == result.summary["updates"]
     assert target["first_step_unix"] <= target["last_block_unix"] <= target["time_unix"]

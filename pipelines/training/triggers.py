@@ -296,6 +296,7 @@ class TargetTrigger(Trigger):
         self.reached: dict[str, Any] | None = None
         self.train_mean: float | None = None
         self.eval_return: float | None = None
+        self.eval_length: float | None = None  # the confirming episodes' mean length: a short one is a lunge, not a walk
         self.last_block_unix: float | None = None
 
     def __call__(self, loop: Loop) -> None:
@@ -323,6 +324,7 @@ class TargetTrigger(Trigger):
         seconds = time.time() - met_unix
         self.checks += 1
         self.eval_return = result["average_return"]
+        self.eval_length = result["average_episode_length"]
         if self.eval_return < self.target:
             self.eval_seconds += seconds
             self.next_check = self.episodes + self.recheck_episodes
@@ -331,15 +333,18 @@ class TargetTrigger(Trigger):
             return
         self.confirm_seconds = seconds
         self.reached = {"iteration": state.iteration, "env_steps": state.frames, "updates": state.updates,
-                        "train_mean": mean, "eval_return": self.eval_return, "time_unix": met_unix}
+                        "train_mean": mean, "eval_return": self.eval_return, "eval_episode_length": self.eval_length,
+                        "time_unix": met_unix}
         loop.echo(f"step = {state.iteration}: target {self.target:g} reached: training episodes' mean {mean:.6g}, "
-                  f"greedy evaluation {self.eval_return:.6g} over {self.eval_episodes} episodes; training stops")
+                  f"greedy evaluation {self.eval_return:.6g} over {self.eval_episodes} episodes "
+                  f"(mean length {self.eval_length:g}); training stops")
         loop.finish_early("target")
 
     def summary(self, loop: Loop) -> dict[str, Any]:
         state = loop.state
         at = self.reached or {"iteration": state.iteration, "env_steps": state.frames, "updates": state.updates,
-                              "train_mean": self.train_mean, "eval_return": self.eval_return, "time_unix": None}
+                              "train_mean": self.train_mean, "eval_return": self.eval_return,
+                              "eval_episode_length": self.eval_length, "time_unix": None}
         return {"target": {
             "return": self.target, "reached": self.reached is not None, **at,
             "window": self.window, "eval_episodes": self.eval_episodes, "confirmations": self.checks,

@@ -336,6 +336,7 @@ def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict
         start_s=first - start if first else None, tail_s=end - stop if stop else None,
         eval_seconds=target.get("eval_seconds"), confirmations=target.get("confirmations"),
         train_mean=target.get("train_mean"), eval_return=target.get("eval_return"),
+        eval_episode_length=target.get("eval_episode_length"),
         versions=target.get("versions") or launch.versions,
     )
     return result
@@ -408,7 +409,9 @@ def progress_line(n: int, total: int, r: dict[str, Any]) -> str:
         return head + f"FAILED (exit {r['rc']}): {r.get('error', '')[:200]} (log: {r['log']})"
     if not r["reached"]:
         return head + f"not reached by the cap ({r.get('env_steps')} env steps, {r['wall_s']:.0f} s)"
-    return (head + f"{r['seconds']:.1f} s ({r['env_steps']} env steps, {r['updates']} updates; "
+    length = r.get("eval_episode_length")
+    length = f"; greedy episodes {length:.0f} steps long" if length is not None else ""
+    return (head + f"{r['seconds']:.1f} s ({r['env_steps']} env steps, {r['updates']} updates{length}; "
             f"start {_s(r.get('start_s'))}, tail {_s(r.get('tail_s'))})")
 
 

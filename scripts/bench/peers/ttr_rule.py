@@ -31,6 +31,7 @@ class Rule:
         self.reached: dict | None = None
         self.train_mean: float | None = None
         self.eval_return: float | None = None
+        self.eval_length: float | None = None
         self.first_step_unix: float | None = None
         self.last_step_unix: float | None = None
 
@@ -45,8 +46,12 @@ class Rule:
         """A finished training episode's undiscounted return (the peer's Monitor / RecordEpisodeStatistics)."""
         self.returns.append(float(ret))
 
-    def check(self, evaluate: Callable[[int], list[float]], env_steps: int, updates: int) -> bool:
-        """After a step's episodes: True once the target is reached and confirmed (the run should stop)."""
+    def check(self, evaluate: Callable[[int], list[float] | tuple[list[float], list[int]]], env_steps: int,
+              updates: int) -> bool:
+        """After a step's episodes: True once the target is reached and confirmed (the run should stop).
+
+        ``evaluate(n)`` plays ``n`` greedy episodes and gives their returns, or ``(returns, lengths)``
+        (a short episode that passes the target is a lunge, not a walk: the result says which)."""
         if self.reached is not None:
             return True
         if len(self.returns) < self.window or len(self.returns) < self.next_check:
@@ -58,20 +63,23 @@ class Rule:
         met = time.time()
         returns = evaluate(self.eval_episodes)
         seconds = time.time() - met
+        returns, lengths = returns if isinstance(returns, tuple) else (returns, None)
         self.confirmations += 1
         self.eval_return = sum(returns) / len(returns)
+        self.eval_length = sum(lengths) / len(lengths) if lengths else None
         if self.eval_return < self.target:
             self.eval_seconds += seconds
             self.next_check = len(self.returns) + self.recheck
             return False
         self.confirm_seconds = seconds
         self.reached = {"env_steps": int(env_steps), "updates": int(updates), "train_mean": mean,
-                        "eval_return": self.eval_return, "time_unix": met}
+                        "eval_return": self.eval_return, "eval_episode_length": self.eval_length, "time_unix": met}
         return True
 
     def result(self, env_steps: int, updates: int, **extra) -> dict:
         at = self.reached or {"env_steps": int(env_steps), "updates": int(updates), "train_mean": self.train_mean,
-                              "eval_return": self.eval_return, "time_unix": None}
+                              "eval_return": self.eval_return, "eval_episode_length": self.eval_length,
+                              "time_unix": None}
         return {"return": self.target, "reached": self.reached is not None, **at, "window": self.window,
                 "eval_episodes": self.eval_episodes, "confirmations": self.confirmations,
                 "eval_seconds": self.eval_seconds, "confirm_seconds": self.confirm_seconds,

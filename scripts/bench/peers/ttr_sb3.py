@@ -77,19 +77,21 @@ def main(spec: dict) -> None:
 
     rule = Rule(spec["target"], spec.get("window", 5), spec.get("eval_episodes", 10), spec.get("recheck", 5))
 
-    def evaluate(n: int) -> list[float]:
-        returns = []
+    def evaluate(n: int) -> tuple[list[float], list[int]]:
+        returns, lengths = [], []
         for _ in range(n):
             obs, _ = eval_env.reset(seed=eval_seed[0])
             eval_seed[0] += 1
-            total, done = 0.0, False
+            total, length, done = 0.0, 0, False
             while not done:
                 action, _ = model.predict(obs, deterministic=True)
                 obs, reward, terminated, truncated, _ = eval_env.step(action)
                 total += float(reward)
+                length += 1
                 done = terminated or truncated
             returns.append(total)
-        return returns
+            lengths.append(length)
+        return returns, lengths
 
     class Target(BaseCallback):
         def _on_step(self) -> bool:
