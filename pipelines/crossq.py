@@ -76,6 +76,8 @@ class CrossQConfig(TrainConfig):
     """initial entropy temperature"""
     target_entropy: float | None = None
     """entropy target of the temperature (null: -|A|)"""
+    reward_scale_factor: float = checked(1.0, Check(lambda v: v != 0, "a non-zero scale"))
+    """rewards are multiplied by this in the update (as SAC's key; reported returns stay the env's)"""
 
 
 def _minitaur() -> CrossQConfig:
@@ -198,6 +200,8 @@ class CrossQ(TanhNormalPipeline):
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         loss = self.loss_module
+        if self.config.reward_scale_factor != 1.0:
+            batch.set(("next", "reward"), batch.get(("next", "reward")) * self.config.reward_scale_factor)
         loss_qvalue, _ = loss.qvalue_loss(batch)
         out = {"qvalue": loss_qvalue.detach()}
         if update_index % self.config.policy_delay:

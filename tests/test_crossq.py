@@ -151,6 +151,19 @@ def test_the_update_computes_torchrls_crossq_loss():
                                reference.qvalue_network_params["module", "2", "running_var"])
 
 
+def test_reward_scale_factor_scales_the_rewards_the_critics_learn_from():
+    pipeline = small("policy_delay=1", "reward_scale_factor=100")
+    batch = batch_of(pipeline)
+    reference = stock_twin(pipeline)
+    scaled = batch.clone()
+    scaled.set(("next", "reward"), scaled.get(("next", "reward")) * 100)
+    torch.manual_seed(7)
+    expected = reference(scaled)
+    torch.manual_seed(7)
+    got = pipeline.update(batch.clone(), 1)
+    torch.testing.assert_close(got["qvalue"], expected["loss_qvalue"].detach())
+
+
 @pytest.mark.parametrize("warmup", [0, 2])
 def test_lean_loss_gives_crossqlosss_values_gradients_and_statistics(warmup):
     # 2: the fourth pass is past the warm-up, where the renorm corrections r and d act

@@ -25,7 +25,8 @@ CASES = [
      "TD3, Pendulum-v1, 256x256, batch 256 (CleanRL's sizes)"),
     ("td3", [], "TD3, Pendulum-v1, 256, batch 256 (the tutorial)"),
     ("dqn-cleanrl", [], "DQN, CartPole-v1, 120-84, batch 128 (CleanRL's)"),
-    ("crossq-pendulum", [], "CrossQ, Pendulum-v1, 256x256 batch-renormalised critics, batch 256 (the preset)"),
+    ("crossq-pendulum", ["actor_fc_layer_params=[256,256]", "critic_fc_layer_params=[256,256]"],
+     "CrossQ, Pendulum-v1, 256x256 batch-renormalised critics, batch 256 (SAC's sizes above)"),
 ]
 
 
