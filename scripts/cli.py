@@ -331,7 +331,8 @@ def cmd_report(args) -> int:
 
 
 PRESET_TIMES = Path(__file__).parent / "bench" / "preset_times.json"
-"""preset -> its measured time to target ({"seconds": ..., "commit": ..., "date": ...}), filled in from
+"""preset -> its measured time to target ({"seconds": ..., "commit": ..., "date": ...}, and "target": ... where
+the preset has two), filled in from
 `rlpipe bench time-to-return` runs; `rlpipe presets` shows it"""
 
 
@@ -346,7 +347,8 @@ def _measured(entry: dict | None) -> str:
     if not entry or entry.get("seconds") is None:
         return "not measured yet"
     when = ", ".join(str(entry[k]) for k in ("date", "commit") if entry.get(k))
-    return f"{entry['seconds']:.1f} s" + (f" ({when})" if when else "")
+    to = f" to {entry['target']:g}" if entry.get("target") is not None else ""  # a preset with two targets
+    return f"{entry['seconds']:.1f} s{to}" + (f" ({when})" if when else "")
 
 
 def cmd_presets(args) -> int:

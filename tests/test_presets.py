@@ -61,7 +61,8 @@ def test_rlpipe_presets_lists_each_with_its_task_and_measured_time(tmp_path, mon
     from rlpipe.scripts import cli
 
     times = tmp_path / "preset_times.json"
-    times.write_text(json.dumps({"sac-pendulum": {"seconds": 12.34, "date": "2026-11-25", "commit": "abc1234"}}))
+    times.write_text(json.dumps({"sac-pendulum": {"seconds": 12.34, "date": "2026-11-25", "commit": "abc1234"},
+                                 "sac-minitaur": {"seconds": 447.5, "target": 1.0}}))
     monkeypatch.setattr(cli, "PRESET_TIMES", times)
     assert cli.main(["presets"]) == 0
     lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
@@ -70,7 +71,7 @@ def test_rlpipe_presets_lists_each_with_its_task_and_measured_time(tmp_path, mon
         assert env in lines[name] and f"{targets[0]:g}" in lines[name], lines[name]
     assert "12.3 s (2026-11-25, abc1234)" in lines["sac-pendulum"]
     assert "not measured yet" in lines["td3-pendulum"]
-    assert "1 then 5" in lines["sac-minitaur"]
+    assert "1 then 5" in lines["sac-minitaur"] and "447.5 s to 1" in lines["sac-minitaur"]  # which of its two
 
 
 def test_a_tutorial_preset_on_a_sized_env_hints_at_its_preset_and_trains_on(tmp_path, monkeypatch, capfd):
