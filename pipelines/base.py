@@ -61,7 +61,8 @@ from rlpipe.pipelines.workers.backend import CollectorBackend
 from rlpipe.pipelines.workers.factory import backend_class, make_backend
 from rlpipe.pipelines.workers.local import push_weights as push_collector_weights
 
-__all__ = ["Agent", "OffPolicyPipeline", "TanhNormalPipeline", "observation_key_of", "own_env_label", "seed_everything"]
+__all__ = ["Agent", "OffPolicyPipeline", "TanhNormalPipeline", "observation_key_of", "own_env_label", "scale_rewards",
+           "seed_everything"]
 
 
 def own_env_label(env: EnvBase, configured: str) -> str:
@@ -77,6 +78,13 @@ def own_env_label(env: EnvBase, configured: str) -> str:
         return configured if configured else env_label(env)
     return env_label(env)
 
+
+def scale_rewards(batch: TensorDictBase, factor: float) -> TensorDictBase:
+    """Multiply the batch's ``("next", "reward")`` by ``factor`` in place (a ``reward_scale_factor``
+    key's update: only the learning sees it; the returns a run reports stay the env's)."""
+    if factor != 1.0:
+        batch.set(("next", "reward"), batch.get(("next", "reward")) * factor)
+    return batch
 
 
 @dataclass

@@ -24,7 +24,7 @@ from torchrl.objectives import CrossQLoss
 from rlpipe.modules.critics import make_batchrenorm_critic
 from rlpipe.modules.crossq_loss import LeanCrossQLoss
 from rlpipe.modules.optim import LeanAdam
-from rlpipe.pipelines.base import Agent, TanhNormalPipeline, observation_key_of
+from rlpipe.pipelines.base import Agent, TanhNormalPipeline, observation_key_of, scale_rewards
 from rlpipe.pipelines.config import (
     LAYER_SIZES,
     LEARNING_RATE,
@@ -200,9 +200,7 @@ class CrossQ(TanhNormalPipeline):
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         loss = self.loss_module
-        if self.config.reward_scale_factor != 1.0:
-            batch.set(("next", "reward"), batch.get(("next", "reward")) * self.config.reward_scale_factor)
-        loss_qvalue, _ = loss.qvalue_loss(batch)
+        loss_qvalue, _ = loss.qvalue_loss(scale_rewards(batch, self.config.reward_scale_factor))
         out = {"qvalue": loss_qvalue.detach()}
         if update_index % self.config.policy_delay:
             loss_qvalue.backward()

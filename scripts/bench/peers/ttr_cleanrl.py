@@ -52,11 +52,11 @@ def main(spec: dict) -> None:
             return step + 1, max(0, (step - 1) // every - starts // every)
         return step + 1, max(0, step - 1 - starts)
 
-    def evaluate(g: dict, n: int) -> list[float]:
+    def evaluate(g: dict, n: int) -> tuple[list[float], list[int]]:
         if not eval_env:
             eval_env.append(gym.make(g["args"].env_id))
         env, device = eval_env[0], g["device"]
-        returns = []
+        returns, lengths = [], []
         with torch.no_grad():
             for _ in range(n):
                 if algo == "dqn":
@@ -65,7 +65,7 @@ def main(spec: dict) -> None:
                     env.seed(eval_seed[0])
                     obs = env.reset()
                 eval_seed[0] += 1
-                total, done = 0.0, False
+                total, length, done = 0.0, 0, False
                 while not done:
                     x = torch.as_tensor(obs, dtype=torch.float32, device=device).unsqueeze(0)
                     if algo == "sac":
@@ -81,8 +81,10 @@ def main(spec: dict) -> None:
                     else:
                         obs, reward, done, _ = out
                     total += float(reward)
+                    length += 1
                 returns.append(total)
-        return returns
+                lengths.append(length)
+        return returns, lengths
 
     names = ("cleanrl", "torch", "gym", "gymnasium", "stable-baselines3", "numpy", "mujoco")
 

@@ -50,8 +50,9 @@ class Rule:
               updates: int) -> bool:
         """After a step's episodes: True once the target is reached and confirmed (the run should stop).
 
-        ``evaluate(n)`` plays ``n`` greedy episodes and gives their returns, or ``(returns, lengths)``
-        (a short episode that passes the target is a lunge, not a walk: the result says which)."""
+        ``evaluate(n)`` plays ``n`` greedy episodes and gives ``(returns, lengths)`` (a short episode that
+        passes the target is a lunge, not a walk: the result says which), or only the returns where the
+        peer's own evaluation gives no lengths (TF-Agents' tutorial's ``compute_avg_return``: its mean)."""
         if self.reached is not None:
             return True
         if len(self.returns) < self.window or len(self.returns) < self.next_check:
