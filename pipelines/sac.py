@@ -182,7 +182,8 @@ def _minitaur_fast() -> SACConfig:
     # 64x64 networks: the update is the bound, and it is ~3x cheaper than at 256x256 (~315 env steps/s
     # against ~110) for no more env steps to 1.0 (2026-11-27, seeds 0 and 1: 30,950 and 32,350 env steps,
     # 112 and 110 s, greedy episodes 826 and 678 steps long; 128x128: 34,450 and 42,950, 182 and 220 s;
-    # 256x256: 449 and 446 s).
+    # 256x256: 449 and 446 s). In `rlpipe bench time-to-return --tasks minitaur-sac-1 --seeds 5 --peers sbx`
+    # (c8cecde): 79.8 s median, 5/5; 5 reached in one run of three within 10 minutes (310.5 s): BENCHMARKS.md.
     return _sized("MinitaurBulletEnv-v0", num_iterations=200_000, initial_collect_steps=2000,
                   reward_scale_factor=100.0, target_entropy=0.0,
                   actor_fc_layer_params=[64, 64], critic_joint_fc_layer_params=[64, 64],
