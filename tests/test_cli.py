@@ -277,6 +277,7 @@ BAD_INPUTS = {
                          ["pendulum-sax", "pendulum-sac"], None),
     "ttr-unknown-peer": (["bench", "time-to-return", "--peers", "stable"], ["stable", "sb3"], None),
     "ttr-bad-threads": (["bench", "time-to-return", "--threads", "sb3=x"], ["--threads sb3=x", "SIDE=N"], None),
+    "ttr-bad-cap": (["bench", "time-to-return", "--cap", "tfagent=30000"], ["--cap tfagent=30000", "SIDE=STEPS"], None),
     "ttr-bad-override": (["bench", "time-to-return", "batchsize=3", "--tasks", "pendulum-sac"],
                          ["batchsize", "batch_size"], None),
 }

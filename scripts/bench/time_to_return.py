@@ -118,6 +118,11 @@ def check_args(args) -> None:
         if not eq or side not in SIDES or not n.isdigit() or int(n) < 0:
             raise InputError(f"--threads {item}: expected SIDE=N with SIDE one of {', '.join(SIDES)} and N a count "
                              "(0: the side's default)")
+    for item in getattr(args, "cap", None) or ():
+        side, eq, n = item.partition("=")
+        if not eq or side not in SIDES or not n.isdigit() or int(n) <= 0:
+            raise InputError(f"--cap {item}: expected SIDE=STEPS with SIDE one of {', '.join(SIDES)} and STEPS a "
+                             "positive count of env steps")
     if args.cap_scale is not None and not args.cap_scale > 0:
         raise InputError(f"--cap-scale={args.cap_scale}: expected a positive factor")
     if args.preset is not None:
@@ -126,6 +131,11 @@ def check_args(args) -> None:
         resolve_preset(args.preset)  # an unknown one: its own line
     for name in args.tasks or list(TASKS):  # the rlpipe side's overrides: a bad key is refused before any run
         rlpipe_config(TASKS[name], list(args.overrides), args.preset)
+
+
+def _side_caps(args) -> dict[str, int]:
+    """``--cap SIDE=STEPS``: the sides whose env-step cap is their own, not the task's."""
+    return {side: int(n) for side, _, n in (item.partition("=") for item in getattr(args, "cap", None) or ())}
 
 
 def _threads(args) -> dict[str, int | None]:
@@ -274,15 +284,19 @@ def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work:
         settings = f"{lib} {task.algo.upper()}, {source}: " + (", ".join(f"{k}={v}" for k, v in hp.items()) or "none")
         return Launch([str(python), str(peers / "ttr_sb3.py"), json.dumps(spec)], env, work, settings, _read_ttr_line)
     if side == "tfagents":
-        if task.env != "CartPole-v0":  # the Minitaur tutorial's run is about two hours here: timed apart, by hand
-            return "no time-to-return runner for TF-Agents' Minitaur tutorial (about two hours a run here)"
         from rlpipe.scripts.bench.peers import tfagents
 
         python = tfagents.ensure_venv()
-        tutorial = peers / "tfagents_tutorials" / "tfagents_dqn_cartpole.py"
+        if task.env == "MinitaurBulletEnv-v0":
+            tutorial = peers / "tfagents_tutorials" / "tfagents_sac_minitaur.py"
+            settings = ("TF-Agents 0.19 SAC actor-learner tutorial (7_SAC_minitaur_tutorial.ipynb) as written: "
+                        "256x256 networks, Adam 3e-4 x3, batch 256, replay 10,000 (Reverb), 10,000 random steps, "
+                        "1 env step per update; pybullet_envs' MinitaurBulletEnv-v0")
+        else:
+            tutorial = peers / "tfagents_tutorials" / "tfagents_dqn_cartpole.py"
+            settings = ("TF-Agents 0.19 DQN tutorial (1_dqn_tutorial.ipynb) as written: QNetwork (100,), Adam 1e-3, "
+                        "batch 64, 100 random steps, 1 env step per update")
         spec = {**rule, "tutorial": str(tutorial)}
-        settings = ("TF-Agents 0.19 DQN tutorial (1_dqn_tutorial.ipynb) as written: QNetwork (100,), Adam 1e-3, "
-                    "batch 64, 100 random steps, 1 env step per update")
         env = _base_env(None)
         if threads:
             env["TF_NUM_INTRAOP_THREADS"] = env["TF_NUM_INTEROP_THREADS"] = str(threads)
@@ -350,6 +364,7 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     tasks = args.tasks or list(TASKS)
     peers = [] if args.peers == ["none"] else list(args.peers or DEFAULT_PEERS)
     threads = _threads(args)
+    side_caps = _side_caps(args)
     scale = args.cap_scale or 1.0
     runs: list[dict[str, Any]] = []
     settings: dict[str, dict[str, str]] = {}
@@ -360,11 +375,12 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
         task = TASKS[name]
         sides = task_sides(task, peers, crossq)
         target = task.target if args.target_return is None else float(args.target_return)
-        cap = max(1, int(task.cap * scale))
+        task_cap = max(1, int(task.cap * scale))
         settings[name] = {}
         for seed in range(args.seeds):
             for side in sides:
                 n += 1
+                cap = side_caps.get(side, task_cap)
                 work = out / name / f"{side}-seed{seed}"
                 try:
                     if side in ("rlpipe", "crossq"):
@@ -379,7 +395,8 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                     if seed == 0:
                         print(f"[{n}/{total}] {name} {side}: not run ({launch})", flush=True)
                     continue
-                settings[name][side] = launch.settings + f"; threads {threads[side] or 'default'}"
+                own_cap = f"; its own cap {cap:,} env steps" if side in side_caps else ""
+                settings[name][side] = launch.settings + f"; threads {threads[side] or 'default'}{own_cap}"
                 work.mkdir(parents=True, exist_ok=True)
                 result = run_one(launch, work / "output.log")
                 result.update(task=name, side=side, seed=seed, target=target, cap=cap)

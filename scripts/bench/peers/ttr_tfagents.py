@@ -1,13 +1,21 @@
-"""``rlpipe bench time-to-return``'s TF-Agents side: the DQN tutorial on CartPole-v0, run inside the
-TF-Agents peer venv (``peers/tfagents.py``).
+"""``rlpipe bench time-to-return``'s TF-Agents side: the DQN tutorial on CartPole-v0 and the SAC actor-learner
+tutorial on Minitaur, run inside the TF-Agents peer venv (``peers/tfagents.py``).
 
     python ttr_tfagents.py '{"tutorial": ".../tfagents_dqn_cartpole.py", "target": 195, "cap": 50000, "seed": 0}'
+    python ttr_tfagents.py '{"tutorial": ".../tfagents_sac_minitaur.py", "target": 1.0, "cap": 30000, "seed": 0}'
 
 The tutorial script (``tfagents_tutorials/tfagents_dqn_cartpole.py``: the notebook cell for cell) runs
 as it is, with ``--iterations`` set to the step cap; only its ``collect_step`` is replaced by the same
 step that also adds the reward to the episode's return and, at each episode's end, applies the shared
 rule (``ttr_rule.Rule``). The greedy check is the tutorial's own ``compute_avg_return`` of
 ``agent.policy`` (greedy) on its ``eval_env``, both found in the running ``main``'s frame.
+
+The Minitaur tutorial (``tfagents_tutorials/tfagents_sac_minitaur.py``, the notebook's actor-learner loop)
+runs as it is too, ``--iterations`` the cap less its 10,000 random steps, so that the cap counts env steps
+as every other side's does. An observer beside its own (``EXTRA_OBSERVERS``, added to the random and the
+collect actor alike, as rlpipe's random steps count too) adds each env step's reward to the episode's
+return and applies the rule at each episode's end; the greedy check plays the tutorial's
+``GreedyPolicy(tf_agent.policy)`` on its ``eval_env`` (``RUN``), returns and lengths.
 """
 
 from __future__ import annotations
@@ -21,6 +29,8 @@ from ttr_rule import Rule, versions
 
 
 def main(spec: dict) -> None:
+    if os.path.basename(spec["tutorial"]) == "tfagents_sac_minitaur.py":
+        return minitaur(spec)
     path = spec["tutorial"]
     module_spec = importlib.util.spec_from_file_location("tfagents_tutorial", path)
     tutorial = importlib.util.module_from_spec(module_spec)
@@ -66,6 +76,54 @@ def main(spec: dict) -> None:
     sys.argv = [path, "--iterations", str(spec["cap"]), "--seed", str(spec["seed"])]
     tutorial.main()
     rule.emit(state["steps"], int(spec["cap"]), versions=versions(*names), threads="default")
+    os._exit(0)
+
+
+def minitaur(spec: dict) -> None:
+    path = spec["tutorial"]
+    module_spec = importlib.util.spec_from_file_location("tfagents_tutorial", path)
+    tutorial = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(tutorial)
+
+    rule = Rule(spec["target"], spec.get("window", 5), spec.get("eval_episodes", 10), spec.get("recheck", 5))
+    names = ("tf-agents", "tensorflow-cpu", "dm-reverb", "gym", "pybullet", "numpy")
+    state = {"steps": 0, "return": 0.0}
+
+    def updates() -> int:
+        return int(tutorial.RUN["train_step"].numpy()) if "train_step" in tutorial.RUN else 0
+
+    def evaluate(n: int) -> tuple[list[float], list[int]]:
+        env, policy = tutorial.RUN["eval_env"], tutorial.RUN["eval_policy"]
+        returns, lengths = [], []
+        for _ in range(n):
+            time_step, ret, length = env.reset(), 0.0, 0
+            while not time_step.is_last():
+                time_step = env.step(policy.action(time_step).action)
+                ret += float(time_step.reward)
+                length += 1
+            returns.append(ret)
+            lengths.append(length)
+        return returns, lengths
+
+    def observer(traj) -> None:
+        if bool(traj.is_boundary()):  # the step after an episode's last: the env's reset, not an env step
+            return
+        rule.step()
+        state["steps"] += 1
+        state["return"] += float(traj.reward)
+        if not bool(traj.is_last()):
+            return
+        rule.episode(state["return"])
+        state["return"] = 0.0
+        if rule.check(evaluate, state["steps"], updates()):
+            rule.emit(state["steps"], updates(), versions=versions(*names), threads="default")
+            os._exit(0)
+
+    tutorial.EXTRA_OBSERVERS.append(observer)
+    iterations = max(1, int(spec["cap"]) - tutorial.INITIAL_COLLECT_STEPS)
+    sys.argv = [path, "--iterations", str(iterations), "--seed", str(spec["seed"])]
+    tutorial.main()
+    rule.emit(state["steps"], updates(), versions=versions(*names), threads="default")
     os._exit(0)
 
 

@@ -59,6 +59,11 @@ ACTOR_FC_LAYER_PARAMS = (256, 256)
 CRITIC_JOINT_FC_LAYER_PARAMS = (256, 256)
 LOG_INTERVAL = 5000
 
+# ``rlpipe bench time-to-return``'s hook (``peers/ttr_tfagents.py``): observers added to both actors, beside the
+# tutorial's own, and the run's eval env and greedy policy published for its greedy check. Empty otherwise.
+EXTRA_OBSERVERS: list = []
+RUN: dict = {}
+
 
 def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -148,6 +153,7 @@ def main() -> None:
 
     eval_policy = py_tf_eager_policy.PyTFEagerPolicy(greedy_policy.GreedyPolicy(tf_agent.policy), use_tf_function=True)
     collect_policy = py_tf_eager_policy.PyTFEagerPolicy(tf_agent.collect_policy, use_tf_function=True)
+    RUN.update(eval_env=eval_env, eval_policy=eval_policy, train_step=train_step)
     random_policy = random_py_policy.RandomPyPolicy(
         collect_env.time_step_spec(), collect_env.action_spec(), seed=args.seed)
 
@@ -162,7 +168,7 @@ def main() -> None:
         random_policy,
         train_step,
         steps_per_run=args.initial_collect_steps,
-        observers=[rb_observer])
+        observers=[rb_observer, *EXTRA_OBSERVERS])
     start = time.perf_counter()
     initial_collect_actor.run()
     initial_collect_s = time.perf_counter() - start
@@ -175,7 +181,7 @@ def main() -> None:
         steps_per_run=1,
         metrics=actor.collect_metrics(10),
         summary_dir=os.path.join(tempdir, learner.TRAIN_DIR),
-        observers=[rb_observer, env_step_metric])
+        observers=[rb_observer, env_step_metric, *EXTRA_OBSERVERS])
 
     learning_triggers = [triggers.StepPerSecondLogTrigger(train_step, interval=1000)]
     if args.policy_save_interval:
