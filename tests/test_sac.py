@@ -98,6 +98,27 @@ def test_the_update_weighs_samples_by_a_prioritized_buffers_weights():
     torch.testing.assert_close(got["alpha"], expected["loss_alpha"].detach())
 
 
+def test_the_entropy_target_moves_with_the_frames_collected_and_a_resumed_run_picks_it_up(tmp_path):
+    # target_entropy_final: the temperature's target goes linearly from target_entropy to it over
+    # target_entropy_anneal's env steps, as a function of the frames collected (random ones included).
+    cfg = apply_overrides(sac.preset("sac"), [
+        "env=Pendulum-v1", "seed=0", "num_iterations=200", "initial_collect_steps=100", "replay_buffer_capacity=1000",
+        "batch_size=32", "actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]", "num_threads=1",
+        "collector.workers=1", "collector.sync=true", "eval_in_background=false", "eval_interval=0",
+        "initial_eval=false", "baseline_episodes=0", "num_eval_episodes=1", "checkpoint_interval=100000",
+        "policy_save_interval=100000", "target_entropy=0", "target_entropy_final=-4", "target_entropy_anneal=[100,500]"])
+    pipeline = sac.SAC(cfg)
+    pipeline.train(tmp_path / "run", progress=False)
+    assert pipeline.state.frames == 300
+    assert float(pipeline.loss_module.target_entropy) == pytest.approx(-2.0)  # (300 - 100) / 400 of the way
+    resumed = sac.SAC(cfg)  # its schedule starts from the config's target, not from the buffer it loads
+    resumed.load_state_dict(pipeline.state_dict())
+    resumed.on_frames(200)
+    assert float(resumed.loss_module.target_entropy) == pytest.approx(-4.0)
+    with pytest.raises(InputError, match=r"target_entropy_anneal=\[500, 100\].*start < end"):
+        sac.SAC(apply_overrides(sac.preset("sac"), ["target_entropy_final=-4", "target_entropy_anneal=[500,100]"]))
+
+
 def test_discrete_env_is_rejected():
     cfg = apply_overrides(sac.preset("sac"), ["env=CartPole-v1"])
     with pytest.raises(InputError) as info:
