@@ -81,7 +81,8 @@ def add_parser(sub) -> None:
                        "instead of the task's (a quick check)")
     bench.add_argument("--cap-scale", type=float, help="time-to-return: scale every task's env-step cap")
     bench.add_argument("--cap", nargs="+", metavar="SIDE=STEPS", help="time-to-return: one side's env-step cap, "
-                       "instead of the task's (e.g. tfagents=30000: its Minitaur tutorial steps ~14 times a second)")
+                       "instead of the task's (e.g. tfagents=110000: the Minitaur tutorial's whole run, its 10,000 random "
+                       "steps and 100,000 iterations)")
     bench.add_argument("--no-crossq", action="store_true", help="time-to-return: leave out the CrossQ side "
                        "(played by default on every task that has a CrossQ preset)")
     bench.set_defaults(func=run)

@@ -364,6 +364,7 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     tasks = args.tasks or list(TASKS)
     peers = [] if args.peers == ["none"] else list(args.peers or DEFAULT_PEERS)
     threads = _threads(args)
+    machine = _machine()  # the load before the first run (the runs' own load shows in it at the end)
     side_caps = _side_caps(args)
     scale = args.cap_scale or 1.0
     runs: list[dict[str, Any]] = []
@@ -406,7 +407,8 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                                 "target": TASKS[name].target if args.target_return is None else float(args.target_return),
                                 "cap": max(1, int(TASKS[name].cap * scale)), "settings": settings[name]}
                          for name in tasks},
-               "runs": runs, "seeds": args.seeds, "threads": threads, "machine": _machine()}
+               "runs": runs, "seeds": args.seeds, "threads": threads,
+               "machine": {**machine, "load_avg_1min_end": os.getloadavg()[0]}}
     figures["summary"] = summarise(runs)
     png = (args.json.with_suffix(".png") if args.json else out / "time-to-return.png")
     figures["png"] = str(plot(figures, png))
@@ -477,7 +479,8 @@ def tables(figures: dict[str, Any]) -> str:
     lines = [f"Time to return: {figures['seeds']} seeds, interleaved; a side's time runs from its launch to the "
              "moment its last 5 training episodes' mean reached the target (confirmed by a 10-episode greedy "
              "evaluation, whose time is left out). Machine: "
-             f"{figures['machine']['cpus']} CPUs, load {figures['machine']['load_avg_1min']:.2f} at the start. "
+             f"{figures['machine']['cpus']} CPUs, 1-minute load {figures['machine']['load_avg_1min']:.2f} at the start, "
+             f"{figures['machine'].get('load_avg_1min_end', float('nan')):.2f} at the end (the runs' own). "
              "Threads: " + ", ".join(f"{k} {v or 'default'}" for k, v in figures["threads"].items()) + "."]
     for name, task in figures["tasks"].items():
         why = f" ({TASKS[name].why})" if name in TASKS and TASKS[name].why else ""
