@@ -111,10 +111,12 @@ def test_the_entropy_target_moves_with_the_frames_collected_and_a_resumed_run_pi
     pipeline.train(tmp_path / "run", progress=False)
     assert pipeline.state.frames == 300
     assert float(pipeline.loss_module.target_entropy) == pytest.approx(-2.0)  # (300 - 100) / 400 of the way
-    resumed = sac.SAC(cfg)  # its schedule starts from the config's target, not from the buffer it loads
+    resumed = sac.SAC(cfg)  # its schedule starts from the config's target (0), not from the buffer it loads (-2)
     resumed.load_state_dict(pipeline.state_dict())
-    resumed.on_frames(200)
-    assert float(resumed.loss_module.target_entropy) == pytest.approx(-4.0)
+    resumed.on_frames(100)
+    assert float(resumed.loss_module.target_entropy) == pytest.approx(-3.0)  # from -2 it would be -3.5
+    resumed.on_frames(1000)
+    assert float(resumed.loss_module.target_entropy) == pytest.approx(-4.0)  # and it stays at the end
     with pytest.raises(InputError, match=r"target_entropy_anneal=\[500, 100\].*start < end"):
         sac.SAC(apply_overrides(sac.preset("sac"), ["target_entropy_final=-4", "target_entropy_anneal=[500,100]"]))
 
