@@ -31,7 +31,7 @@ def main(spec: dict) -> None:
     gym = __import__("gymnasium" if algo == "dqn" else "gym")  # dqn.py is on gymnasium 0.28, the others on gym 0.23
     import torch
 
-    rule = Rule(spec["target"], spec.get("window", 5), spec.get("eval_episodes", 10), spec.get("recheck", 5))
+    rule = Rule.from_spec(spec)
     eval_seed = [int(spec["seed"]) + EVAL_SEED_OFFSET]
     eval_env = []
 

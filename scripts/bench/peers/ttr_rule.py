@@ -35,6 +35,11 @@ class Rule:
         self.first_step_unix: float | None = None
         self.last_step_unix: float | None = None
 
+    @classmethod
+    def from_spec(cls, spec: dict) -> Rule:
+        """The rule a runner's JSON spec names (``time_to_return.peer_launch`` writes it)."""
+        return cls(spec["target"], spec.get("window", 5), spec.get("eval_episodes", 10), spec.get("recheck", 5))
+
     def step(self) -> None:
         """Call after each env step (or batch of them)."""
         now = time.time()

@@ -75,7 +75,7 @@ def main(spec: dict) -> None:
     eval_env = gymnasium.make(env_id)
     eval_seed = [seed + EVAL_SEED_OFFSET]
 
-    rule = Rule(spec["target"], spec.get("window", 5), spec.get("eval_episodes", 10), spec.get("recheck", 5))
+    rule = Rule.from_spec(spec)
 
     def evaluate(n: int) -> tuple[list[float], list[int]]:
         returns, lengths = [], []

@@ -28,16 +28,21 @@ import sys
 from ttr_rule import Rule, versions
 
 
+def _load_tutorial(path: str):
+    module_spec = importlib.util.spec_from_file_location("tfagents_tutorial", path)
+    tutorial = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(tutorial)
+    return tutorial
+
+
 def main(spec: dict) -> None:
     if os.path.basename(spec["tutorial"]) == "tfagents_sac_minitaur.py":
         return minitaur(spec)
     path = spec["tutorial"]
-    module_spec = importlib.util.spec_from_file_location("tfagents_tutorial", path)
-    tutorial = importlib.util.module_from_spec(module_spec)
-    module_spec.loader.exec_module(tutorial)
+    tutorial = _load_tutorial(path)
     from tf_agents.trajectories import trajectory
 
-    rule = Rule(spec["target"], spec.get("window", 5), spec.get("eval_episodes", 10), spec.get("recheck", 5))
+    rule = Rule.from_spec(spec)
     names = ("tf-agents", "tensorflow-cpu", "gym", "numpy")
     state = {"steps": 0, "return": 0.0}
 
@@ -81,11 +86,9 @@ def main(spec: dict) -> None:
 
 def minitaur(spec: dict) -> None:
     path = spec["tutorial"]
-    module_spec = importlib.util.spec_from_file_location("tfagents_tutorial", path)
-    tutorial = importlib.util.module_from_spec(module_spec)
-    module_spec.loader.exec_module(tutorial)
+    tutorial = _load_tutorial(path)
 
-    rule = Rule(spec["target"], spec.get("window", 5), spec.get("eval_episodes", 10), spec.get("recheck", 5))
+    rule = Rule.from_spec(spec)
     names = ("tf-agents", "tensorflow-cpu", "dm-reverb", "gym", "pybullet", "numpy")
     state = {"steps": 0, "return": 0.0}
 
