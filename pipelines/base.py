@@ -315,12 +315,47 @@ class OffPolicyPipeline:
         return Run(self).summary(state, evaluations, clock)
 
 
+def _fraction_done(frames: int, window: list[int]) -> float:
+    """How far ``frames`` is through a schedule's ``[start, end]`` window of env steps, in [0, 1]."""
+    start, end = window
+    return min(1.0, max(0.0, (frames - start) / (end - start)))
+
+
 class TanhNormalPipeline(OffPolicyPipeline):
     """SAC's and CrossQ's shared shape: a tanh-normal actor that explores by sampling (collection) and acts
     by its mode (evaluation, export), and a TorchRL loss that holds the actor and its twin critics."""
 
     _export_network_only = False
     """the actor is the one ``build_agent`` made, so its export is ``TanhNormalMode`` of its MLP alone"""
+    _target_entropy_start: float | None = None
+    _learning_rates: dict[str, list[float]] | None = None
+
+    def assemble(self, build: Callable[[], Agent]) -> None:
+        super().assemble(build)
+        # Where the config's schedules start: the loss's entropy target and the optimisers' learning
+        # rates as built, before any resume loads moved ones (a user's own loss may carry its own target).
+        cfg = self.config
+        if cfg.target_entropy_final is not None:
+            self._target_entropy_start = float(self.loss_module.target_entropy)
+        if cfg.learning_rate_final_fraction is not None:
+            self._learning_rates = {name: [group["lr"] for group in opt.param_groups]
+                                    for name, opt in self.optimizers.items()}
+
+    def on_frames(self, frames: int) -> None:
+        # The schedules, functions of the frames collected (so a resumed run sets the same values), set
+        # between updates: outside the update, so that a compiled or graphed update reads the entropy
+        # target's buffer rather than baking it in (the learning rates are Python floats the optimiser
+        # step reads each time).
+        cfg, now = self.config, self.state.frames + frames
+        if cfg.target_entropy_final is not None:
+            done = _fraction_done(now, cfg.target_entropy_anneal)
+            start = self._target_entropy_start
+            self.loss_module.target_entropy.fill_(start + done * (cfg.target_entropy_final - start))
+        if cfg.learning_rate_final_fraction is not None:
+            scale = 1.0 + _fraction_done(now, cfg.learning_rate_anneal) * (cfg.learning_rate_final_fraction - 1.0)
+            for name, opt in self.optimizers.items():
+                for group, lr in zip(opt.param_groups, self._learning_rates[name]):
+                    group["lr"] = lr * scale
 
     def build_agent(self, *, actor: nn.Module | None, qvalue: nn.Module | None, loss_module: LossModule | None,
                     make_qvalue: Callable[[], nn.Module],

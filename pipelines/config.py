@@ -126,6 +126,8 @@ NON_NEGATIVE = Check(lambda v: v >= 0, lambda v: f"zero or a positive {_number(v
 PROBABILITY = Check(lambda v: 0.0 <= v <= 1.0, "a probability in [0, 1]")
 LEARNING_RATE = Check(lambda v: v > 0, "a positive learning rate")
 GRADIENT_CLIPPING = Check(lambda v: v > 0, "a positive norm, or null for none")
+ANNEAL_WINDOW = Check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] env steps with 0 <= start < end")
+"""a schedule's window in env steps (frames collected, random ones included)"""
 LAYER_SIZES = Check(lambda v: bool(v) and all(n > 0 for n in v),
                     "a non-empty list of positive layer sizes, e.g. [256,256]")
 """hidden layer sizes of a network (the memory check counts the parameters of every such key)"""

@@ -26,6 +26,7 @@ from rlpipe.modules.crossq_loss import LeanCrossQLoss
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.pipelines.base import Agent, TanhNormalPipeline, observation_key_of, scale_rewards
 from rlpipe.pipelines.config import (
+    ANNEAL_WINDOW,
     LAYER_SIZES,
     LEARNING_RATE,
     NON_NEGATIVE,
@@ -76,6 +77,14 @@ class CrossQConfig(TrainConfig):
     """initial entropy temperature"""
     target_entropy: float | None = None
     """entropy target of the temperature (null: -|A|)"""
+    target_entropy_final: float | None = None
+    """move the entropy target linearly from target_entropy to this over target_entropy_anneal's env steps (null: it stays), as SAC's key"""
+    target_entropy_anneal: list[int] = checked(check=ANNEAL_WINDOW, factory=lambda: [0, 100_000])
+    """env steps (frames collected, random ones included) over which target_entropy_final is approached: [start, end]"""
+    learning_rate_final_fraction: float | None = checked(None, Check(lambda v: 0 < v <= 1, "a fraction in (0, 1], or null"))
+    """scale every learning rate (actor, critics, temperature) linearly down to this fraction of its value over learning_rate_anneal's env steps (null: they stay)"""
+    learning_rate_anneal: list[int] = checked(check=ANNEAL_WINDOW, factory=lambda: [0, 100_000])
+    """env steps (frames collected, random ones included) over which learning_rate_final_fraction is approached: [start, end]"""
     reward_scale_factor: float = checked(1.0, Check(lambda v: v != 0, "a non-zero scale"))
     """rewards are multiplied by this in the update (as SAC's key; reported returns stay the env's)"""
 

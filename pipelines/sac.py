@@ -28,6 +28,7 @@ from rlpipe.modules.target_updates import make_target_updater
 from rlpipe.modules.tensor_nets import importance_weights
 from rlpipe.pipelines.base import Agent, TanhNormalPipeline, observation_key_of, scale_rewards
 from rlpipe.pipelines.config import (
+    ANNEAL_WINDOW,
     GRADIENT_CLIPPING,
     LAYER_SIZES,
     LEARNING_RATE,
@@ -74,10 +75,12 @@ class SACConfig(TrainConfig):
     """entropy target of the temperature (null: -|A|/2, SacAgent's default)"""
     target_entropy_final: float | None = None
     """move the entropy target linearly from target_entropy to this over target_entropy_anneal's env steps (null: it stays): a policy that learned with much noise then learns to act without it, so that its greedy (mean) action does what its samples did"""
-    target_entropy_anneal: list[int] = checked(
-        check=Check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] env steps with 0 <= start < end"),
-        factory=lambda: [0, 100_000])
+    target_entropy_anneal: list[int] = checked(check=ANNEAL_WINDOW, factory=lambda: [0, 100_000])
     """env steps (frames collected, random ones included) over which target_entropy_final is approached: [start, end]"""
+    learning_rate_final_fraction: float | None = checked(None, Check(lambda v: 0 < v <= 1, "a fraction in (0, 1], or null"))
+    """scale every learning rate (actor, critics, temperature) linearly down to this fraction of its value over learning_rate_anneal's env steps (null: they stay)"""
+    learning_rate_anneal: list[int] = checked(check=ANNEAL_WINDOW, factory=lambda: [0, 100_000])
+    """env steps (frames collected, random ones included) over which learning_rate_final_fraction is approached: [start, end]"""
     gradient_clipping: float | None = checked(None, GRADIENT_CLIPPING)
     """clip each gradient tensor's norm to this value before the optimisers step, as SacAgent's gradient_clipping does (TF-Agents' clip_gradient_norms); null: no clipping"""
     critic_kernel_initializer: str = checked("torch", one_of(*INITIALIZERS))
@@ -252,9 +255,6 @@ class SAC(TanhNormalPipeline):
         super().__init__(config, env=env, eval_env=eval_env,
                          observation_key=observation_key or observation_key_of(actor, loss_module))
         self.assemble(lambda: self.build(actor=actor, qvalue=qvalue, loss_module=loss_module))
-        # where target_entropy_final's schedule starts: the loss's target as built (before any resume)
-        self._target_entropy_start = (float(self.loss_module.target_entropy)
-                                      if self.config.target_entropy_final is not None else None)
 
     def build(self, *, actor=None, qvalue=None, loss_module=None) -> Agent:
         cfg, key = self.config, self.observation_key
@@ -280,17 +280,6 @@ class SAC(TanhNormalPipeline):
 
     def make_target_updater(self):
         return make_target_updater(self.loss_module, self.config.target_update_tau)
-
-    def on_frames(self, frames: int) -> None:
-        # The entropy target's schedule, a function of the frames collected (so a resumed run sets the
-        # same value), written into the loss's target_entropy buffer between updates: outside the update,
-        # so that a compiled or graphed update reads it rather than baking it in.
-        cfg = self.config
-        if cfg.target_entropy_final is None:
-            return
-        start, end = cfg.target_entropy_anneal
-        done = min(1.0, max(0.0, (self.state.frames + frames - start) / (end - start)))
-        self.loss_module.target_entropy.fill_(self._target_entropy_start + done * (cfg.target_entropy_final - self._target_entropy_start))
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         loss_module = self.loss_module
