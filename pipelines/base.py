@@ -340,6 +340,32 @@ class TanhNormalPipeline(OffPolicyPipeline):
         if cfg.learning_rate_final_fraction is not None:
             self._learning_rates = {name: [group["lr"] for group in opt.param_groups]
                                     for name, opt in self.optimizers.items()}
+        if cfg.policy_average_tau is not None:
+            # The greedy policy (evaluation, export, a target's confirmation) becomes a copy of the actor
+            # whose weights follow the actor's as a Polyak average; collection still samples the actor.
+            self.policy = copy.deepcopy(self.collect_policy)
+            self._averaged = (list(self.policy.parameters()), list(self.collect_policy.parameters()))
+
+    def average_policy(self) -> None:
+        """Move the averaged greedy policy's weights ``policy_average_tau`` of the way to the actor's
+        (the updates call it after each actor step; nothing without ``policy_average_tau``)."""
+        if self.config.policy_average_tau is not None:
+            with torch.no_grad():
+                torch._foreach_lerp_(self._averaged[0], self._averaged[1], self.config.policy_average_tau)
+
+    def state_dict(self) -> dict[str, Any]:
+        state = super().state_dict()
+        if self.config.policy_average_tau is not None:
+            state["policy_average"] = self.policy.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        if self.config.policy_average_tau is not None:
+            if "policy_average" not in state:
+                raise InputError(f"checkpoint does not fit this {self.algo} pipeline and config: it has no averaged "
+                                 "policy (policy_average_tau was null when it was written); expected one")
+            self.policy.load_state_dict(state["policy_average"])
 
     def on_frames(self, frames: int) -> None:
         # The schedules, functions of the frames collected (so a resumed run sets the same values), set

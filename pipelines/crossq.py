@@ -85,6 +85,8 @@ class CrossQConfig(TrainConfig):
     """scale every learning rate (actor, critics, temperature) linearly down to this fraction of its value over learning_rate_anneal's env steps (null: they stay)"""
     learning_rate_anneal: list[int] = checked(check=ANNEAL_WINDOW, factory=lambda: [0, 100_000])
     """env steps (frames collected, random ones included) over which learning_rate_final_fraction is approached: [start, end]"""
+    policy_average_tau: float | None = checked(None, Check(lambda v: 0 < v <= 1, "a fraction in (0, 1], or null"))
+    """act greedily (evaluation, export, a target's confirmation) with a Polyak average of the actor's weights, moved this fraction of the way to the actor's at each actor update (null: the actor itself); collection samples from the actor as trained"""
     reward_scale_factor: float = checked(1.0, Check(lambda v: v != 0, "a non-zero scale"))
     """rewards are multiplied by this in the update (as SAC's key; reported returns stay the env's)"""
 
@@ -225,6 +227,8 @@ class CrossQ(TanhNormalPipeline):
         for name in names:
             self.optimizers[name].step()
             self.optimizers[name].zero_grad(set_to_none=True)
+        if len(names) > 1:
+            self.average_policy()
         return out
 
 

@@ -81,6 +81,8 @@ class SACConfig(TrainConfig):
     """scale every learning rate (actor, critics, temperature) linearly down to this fraction of its value over learning_rate_anneal's env steps (null: they stay)"""
     learning_rate_anneal: list[int] = checked(check=ANNEAL_WINDOW, factory=lambda: [0, 100_000])
     """env steps (frames collected, random ones included) over which learning_rate_final_fraction is approached: [start, end]"""
+    policy_average_tau: float | None = checked(None, Check(lambda v: 0 < v <= 1, "a fraction in (0, 1], or null"))
+    """act greedily (evaluation, export, a target's confirmation) with a Polyak average of the actor's weights, moved this fraction of the way to the actor's at each actor update (null: the actor itself); collection samples from the actor as trained"""
     gradient_clipping: float | None = checked(None, GRADIENT_CLIPPING)
     """clip each gradient tensor's norm to this value before the optimisers step, as SacAgent's gradient_clipping does (TF-Agents' clip_gradient_norms); null: no clipping"""
     critic_kernel_initializer: str = checked("torch", one_of(*INITIALIZERS))
@@ -301,6 +303,7 @@ class SAC(TanhNormalPipeline):
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        self.average_policy()
         if update_index % self.config.target_update_period == 0:
             self.target_updater.step()
         return {"actor": out["loss_actor"].detach(), "qvalue": out["loss_qvalue"].detach(),

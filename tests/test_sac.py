@@ -98,27 +98,64 @@ def test_the_update_weighs_samples_by_a_prioritized_buffers_weights():
     torch.testing.assert_close(got["alpha"], expected["loss_alpha"].detach())
 
 
-def test_the_entropy_target_moves_with_the_frames_collected_and_a_resumed_run_picks_it_up(tmp_path):
+def test_the_greedy_policy_follows_the_actor_as_a_polyak_average_and_checkpoints_hold_it():
+    # policy_average_tau: evaluation, export and a target's confirmation act with an average of the
+    # actor's weights (avg += tau * (actor - avg) after each actor step); collection samples the actor.
+    small = ["env=Pendulum-v1", "replay_buffer_capacity=1000", "batch_size=32", "actor_fc_layer_params=[16]",
+             "critic_joint_fc_layer_params=[16]", "num_threads=0"]
+    cfg = apply_overrides(resolve_preset("sac")[1], [*small, "policy_average_tau=0.25"])
+    pipeline = sac.SAC(cfg)
+    assert pipeline.policy is not pipeline.collect_policy
+    expected = [p.detach().clone() for p in pipeline.collect_policy.parameters()]  # it starts as the actor
+    batch = pipeline.env.rollout(32, break_when_any_done=False).select(*pipeline.replay_keys)
+    for index in (1, 2, 3):
+        pipeline.update(batch.clone(), index)
+        expected = [e + 0.25 * (a.detach() - e) for e, a in zip(expected, pipeline.collect_policy.parameters())]
+    for got, want, actor in zip(pipeline.policy.parameters(), expected, pipeline.collect_policy.parameters()):
+        torch.testing.assert_close(got.detach(), want)
+        assert not torch.equal(got, actor)  # three steps behind by a quarter each: not the actor
+    observation = torch.randn(5, pipeline.observation_dim)
+    exported = pipeline.export_module()(observation)
+    resumed = sac.SAC(cfg)
+    resumed.load_state_dict(pipeline.state_dict())
+    torch.testing.assert_close(resumed.export_module()(observation), exported)  # the average came back with it
+    plain = sac.SAC(apply_overrides(resolve_preset("sac")[1], small))
+    with pytest.raises(InputError, match="no averaged policy"):
+        resumed.load_state_dict(plain.state_dict())
+
+
+def test_the_entropy_target_and_learning_rates_move_with_the_frames_collected_and_a_resumed_run_picks_them_up(tmp_path):
     # target_entropy_final: the temperature's target goes linearly from target_entropy to it over
-    # target_entropy_anneal's env steps, as a function of the frames collected (random ones included).
+    # target_entropy_anneal's env steps, as a function of the frames collected (random ones included);
+    # learning_rate_final_fraction scales every learning rate the same way over learning_rate_anneal.
     cfg = apply_overrides(sac.preset("sac"), [
         "env=Pendulum-v1", "seed=0", "num_iterations=200", "initial_collect_steps=100", "replay_buffer_capacity=1000",
         "batch_size=32", "actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]", "num_threads=1",
         "collector.workers=1", "collector.sync=true", "eval_in_background=false", "eval_interval=0",
         "initial_eval=false", "baseline_episodes=0", "num_eval_episodes=1", "checkpoint_interval=100000",
-        "policy_save_interval=100000", "target_entropy=0", "target_entropy_final=-4", "target_entropy_anneal=[100,500]"])
+        "policy_save_interval=100000", "target_entropy=0", "target_entropy_final=-4", "target_entropy_anneal=[100,500]",
+        "learning_rate_final_fraction=0.5", "learning_rate_anneal=[100,500]", "critic_learning_rate=1e-3"])
     pipeline = sac.SAC(cfg)
     pipeline.train(tmp_path / "run", progress=False)
+
+    def rates(p):
+        return [p.optimizers[name].param_groups[0]["lr"] for name in ("actor", "qvalue", "alpha")]
+
     assert pipeline.state.frames == 300
     assert float(pipeline.loss_module.target_entropy) == pytest.approx(-2.0)  # (300 - 100) / 400 of the way
-    resumed = sac.SAC(cfg)  # its schedule starts from the config's target (0), not from the buffer it loads (-2)
+    assert rates(pipeline) == pytest.approx([3e-4 * 0.75, 1e-3 * 0.75, 3e-4 * 0.75])  # and to 0.5x: 0.75x
+    resumed = sac.SAC(cfg)  # its schedules start from the config's values, not from those it loads
     resumed.load_state_dict(pipeline.state_dict())
     resumed.on_frames(100)
     assert float(resumed.loss_module.target_entropy) == pytest.approx(-3.0)  # from -2 it would be -3.5
+    assert rates(resumed) == pytest.approx([3e-4 * 0.625, 1e-3 * 0.625, 3e-4 * 0.625])  # not 0.75 * 0.625
     resumed.on_frames(1000)
-    assert float(resumed.loss_module.target_entropy) == pytest.approx(-4.0)  # and it stays at the end
+    assert float(resumed.loss_module.target_entropy) == pytest.approx(-4.0)  # and they stay at the end
+    assert rates(resumed) == pytest.approx([1.5e-4, 5e-4, 1.5e-4])
     with pytest.raises(InputError, match=r"target_entropy_anneal=\[500, 100\].*start < end"):
         sac.SAC(apply_overrides(sac.preset("sac"), ["target_entropy_final=-4", "target_entropy_anneal=[500,100]"]))
+    with pytest.raises(InputError, match=r"learning_rate_final_fraction=2.*fraction in \(0, 1\]"):
+        sac.SAC(apply_overrides(sac.preset("sac"), ["learning_rate_final_fraction=2"]))
 
 
 def test_discrete_env_is_rejected():
