@@ -35,6 +35,7 @@ from rlpipe.pipelines.config import (
     CollectorConfig,
     PresetInfo,
     TrainConfig,
+    check_learning_rate_schedule,
     checked,
 )
 
@@ -89,6 +90,9 @@ class CrossQConfig(TrainConfig):
     """act greedily (evaluation, export, a target's confirmation) with a Polyak average of the actor's weights, moved this fraction of the way to the actor's at each actor update (null: the actor itself); collection samples from the actor as trained"""
     reward_scale_factor: float = checked(1.0, Check(lambda v: v != 0, "a non-zero scale"))
     """rewards are multiplied by this in the update (as SAC's key; reported returns stay the env's)"""
+
+    def validate_extra(self) -> None:
+        check_learning_rate_schedule(self)
 
 
 def _minitaur() -> CrossQConfig:

@@ -36,6 +36,7 @@ from rlpipe.pipelines.config import (
     CollectorConfig,
     PresetInfo,
     TrainConfig,
+    check_learning_rate_schedule,
     checked,
     one_of,
 )
@@ -87,6 +88,9 @@ class SACConfig(TrainConfig):
     """clip each gradient tensor's norm to this value before the optimisers step, as SacAgent's gradient_clipping does (TF-Agents' clip_gradient_norms); null: no clipping"""
     critic_kernel_initializer: str = checked("torch", one_of(*INITIALIZERS))
     """critic weights: 'torch' (nn.Linear's default) or 'glorot_uniform' with zero biases (the actor-learner tutorial's CriticNetwork)"""
+
+    def validate_extra(self) -> None:
+        check_learning_rate_schedule(self)
 
 
 def _minitaur() -> SACConfig:

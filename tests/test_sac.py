@@ -156,6 +156,8 @@ def test_the_entropy_target_and_learning_rates_move_with_the_frames_collected_an
         sac.SAC(apply_overrides(sac.preset("sac"), ["target_entropy_final=-4", "target_entropy_anneal=[500,100]"]))
     with pytest.raises(InputError, match=r"learning_rate_final_fraction=2.*fraction in \(0, 1\]"):
         sac.SAC(apply_overrides(sac.preset("sac"), ["learning_rate_final_fraction=2"]))
+    with pytest.raises(InputError, match=r"learning_rate_final_fraction=0.5 with compile=true.*traced"):
+        sac.SAC(apply_overrides(sac.preset("sac"), ["learning_rate_final_fraction=0.5", "compile=true"]))
 
 
 def test_discrete_env_is_rejected():
