@@ -330,17 +330,20 @@ class TanhNormalPipeline(OffPolicyPipeline):
     _target_entropy_start: float | None = None
     _learning_rates: dict[str, list[float]] | None = None
 
+    def _option(self, key: str):
+        """A schedule or averaging key of SAC's and CrossQ's configs; None for a config without it (a subclass's own)."""
+        return getattr(self.config, key, None)
+
     def assemble(self, build: Callable[[], Agent]) -> None:
         super().assemble(build)
         # Where the config's schedules start: the loss's entropy target and the optimisers' learning
         # rates as built, before any resume loads moved ones (a user's own loss may carry its own target).
-        cfg = self.config
-        if cfg.target_entropy_final is not None:
+        if self._option("target_entropy_final") is not None:
             self._target_entropy_start = float(self.loss_module.target_entropy)
-        if cfg.learning_rate_final_fraction is not None:
+        if self._option("learning_rate_final_fraction") is not None:
             self._learning_rates = {name: [group["lr"] for group in opt.param_groups]
                                     for name, opt in self.optimizers.items()}
-        if cfg.policy_average_tau is not None:
+        if self._option("policy_average_tau") is not None:
             # The greedy policy (evaluation, export, a target's confirmation) becomes a copy of the actor
             # whose weights follow the actor's as a Polyak average; collection still samples the actor.
             self.policy = copy.deepcopy(self.collect_policy)
@@ -349,19 +352,19 @@ class TanhNormalPipeline(OffPolicyPipeline):
     def average_policy(self) -> None:
         """Move the averaged greedy policy's weights ``policy_average_tau`` of the way to the actor's
         (the updates call it after each actor step; nothing without ``policy_average_tau``)."""
-        if self.config.policy_average_tau is not None:
+        if self._option("policy_average_tau") is not None:
             with torch.no_grad():
                 torch._foreach_lerp_(self._averaged[0], self._averaged[1], self.config.policy_average_tau)
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        if self.config.policy_average_tau is not None:
+        if self._option("policy_average_tau") is not None:
             state["policy_average"] = self.policy.state_dict()
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
-        if self.config.policy_average_tau is not None:
+        if self._option("policy_average_tau") is not None:
             if "policy_average" not in state:
                 raise InputError(f"checkpoint does not fit this {self.algo} pipeline and config: it has no averaged "
                                  "policy (policy_average_tau was null when it was written); expected one")
@@ -373,11 +376,11 @@ class TanhNormalPipeline(OffPolicyPipeline):
         # target's buffer rather than baking it in (the learning rates are Python floats the optimiser
         # step reads each time).
         cfg, now = self.config, self.state.frames + frames
-        if cfg.target_entropy_final is not None:
+        if self._option("target_entropy_final") is not None:
             done = _fraction_done(now, cfg.target_entropy_anneal)
             start = self._target_entropy_start
             self.loss_module.target_entropy.fill_(start + done * (cfg.target_entropy_final - start))
-        if cfg.learning_rate_final_fraction is not None:
+        if self._option("learning_rate_final_fraction") is not None:
             scale = 1.0 + _fraction_done(now, cfg.learning_rate_anneal) * (cfg.learning_rate_final_fraction - 1.0)
             for name, opt in self.optimizers.items():
                 for group, lr in zip(opt.param_groups, self._learning_rates[name]):

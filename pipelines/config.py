@@ -129,6 +129,10 @@ GRADIENT_CLIPPING = Check(lambda v: v > 0, "a positive norm, or null for none")
 ANNEAL_WINDOW = Check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] env steps with 0 <= start < end")
 """a schedule's window in env steps (frames collected, random ones included)"""
 
+LAYER_SIZES = Check(lambda v: bool(v) and all(n > 0 for n in v),
+                    "a non-empty list of positive layer sizes, e.g. [256,256]")
+"""hidden layer sizes of a network (the memory check counts the parameters of every such key)"""
+
 
 def check_learning_rate_schedule(cfg) -> None:
     """``learning_rate_final_fraction`` moves the optimisers' learning rates, which a compiled or graphed
@@ -140,9 +144,6 @@ def check_learning_rate_schedule(cfg) -> None:
             raise InputError(f"learning_rate_final_fraction={cfg.learning_rate_final_fraction} with {key}=true: a "
                              f"compiled or graphed update keeps the learning rates it was traced with; expected "
                              f"learning_rate_final_fraction=null or {key}=false")
-LAYER_SIZES = Check(lambda v: bool(v) and all(n > 0 for n in v),
-                    "a non-empty list of positive layer sizes, e.g. [256,256]")
-"""hidden layer sizes of a network (the memory check counts the parameters of every such key)"""
 
 
 def one_of(*choices: str, expected: str | None = None) -> Check:

@@ -164,7 +164,6 @@ def test_reward_scale_factor_scales_the_rewards_the_critics_learn_from():
     torch.testing.assert_close(got["qvalue"], expected["loss_qvalue"].detach())
 
 
-
 def test_the_entropy_target_moves_with_the_frames_collected_as_sacs_does():
     # SAC's schedule (test_sac checks it through a run and a resume): the same keys, the same base code.
     pipeline = small("target_entropy=0", "target_entropy_final=-4", "target_entropy_anneal=[100,500]")
@@ -173,6 +172,7 @@ def test_the_entropy_target_moves_with_the_frames_collected_as_sacs_does():
     pipeline.on_frames(1000)
     assert float(pipeline.loss_module.target_entropy) == pytest.approx(-4.0)
     assert float(small().loss_module.target_entropy) == -1.0  # no schedule: -|A| as built, untouched
+
 
 @pytest.mark.parametrize("warmup", [0, 2])
 def test_lean_loss_gives_crossqlosss_values_gradients_and_statistics(warmup):
