@@ -85,6 +85,7 @@ def _additive_gaussian_step(policy: nn.Module, observation_key: str) -> TensorSt
     if not isinstance(spec, Bounded) or spec.domain != "continuous":
         return None
     net = module_forward(actor.module)
+    bounds = _OnDevice(spec.space.low, spec.space.high)  # the spec stays where the env is
 
     def act(observation: torch.Tensor) -> dict:
         action = net(observation)
@@ -92,7 +93,8 @@ def _additive_gaussian_step(policy: nn.Module, observation_key: str) -> TensorSt
             # AdditiveGaussianModule._add_noise: N(mean, std) * sigma, then the spec's projection (a clamp)
             mean, std = noise.mean.expand(action.shape), noise.std.expand(action.shape)
             action = action + torch.normal(mean=mean, std=std) * noise.sigma
-            action = torch.maximum(torch.minimum(action, spec.space.high), spec.space.low)
+            low, high = bounds.on(action.device)
+            action = torch.maximum(torch.minimum(action, high), low)
         return {"action": action}
 
     return act
@@ -109,7 +111,7 @@ def _tanh_normal_step(policy: nn.Module, observation_key: str) -> TensorStep | N
     low = torch.as_tensor(kwargs.get("low", -1.0), dtype=torch.float32)
     high = torch.as_tensor(kwargs.get("high", 1.0), dtype=torch.float32)
     trivial = bool((low == -1.0).all()) and bool((high == 1.0).all())
-    center, radius = (None, None) if trivial else ((high + low) / 2, (high - low) / 2)
+    affine = None if trivial else _OnDevice((high + low) / 2, (high - low) / 2)  # center, radius
     log_prob_key = dist.log_prob_key if dist.return_log_prob else None
     module, out_keys = module_forward(net.module), list(net.out_keys)
     deterministic = policy  # anything but sampling goes through the module itself
@@ -118,6 +120,7 @@ def _tanh_normal_step(policy: nn.Module, observation_key: str) -> TensorStep | N
         if exploration_type() not in (ExplorationType.RANDOM, None):
             return _tensordict_step(deterministic, observation_key)(observation)
         out = dict(zip(out_keys, module(observation), strict=True))
+        center, radius = (None, None) if affine is None else affine.on(out["loc"].device)
         action, log_prob = tanh_normal_rsample(out["loc"], out["scale"], center, radius)
         out["action"] = action
         if log_prob_key is not None:
@@ -190,6 +193,20 @@ def _greedy_tanh_normal_step(policy: nn.Module, observation_key: str) -> GreedyS
         return action
 
     return act
+
+
+class _OnDevice:
+    """Constant tensors (an action's bounds) where the actions are: a policy on a GPU acting on bounds read
+    from the env's spec on the CPU; copied once per device."""
+
+    def __init__(self, *tensors: torch.Tensor):
+        self._copies = {tensors[0].device: tensors}
+
+    def on(self, device: torch.device) -> tuple[torch.Tensor, ...]:
+        copies = self._copies.get(device)
+        if copies is None:
+            copies = self._copies[device] = tuple(t.to(device) for t in next(iter(self._copies.values())))
+        return copies
 
 
 def _tanh_normal_parts(policy: nn.Module, observation_key: str):

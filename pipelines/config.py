@@ -216,6 +216,8 @@ class CollectorConfig:
     """with one env copy per worker made from `env`: each collector (in the learner's process or a worker's) steps the gymnasium env directly (`GymCollector`, a TorchRL `Collector` giving TorchRL's keys at a fraction of its per-step cost over `GymEnv`); false: TorchRL's `Collector` over `GymEnv`"""
     frames_per_batch: int = checked(50, POSITIVE)
     """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
+    policy_device: str = checked("", one_of("", "cpu"))
+    """where the collect policy acts: '' on the learner's `device`; 'cpu' from a CPU copy of the policy (TorchRL's `policy_device`), its weights copied from the learner's after each block's updates: with device=cuda, each env step then pays no host-device round trip, only each block does"""
     weight_sync_interval: int = checked(1, POSITIVE)
     """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container); with backend=ray a worker gets the learner's weights each time it is asked for a block"""
     backend: str = checked("local", one_of(*COLLECTOR_BACKENDS, expected=" or ".join(
@@ -361,6 +363,10 @@ def validate(cfg, *, machine: bool = True) -> None:
     if needs.package and importlib.util.find_spec(needs.package) is None:
         raise InputError(f"collector.backend={c.backend}: {needs.package} is not installed; expected "
                          f"`pip install 'rlpipe[{needs.package}]'` (or collector.backend=local)")
+    if c.policy_device and c.backend != "local":
+        raise InputError(f"collector.policy_device={c.policy_device!r} with collector.backend={c.backend}: a CPU copy "
+                         "of the collect policy is made by the local backend's collectors; expected "
+                         "collector.policy_device='' with this backend")
     per_block = c.envs_per_worker * (c.workers if c.sync else 1)
     if c.envs_per_worker > 1 and c.frames_per_batch % per_block:
         raise InputError(

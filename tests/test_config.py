@@ -175,11 +175,12 @@ def test_ill_typed_value_names_key_and_expected_type(override, expected):
      ("fc_layer_params=[]", "fc_layer_params"), ("fc_layer_params=[64,0]", "fc_layer_params"),
      ("gamma=0", "gamma"), ("gamma=1.5", "gamma"), ("target_update_tau=0", "target_update_tau"),
      ("epsilon_greedy=1.5", "epsilon_greedy"), ("epsilon_decay_steps=0", "epsilon_decay_steps"),
-     ("td_errors_loss=l3", "td_errors_loss")],
+     ("td_errors_loss=l3", "td_errors_loss"), ("collector.policy_device=cuda", "collector.policy_device"),
+     ("collector.policy_device=cpu collector.backend=ray", "collector.policy_device")],
 )
 def test_values_that_cannot_work_are_rejected_naming_the_key(override, key):
     with pytest.raises(InputError) as info:
-        apply_overrides(preset("dqn"), [override])
+        apply_overrides(preset("dqn"), override.split())
     message = str(info.value)
     assert message.startswith(key + "="), message
     assert "expected" in message

@@ -196,3 +196,40 @@ def test_a_collector_whose_env_cannot_be_restored_starts_a_new_trajectory():
     # the episode under way cannot go on: a new trajectory starts, numbered after the ones collected before
     assert block["is_init"][0].item() and block["step_count"][0].item() == 0
     assert block["collector", "traj_ids"][0].item() > seen["collector", "traj_ids"].max().item()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (checked on the GPU machine)")
+@pytest.mark.parametrize("algo", ["td3", "sac"])
+def test_a_cpu_copy_of_the_collect_policy_acts_and_follows_the_learners_weights(algo):
+    from rlpipe.pipelines.workers.local import push_weights
+
+    p = pipeline(algo, "device=cuda", "collector.policy_device=cpu", "collector.frames_per_batch=16")
+    collector = p.make_collector(total_frames=64, init_random_frames=0)
+    try:
+        copy = dict(collector.policy.named_parameters())
+        assert {t.device.type for t in copy.values()} == {"cpu"}  # the learner's stay on the GPU
+        assert {t.device.type for t in p.collect_policy.parameters()} == {"cuda"}
+        block = next(iter(collector))
+        bound = float(p.env.action_spec_unbatched.space.high.max())
+        assert block.device.type == "cuda" and block["action"].abs().max() <= bound + 1e-6
+        with torch.no_grad():
+            for param in p.collect_policy.parameters():
+                param.add_(1.0)
+        push_weights(collector)
+        for name, param in p.collect_policy.named_parameters():
+            torch.testing.assert_close(copy[name], param.cpu(), rtol=0, atol=0)
+    finally:
+        collector.shutdown()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (checked on the GPU machine)")
+@pytest.mark.parametrize("algo", ["td3", "sac"])  # Pendulum: bounds of 2, read from the env's spec on the CPU
+def test_the_fast_policy_paths_act_on_a_gpu(algo):
+    p = pipeline(algo, "device=cuda", "collector.frames_per_batch=16")
+    collector = p.make_collector(total_frames=32, init_random_frames=0)
+    try:
+        block = next(iter(collector))
+    finally:
+        collector.shutdown()
+    bound = float(p.env.action_spec_unbatched.space.high.max())
+    assert block.device.type == "cuda" and block["action"].abs().max() <= bound + 1e-6

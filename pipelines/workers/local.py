@@ -55,9 +55,11 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
     c = config.collector
     common = dict(frames_per_batch=c.frames_per_batch, total_frames=total_frames,
                   init_random_frames=init_random_frames, **COLLECTOR_KWARGS,
-                  # the env steps where it lives; its outputs go to the policy's device, and the
-                  # collected blocks to the learner's (where the replay buffer is)
-                  policy_device=device, storing_device=device)
+                  # the env steps where it lives; its outputs go to the policy's device (a device other
+                  # than the policy's own: TorchRL acts from a copy there), and the collected blocks to the
+                  # learner's (where the replay buffer is)
+                  policy_device=torch.device(c.policy_device) if c.policy_device else device,
+                  storing_device=device)
     direct = direct_collection(config, env_fn, env)
     if c.workers == 1 and c.sync:
         # Its constructor runs the policy on a fake step (a draw of the exploring policy's): on the
@@ -78,9 +80,10 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
 
 
 def push_weights(collector) -> None:
-    """Send the policy's weights to a TorchRL collector's worker processes (in-process collection
-    shares the policy itself: nothing to send)."""
-    if not isinstance(collector, Collector):
+    """Send the policy's weights to a TorchRL collector's worker processes, or to its copy of the policy on
+    another device (``collector.policy_device``); in-process collection on the learner's device shares the
+    policy itself: nothing to send."""
+    if not isinstance(collector, Collector) or collector.get_weights_fn is not None:
         collector.update_policy_weights_()
 
 

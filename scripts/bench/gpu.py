@@ -6,12 +6,17 @@ Two tables, both on the machine's first GPU, each row in the same run:
    over chunks, synchronised at chunk ends): eager; replayed as CUDA graphs (``cudagraph=true``,
    ``pipelines/training/update_graph.py``); compiled and replayed (``compile=true``). CleanRL's settings:
    SAC and TD3 with 256x256 networks at batch 256 on HalfCheetah-v5, DQN 120-84 at batch 128.
-2. Whole training runs as a user starts them (``rlpipe train ... device=cuda``, a fresh process
-   per run, two lengths so start-up and compilation cancel): env steps/s with one update per env
-   step, the env stepped on the CPU in the learner's process (in-process collector), as CleanRL
-   and LeanRL do, so the figure compares with LeanRL's published H100 figures for HalfCheetah
-   (TD3 936, SAC 725 env steps/s). LeanRL does not run here (no peer venv on the GPU machine):
-   its figures are quoted, not a ratio measured in this run.
+2. Whole training runs as a user starts them (``rlpipe train ... device=cuda``, a fresh process per
+   run): env steps/s with one update per env step, the env stepped on the CPU in the learner's process
+   (in-process collector), as CleanRL and LeanRL do, so the figure compares with LeanRL's published
+   H100 figures for HalfCheetah (TD3 936, SAC 725 env steps/s). Three ways to run that loop, each a row:
+   a block of 1 env step then 1 update (LeanRL's interleave; the policy on the GPU, a host-device round
+   trip per step); blocks of 32 env steps then their 32 updates (the loop's per-block work, the
+   block's copy to the GPU, the replay write and the divergence check, paid once per 32 steps); the
+   same with the collect policy acting from a CPU copy (``collector.policy_device=cpu``, weights copied
+   after each block's updates: no round trip per step). The rate is the in-run one (log rows after
+   learning starts; start-up and compilation left out). LeanRL does not run here (no peer venv on the
+   GPU machine): its figures are quoted, not a ratio measured in this run.
 """
 
 from __future__ import annotations
@@ -35,16 +40,21 @@ TRAIN_CASES = [
     ("sac-halfcheetah", ["learning_starts=1000", "initial_collect_steps=1000"], "SAC"),
     ("td3-halfcheetah", UPDATE_CASES[1][1] + ["learning_starts=1000", "initial_collect_steps=1000"], "TD3"),
 ]
-TRAIN_COMMON = ["device=cuda", "collector.workers=1", "collector.sync=true", "collector.frames_per_batch=1",
-                "eval_interval=0", "num_eval_episodes=1", "checkpoint_interval=1000000",
+TRAIN_COMMON = ["device=cuda", "compile=true", "collector.workers=1", "collector.sync=true", "eval_interval=0",
+                "num_eval_episodes=1", "initial_eval=false", "baseline_episodes=0", "checkpoint_interval=1000000",
                 "policy_save_interval=1000000", "log_interval=1000", "replay_buffer_capacity=1000000"]
+TRAIN_MODES = [
+    ("1 step, 1 update; policy on the GPU", ["collector.frames_per_batch=1"]),
+    ("blocks of 32; policy on the GPU", ["collector.frames_per_batch=32"]),
+    ("blocks of 32; policy on a CPU copy", ["collector.frames_per_batch=32", "collector.policy_device=cpu"]),
+]
 
 
 def bench_gpu(args, out: Path) -> dict:
     from rlpipe.pipelines import pipeline_class, resolve_preset
     from rlpipe.pipelines.config import apply_overrides
     from rlpipe.pipelines.errors import InputError
-    from rlpipe.scripts.bench.cleanrl import rlpipe_speed
+    from rlpipe.scripts.bench.cleanrl import in_run_updates_per_s, timed_train
     from rlpipe.scripts.bench.floor import update_seconds
 
     if not torch.cuda.is_available():
@@ -63,20 +73,29 @@ def bench_gpu(args, out: Path) -> dict:
             cells.append(ms)
         rows.append(f"| {label} | " + " | ".join(f"{ms:.2f} ms ({1e3 / ms:.0f}/s)" for ms in cells)
                     + f" | {cells[0] / min(cells[1:]):.1f}x |")
-    steps = args.steps or 1500
-    lengths = tuple(args.lengths) if args.lengths else (steps, 2 * steps)
-    train_rows = []
-    for preset, overrides, label in (TRAIN_CASES if "training" in args.parts else []):
-        cells = []
-        for mode, flags in MODES[0:1] + MODES[2:]:
-            speed = rlpipe_speed(preset, [*TRAIN_COMMON, *overrides, *flags, *args.overrides], lengths, 1, args.seed,
-                                 out / f"{preset}-{mode.replace(' ', '').replace('+', '-')}")
-            speed.pop("runs")
-            figures["training"].append({"case": label, "mode": mode, **speed})
-            print(f"[bench gpu] {label} training, {mode}: {speed['env_steps_per_s']:.0f} env steps/s "
-                  f"({speed['updates_per_s_in_run'] or 0:.0f} updates/s in the run)", file=sys.stderr, flush=True)
-            cells.append(speed["updates_per_s_in_run"])
-        train_rows.append(f"| {label}, HalfCheetah-v5 | " + " | ".join(f"{c or 0:.0f}" for c in cells) + " |")
+    steps = args.steps or 6000
+    cells: dict[tuple[str, str], float | None] = {}
+    cases = TRAIN_CASES if "training" in args.parts else []
+    # the CPU copy first, then the per-step loop: a command cut short by its time limit keeps the main figures
+    for m in (2, 0, 1):
+        mode, flags = TRAIN_MODES[m]
+        for preset, overrides, label in cases:
+            run_dir = out / f"{preset}-mode{m}"
+            cells[label, mode] = None
+            try:
+                run = timed_train(preset, [*TRAIN_COMMON, *overrides, *flags, f"num_iterations={steps}",
+                                           f"seed={args.seed}", *args.overrides], run_dir)
+            except RuntimeError as exc:  # one mode failing leaves the others' figures
+                print(f"[bench gpu] {label} training, {mode}: failed: {exc}", file=sys.stderr, flush=True)
+                continue
+            cells[label, mode] = rate = in_run_updates_per_s(run_dir / "metrics.csv")
+            figures["training"].append({"case": label, "mode": mode, "updates_per_s_in_run": rate,
+                                        "wall_s": run["wall_s"], "command": run["command"]})
+            print(f"[bench gpu] {label} training, {mode}: {rate or 0:.0f} env steps/s with one update each, in the run "
+                  f"({run['wall_s']:.0f} s from launch)", file=sys.stderr, flush=True)
+    train_rows = [f"| {label}, HalfCheetah-v5 | " + " | ".join(
+        f"{cells[label, mode]:.0f}" if cells.get((label, mode)) else "-" for mode, _ in TRAIN_MODES) + " |"
+        for _, _, label in cases]
     table = "\n".join([
         f"GPU: {name} (torch {torch.__version__}); every row measured in this run.",
         "",
@@ -84,12 +103,11 @@ def bench_gpu(args, out: Path) -> dict:
         "|---|---|---|---|---|",
         *rows,
         "",
-        "Training runs (`rlpipe train ... device=cuda`, one update per env step, env on the CPU in the learner's "
-        "process): updates/s (= env steps/s) inside the longer run, from its log rows after learning starts.",
-        "The two-length rate is in the JSON; with compile=true it is unreliable (compilation time varies between runs).",
+        "Training runs (`rlpipe train ... device=cuda compile=true`, one update per env step, env on the CPU in the "
+        "learner's process): env steps/s (= updates/s) inside the run, from its log rows after learning starts.",
         "",
-        "| run | eager | compiled + CUDA graphs |",
-        "|---|---|---|",
+        "| run | " + " | ".join(mode for mode, _ in TRAIN_MODES) + " |",
+        "|---|" + "---|" * len(TRAIN_MODES),
         *train_rows,
     ])
     return {**figures, "table": table}
