@@ -58,9 +58,6 @@ def sample(rb):
         stored = rb._storage._storage
         data = None
         if type(index) is torch.Tensor and index.ndim == 1 and stored.device is not None:
-            if stored.device.type == "cuda" and index.device.type == "cpu":
-                # the same index through pinned memory: a plain copy to the GPU waits for the updates queued there
-                index = index.pin_memory().to(stored.device, non_blocking=True)
             data = _gather(stored, index.to(stored.device))  # as TorchRL's _storage_index moves it
         if data is None:  # the index is drawn: the stock lookup from here on
             data = rb._storage.get(index)  # LazyTensorStorage's own collate is the identity
