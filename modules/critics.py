@@ -22,6 +22,7 @@ def make_qvalue_critic(
     *,
     observation_key: str = "observation",
     init: str = "torch",
+    layer_norm: bool = False,
 ) -> ValueOperator:
     """Q(s, a): an MLP over ``cat(observation, action)`` writing ``"state_action_value"``.
 
@@ -38,6 +39,10 @@ def make_qvalue_critic(
             ``kernel_initializer='glorot_uniform'`` (the SAC actor-learner tutorial's critic,
             ``last_kernel_initializer`` included). TorchRL's twin copies are redrawn uniformly
             within the first copy's range, so they stay Glorot-uniform.
+        layer_norm: normalise each hidden layer's pre-activations over its features (``nn.LayerNorm``
+            without weights, TorchRL's ``MLP(norm_class=...)``: Linear, LayerNorm, ReLU), as DroQ's and
+            RLPD's critics do to keep Q-values from running away; parameter-free, so the lean losses
+            still run it on tensors.
     """
     if init not in INITIALIZERS:
         raise ValueError(f"init={init!r}: expected one of {', '.join(INITIALIZERS)}")
@@ -48,6 +53,8 @@ def make_qvalue_critic(
         activation_class=nn.ReLU,
         # In place: saves an allocation per layer; Linear's backward never needs its output.
         activation_kwargs={"inplace": True},
+        norm_class=nn.LayerNorm if layer_norm else None,
+        norm_kwargs=[{"normalized_shape": width, "elementwise_affine": False} for width in hidden_sizes] if layer_norm else None,
     )
     if init == "glorot_uniform":
         for layer in net.modules():

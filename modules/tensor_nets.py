@@ -17,10 +17,18 @@ import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torchrl.modules import MLP
 
-__all__ = ["importance_weights", "is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
+__all__ = ["ELEMENTWISE", "importance_weights", "is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
            "transition_tensors", "module_forward"]
 
 Layers = list[tuple[str, object]]
+
+ELEMENTWISE = (
+    torch.nn.ReLU, torch.nn.ReLU6, torch.nn.LeakyReLU, torch.nn.ELU, torch.nn.SELU, torch.nn.CELU, torch.nn.GELU,
+    torch.nn.SiLU, torch.nn.Mish, torch.nn.Tanh, torch.nn.Sigmoid, torch.nn.Softplus, torch.nn.Softsign,
+    torch.nn.Hardtanh, torch.nn.Hardswish, torch.nn.Hardsigmoid, torch.nn.Tanhshrink, torch.nn.Identity,
+    torch.nn.Dropout,
+)
+"""parameter-free layers that act on each element alone (exact types: a subclass may override ``forward``)"""
 
 
 def is_plain_module(module) -> bool:
@@ -142,7 +150,10 @@ def run_stacked_mlp(layers: Layers, params: dict[str, torch.Tensor], x: torch.Te
     x = x.reshape(-1, x.shape[-1]).mT.expand(copies, -1, -1)
     for kind, layer in layers:
         if kind == "other":
-            x = layer(x)
+            # An elementwise layer (ReLU, Tanh, ...) is indifferent to the layout; any other parameter-free
+            # layer (a LayerNorm without affine weights, TorchRL's MLP ``norm_class``) acts on the last dim,
+            # so it sees rows there, as it would in the network's own forward.
+            x = layer(x) if type(layer) in ELEMENTWISE else layer(x.mT).mT
         else:
             weight, bias = params[f"{layer}.weight"], params.get(f"{layer}.bias")
             x = torch.matmul(weight, x) if bias is None else torch.baddbmm(bias.unsqueeze(-1), weight, x)

@@ -88,6 +88,8 @@ class SACConfig(TrainConfig):
     """clip each gradient tensor's norm to this value before the optimisers step, as SacAgent's gradient_clipping does (TF-Agents' clip_gradient_norms); null: no clipping"""
     critic_kernel_initializer: str = checked("torch", one_of(*INITIALIZERS))
     """critic weights: 'torch' (nn.Linear's default) or 'glorot_uniform' with zero biases (the actor-learner tutorial's CriticNetwork)"""
+    critic_layer_norm: bool = False
+    """normalise each critic hidden layer over its features (LayerNorm without weights, before the ReLU), as DroQ's and RLPD's critics do to keep Q-values from running away"""
 
     def validate_extra(self) -> None:
         check_learning_rate_schedule(self)
@@ -274,7 +276,8 @@ class SAC(TanhNormalPipeline):
         return self.build_agent(
             actor=actor, qvalue=qvalue, loss_module=loss_module,
             make_qvalue=lambda: make_qvalue_critic(self.observation_dim, action_dim, cfg.critic_joint_fc_layer_params,
-                                                   observation_key=key, init=cfg.critic_kernel_initializer),
+                                                   observation_key=key, init=cfg.critic_kernel_initializer,
+                                                   layer_norm=cfg.critic_layer_norm),
             make_loss=lambda actor, qvalue: LeanSACLoss(actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2,
                                                         loss_function="l2", alpha_init=cfg.initial_alpha,
                                                         target_entropy=target_entropy, delay_qvalue=True))

@@ -20,10 +20,11 @@ pytestmark = pytest.mark.unit
 OBS, ACT, B = 5, 3, 64
 
 
-def losses_pair(low=-2.0, high=1.5):
+def losses_pair(low=-2.0, high=1.5, layer_norm=False):
     spec = Bounded(torch.full((ACT,), low), torch.full((ACT,), high), (ACT,))
     torch.manual_seed(0)
-    actor, critic = make_tanh_normal_actor(OBS, spec, [32, 32]), make_qvalue_critic(OBS, ACT, [32, 32])
+    actor = make_tanh_normal_actor(OBS, spec, [32, 32])
+    critic = make_qvalue_critic(OBS, ACT, [32, 32], layer_norm=layer_norm)
     kwargs = dict(num_qvalue_nets=2, loss_function="l2", alpha_init=0.5, target_entropy=-1.5, delay_qvalue=True)
     stock = SACLoss(actor, critic, **kwargs)
     lean = LeanSACLoss(copy.deepcopy(actor), copy.deepcopy(critic), **kwargs)
@@ -52,9 +53,11 @@ def backward_and_grads(loss, out):
     return {name: p.grad.clone() for name, p in loss.named_parameters() if p.grad is not None}
 
 
-@pytest.mark.parametrize("bounds", [(-2.0, 1.5), (-1.0, 1.0)])
-def test_lean_loss_matches_sacloss_values_and_gradients(bounds):
-    stock, lean = losses_pair(*bounds)
+@pytest.mark.parametrize("bounds, layer_norm", [((-2.0, 1.5), False), ((-1.0, 1.0), False), ((-1.0, 1.0), True)])
+def test_lean_loss_matches_sacloss_values_and_gradients(bounds, layer_norm):
+    # layer_norm: the critics' LayerNorm acts on each row's features; the lean loss keeps the twin
+    # critics' activations as columns, where a layout mistake normalises across the batch instead
+    stock, lean = losses_pair(*bounds, layer_norm=layer_norm)
     assert lean.lean
     data = batch()
     torch.manual_seed(5)
