@@ -6,6 +6,9 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -131,3 +134,33 @@ def test_a_tiny_run_of_the_harness_times_rlpipe_to_a_low_target(tmp_path, capsys
     assert "[1/1] cartpole-v0-dqn seed 0 rlpipe: " in printed
     assert "| rlpipe | `rlpipe train dqn" in printed and "| 1/1 |" in printed
     assert Path(data["png"]).stat().st_size > 0
+
+
+def test_a_stopped_bench_ends_the_run_under_way_and_keeps_the_runs_it_finished(tmp_path):
+    # Ctrl-C (the fault hook's SIGINT to the bench's process group) while the second run is under way
+    out, figures = tmp_path / "bench", tmp_path / "ttr.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "rlpipe.scripts.cli", "bench", "time-to-return", "eval_interval=0", "baseline_episodes=0",
+         "num_eval_episodes=2", "--tasks", "cartpole-v0-dqn", "--seeds", "2", "--peers", "none", "--target-return", "30",
+         "--out", str(out), "--json", str(figures)],
+        capture_output=True, text=True, timeout=600, start_new_session=True, env={**os.environ, "RLPIPE_FAULT": "bench_run@2"})
+    assert done.returncode == 130, done.stderr[-2000:]
+    assert "interrupted by SIGINT" in done.stderr
+    data = json.loads(figures.read_text())
+    assert data["interrupted"] == {"signal": "SIGINT", "during": "cartpole-v0-dqn seed 1 rlpipe", "runs_done": 1,
+                                   "runs_planned": 2}
+    (run,) = data["runs"]  # the first seed's, whole
+    assert run["seed"] == 0 and run["reached"] and run["rc"] == 0
+    assert "| 1/1 |" in done.stdout and "Interrupted by SIGINT during cartpole-v0-dqn seed 1 rlpipe" in done.stdout
+    # the second run was launched and ended with the bench: no process of it is left
+    second = out / "cartpole-v0-dqn" / "rlpipe-seed1"
+    assert (second / "output.log").exists()
+    left = [pid for pid in os.listdir("/proc") if pid.isdigit() and _cmdline(pid).find(str(second)) >= 0]
+    assert left == []
+
+
+def _cmdline(pid: str) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:  # gone meanwhile
+        return ""

@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import importlib
 import json
+import signal
+import sys
 import tempfile
 from pathlib import Path
 
@@ -116,6 +118,11 @@ def run(args) -> int:
     print(figures.pop("table"))
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    if figures.get("interrupted"):  # the finished runs are written; the exit says the command did not finish
+        signum = getattr(signal, figures["interrupted"]["signal"], signal.SIGINT)
+        print(f"rlpipe: interrupted by {signal.Signals(signum).name}; the runs finished before it are above"
+              + (f" and in {args.json}" if args.json else ""), file=sys.stderr)
+        return 128 + int(signum)
     return 0
 
 

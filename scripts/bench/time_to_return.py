@@ -26,6 +26,7 @@ networks on a 2-core machine: a second thread only contends with the env), SBX o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -40,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.system.runtime import STOP_SIGNALS, Interrupted, fault_point
 
 PEERS = ("cleanrl", "sb3", "sbx", "tfagents")
 SIDES = ("rlpipe", "crossq", *PEERS)
@@ -308,8 +310,9 @@ def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work:
 # --- one run ------------------------------------------------------------------------------------------
 
 
-def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict[str, Any]:
-    """Launch, wait, and time it: seconds to the target (less unconfirmed evaluations), fixed costs."""
+def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S, index: int = 0) -> dict[str, Any]:
+    """Launch, wait, and time it: seconds to the target (less unconfirmed evaluations), fixed costs.
+    ``index``: the run's number in the command (1, 2, ...), where a test's fault point can stop it."""
     launch.cwd.mkdir(parents=True, exist_ok=True)
     with log.open("w") as out:
         out.write(f"$ {shlex.join(launch.cmd)}\n")
@@ -318,6 +321,7 @@ def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict
         proc = subprocess.Popen(launch.cmd, stdout=out, stderr=subprocess.STDOUT, env=launch.env, cwd=launch.cwd,
                                 start_new_session=True)
         try:
+            fault_point("bench_run", index)  # tests: a stop signal while a run is under way
             rc = proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)  # with the collector processes it started
@@ -372,16 +376,17 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     crossq = not getattr(args, "no_crossq", False)
     total = sum(len(task_sides(TASKS[name], peers, crossq)) for name in tasks) * args.seeds
     n = 0
-    for name in tasks:
-        task = TASKS[name]
-        sides = task_sides(task, peers, crossq)
-        target = task.target if args.target_return is None else float(args.target_return)
-        task_cap = max(1, int(task.cap * scale))
-        settings[name] = {}
-        for seed in range(args.seeds):
-            for side in sides:
+    interrupted: dict[str, Any] | None = None
+    current = None
+    try:
+        with _stops_interrupt():
+            for name, seed, side in _plan(tasks, peers, crossq, args.seeds):
                 n += 1
-                cap = side_caps.get(side, task_cap)
+                current = f"{name} seed {seed} {side}"
+                task = TASKS[name]
+                target = task.target if args.target_return is None else float(args.target_return)
+                settings.setdefault(name, {})
+                cap = side_caps.get(side, max(1, int(task.cap * scale)))
                 work = out / name / f"{side}-seed{seed}"
                 try:
                     if side in ("rlpipe", "crossq"):
@@ -399,21 +404,55 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                 own_cap = f"; its own cap {cap:,} env steps" if side in side_caps else ""
                 settings[name][side] = launch.settings + f"; threads {threads[side] or 'default'}{own_cap}"
                 work.mkdir(parents=True, exist_ok=True)
-                result = run_one(launch, work / "output.log")
+                result = run_one(launch, work / "output.log", index=n)
                 result.update(task=name, side=side, seed=seed, target=target, cap=cap)
                 runs.append(result)
                 print(progress_line(n, total, result), flush=True)
+    except KeyboardInterrupt as exc:  # a stop signal (the run under way was ended by run_one): keep what is done
+        interrupted = {"signal": signal.Signals(getattr(exc, "signum", signal.SIGINT)).name, "during": current,
+                       "runs_done": len(runs), "runs_planned": total}
+        print(f"[{n}/{total}] {current}: interrupted by {interrupted['signal']}; the {len(runs)} runs finished "
+              "before it are kept", flush=True)
+    for name in tasks:  # every task chosen has its table, including those an interruption left unrun
+        settings.setdefault(name, {})
     figures = {"tasks": {name: {"env": TASKS[name].env, "algo": TASKS[name].algo,
                                 "target": TASKS[name].target if args.target_return is None else float(args.target_return),
                                 "cap": max(1, int(TASKS[name].cap * scale)), "settings": settings[name]}
                          for name in tasks},
                "runs": runs, "seeds": args.seeds, "threads": threads,
                "machine": {**machine, "load_avg_1min_end": os.getloadavg()[0]}}
+    if interrupted is not None:
+        figures["interrupted"] = interrupted
     figures["summary"] = summarise(runs)
     png = (args.json.with_suffix(".png") if args.json else out / "time-to-return.png")
     figures["png"] = str(plot(figures, png))
     figures["table"] = tables(figures)
     return figures
+
+
+def _plan(tasks: list[str], peers: list[str], crossq: bool, seeds: int):
+    """``(task, seed, side)`` in the order they run: per task, per seed, every side once (interleaved)."""
+    for name in tasks:
+        for seed in range(seeds):
+            for side in task_sides(TASKS[name], peers, crossq):
+                yield name, seed, side
+
+
+@contextlib.contextmanager
+def _stops_interrupt():
+    """While the runs go on, a stop signal (Ctrl-C, SIGTERM from ``kill`` or ``timeout``, SIGHUP) raises
+    ``Interrupted`` in the bench at once: the run under way is ended (``run_one``) and the runs finished
+    before it are written out. A signal the process was started with ignored (``nohup``) stays ignored."""
+    def handle(signum, frame):
+        raise Interrupted(signum)
+
+    previous = {signum: signal.signal(signum, handle) for signum in STOP_SIGNALS
+                if signal.getsignal(signum) is not signal.SIG_IGN}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
 def task_sides(task: Task, peers: list[str], crossq: bool = True) -> list[str]:
@@ -482,6 +521,10 @@ def tables(figures: dict[str, Any]) -> str:
              f"{figures['machine']['cpus']} CPUs, 1-minute load {figures['machine']['load_avg_1min']:.2f} at the start, "
              f"{figures['machine'].get('load_avg_1min_end', float('nan')):.2f} at the end (the runs' own). "
              "Threads: " + ", ".join(f"{k} {v or 'default'}" for k, v in figures["threads"].items()) + "."]
+    if figures.get("interrupted"):
+        i = figures["interrupted"]
+        lines.append(f"**Interrupted by {i['signal']} during {i['during']}: {i['runs_done']} of {i['runs_planned']} "
+                     "runs finished, and only they are below** (a side's median is over the seeds it finished).")
     for name, task in figures["tasks"].items():
         why = f" ({TASKS[name].why})" if name in TASKS and TASKS[name].why else ""
         lines += ["", f"### {name}: {task['env']} {task['algo'].upper()}{why}, target {task['target']:g}, "
