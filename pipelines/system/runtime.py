@@ -62,11 +62,13 @@ class DeferredInterrupt:
     wherever the learner happens to be can land inside an optimiser step or inside a library's context
     manager (tensordict's ``to_module`` turns it into an unrelated ``RuntimeError``), and the state it
     leaves is not one to checkpoint. The loop calls ``check`` where its state is whole. A second
-    signal raises ``Interrupted`` at once.
+    signal raises ``Interrupted`` at once. ``immediate``: the first signal raises it too (where nothing
+    needs a safe point: a parent waiting on child processes, such as ``rlpipe bench time-to-return``).
     """
 
-    def __init__(self, signals: tuple[int, ...] = STOP_SIGNALS):
+    def __init__(self, signals: tuple[int, ...] = STOP_SIGNALS, *, immediate: bool = False):
         self.signals = tuple(signals)
+        self.immediate = immediate
         self.requested = False
         self.signum: int | None = None
         self._first = 0.0
@@ -95,6 +97,8 @@ class DeferredInterrupt:
     SAME_PRESS_S = 2.0
 
     def _handle(self, signum, frame) -> None:
+        if self.immediate:
+            raise Interrupted(signum)
         if self.requested:
             if time.monotonic() - self._first < self.SAME_PRESS_S:
                 return

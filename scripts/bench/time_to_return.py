@@ -26,7 +26,6 @@ networks on a 2-core machine: a second thread only contends with the env), SBX o
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
@@ -41,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.system.runtime import STOP_SIGNALS, Interrupted, fault_point
+from rlpipe.pipelines.system.runtime import DeferredInterrupt, fault_point
 
 PEERS = ("cleanrl", "sb3", "sbx", "tfagents")
 SIDES = ("rlpipe", "crossq", *PEERS)
@@ -379,7 +378,8 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     interrupted: dict[str, Any] | None = None
     current = None
     try:
-        with _stops_interrupt():
+        # a stop signal raises at once: run_one ends the run under way, the finished runs are written below
+        with DeferredInterrupt(immediate=True):
             for name, seed, side in _plan(tasks, peers, crossq, args.seeds):
                 n += 1
                 current = f"{name} seed {seed} {side}"
@@ -436,23 +436,6 @@ def _plan(tasks: list[str], peers: list[str], crossq: bool, seeds: int):
         for seed in range(seeds):
             for side in task_sides(TASKS[name], peers, crossq):
                 yield name, seed, side
-
-
-@contextlib.contextmanager
-def _stops_interrupt():
-    """While the runs go on, a stop signal (Ctrl-C, SIGTERM from ``kill`` or ``timeout``, SIGHUP) raises
-    ``Interrupted`` in the bench at once: the run under way is ended (``run_one``) and the runs finished
-    before it are written out. A signal the process was started with ignored (``nohup``) stays ignored."""
-    def handle(signum, frame):
-        raise Interrupted(signum)
-
-    previous = {signum: signal.signal(signum, handle) for signum in STOP_SIGNALS
-                if signal.getsignal(signum) is not signal.SIG_IGN}
-    try:
-        yield
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
 def task_sides(task: Task, peers: list[str], crossq: bool = True) -> list[str]:
