@@ -108,6 +108,17 @@ def wait_until(predicate, timeout: float, interval: float = 0.2) -> bool:
 # --- what a multi-worker run leaves ---------------------------------------------------------------
 
 
+def stretches(data) -> list[tuple[int, int, int]]:
+    """The buffer in insertion order as (trajectory, first step, last step) stretches: what a failure shows."""
+    out = []
+    for t, s in zip(data["collector", "traj_ids"].flatten().tolist(), data["step_count"].flatten().tolist()):
+        if out and out[-1][0] == t and out[-1][2] == s - 1:
+            out[-1] = (t, out[-1][1], s)
+        else:
+            out.append((t, s, s))
+    return out
+
+
 def assert_frames_from_two_workers(data) -> None:
     """``data``: transitions in insertion order. Each worker steps its own env, so two trajectories
     run side by side and their frames interleave in the buffer; one env's trajectories follow each
@@ -119,7 +130,7 @@ def assert_frames_from_two_workers(data) -> None:
         where = (traj == i).nonzero().flatten()
         spans[i] = (int(where.min()), int(where.max()))
         steps = step_count[where]  # within a trajectory the steps count up one by one
-        assert torch.equal(steps, torch.arange(int(steps[0]), int(steps[0]) + len(steps))), (i, steps)
+        assert torch.equal(steps, torch.arange(int(steps[0]), int(steps[0]) + len(steps))), (i, stretches(data))
     interleaved = [(a, b) for a in spans for b in spans
                    if a < b and spans[a][0] < spans[b][1] and spans[b][0] < spans[a][1]]
     assert interleaved, f"no two trajectories overlap in time: {spans}"
@@ -387,8 +398,31 @@ def test_async_workers_all_deliver_frames(interrupted):
     data = rb[:]
     assert data.numel() == 900
     first, second = (interrupted[k]["state"]["frames"] for k in ("first", "second"))
-    for part in (data[:first], data[first:second], data[second:]):
-        assert_frames_from_two_workers(part)
+    for n, part in enumerate((data[:first], data[first:second], data[second:])):
+        try:
+            assert_frames_from_two_workers(part)
+        except AssertionError as exc:  # the whole buffer as stretches: which worker's blocks went where
+            raise AssertionError(f"stretch {n} (stops at frames {first}, {second}): {exc}; "
+                                 f"the buffer: {stretches(data)}") from None
+
+
+def test_a_learner_slower_than_its_async_workers_loses_no_block():
+    """TorchRL's MultiAsyncCollector has room in its queue for one block: a worker whose block waits there over
+    1 s (the learner busy: an evaluation, a checkpoint, a slow update) collects another over it, and the first
+    is lost. rlpipe's ``AsyncCollector`` has room for every worker's."""
+    cfg = apply_overrides(td3.preset("td3"), [*SMALL_TD3, "collector.workers=2", "collector.sync=false"])
+    backend = td3.TD3(cfg).make_backend().start(10 * FRAMES_PER_BATCH, 0, seed=0)
+    blocks = []
+    try:
+        for block in backend:
+            blocks.append(block.reshape(-1).clone())
+            if len(blocks) <= 3:  # the learner busy past the 1 s, with the other worker's block in the queue
+                time.sleep(2.5)
+    finally:
+        backend.close()
+    data = torch.cat(blocks)
+    assert data.numel() == 10 * FRAMES_PER_BATCH
+    assert_frames_from_two_workers(data)
 
 
 @pytest.mark.parametrize("where, call", [

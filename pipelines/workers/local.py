@@ -36,7 +36,7 @@ from rlpipe.pipelines.workers.supervision import (
     kill_processes,
 )
 
-__all__ = ["LocalBackend", "direct_collection", "local_collector", "push_weights"]
+__all__ = ["AsyncCollector", "LocalBackend", "direct_collection", "local_collector", "push_weights"]
 
 
 def direct_collection(config: TrainConfig, env_fn: Callable[[], EnvBase] | None, env: EnvBase | None) -> bool:
@@ -47,6 +47,22 @@ def direct_collection(config: TrainConfig, env_fn: Callable[[], EnvBase] | None,
     made_here = (isinstance(env_fn, functools.partial) and env_fn.func is make_env and env_fn.args == (config.env,)
                  and set(env_fn.keywords) <= {"device", "num_envs"} and env_fn.keywords.get("num_envs", 1) == 1)
     return c.direct and made_here and gym_env_of(env) is not None
+
+
+class AsyncCollector(MultiAsyncCollector):
+    """TorchRL's ``MultiAsyncCollector`` with room in its output queue for a block from every worker.
+
+    TorchRL's queue holds one block (``_queue_len`` 1, TorchRL 0.14). A worker whose block finds it full for
+    1 s (``_TIMEOUT``: the learner evaluating, checkpointing, or slower than the workers) collects another one
+    over it in its shared buffer: that block is lost, its env steps thrown away and a hole left in its env's
+    trajectory in the replay buffer. Seen on this machine (2026-11-28): a td3 run with two workers and
+    evaluations in the learner lost 1 block of 18 (tests/test_collectors.py's check of whole trajectories
+    failed in each of 4 runs that day). A worker has at most one block waiting (it collects again only when told
+    to go on), so a queue of ``num_workers`` never turns one away."""
+
+    @property
+    def _queue_len(self) -> int:
+        return self.num_workers
 
 
 def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[[], EnvBase] | None,
@@ -73,7 +89,7 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
         # ask for that many fewer, and exactly `init_random_frames` come out random (to a block).
         # (Each async worker's block is a whole `frames_per_batch`.)
         common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
-    cls = MultiSyncCollector if c.sync else MultiAsyncCollector
+    cls = MultiSyncCollector if c.sync else AsyncCollector
     scheme = TimedSharedMemScheme(ack_timeout=c.timeout)
     return cls([env_fn] * c.workers, policy, weight_sync_schemes={"policy": scheme},
                collector_class=WorkerGymCollector if direct else WorkerSnapshotCollector, **common)
