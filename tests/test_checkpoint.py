@@ -498,45 +498,9 @@ def _held(args: list[str], run: Path, at: int, command: list[str] = RLPIPE, **po
     return proc
 
 
-def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tmp_path):
-    run = tmp_path / "run"
-    entry_point = [str(Path(sys.executable).parent / "rlpipe")]
-    # two collector processes, so that there are children that must not outlive the run
-    args = ["train", "dqn", "num_iterations=300", "initial_collect_steps=100", "eval_interval=0",
-            "num_eval_episodes=2", "checkpoint_interval=100", "log_interval=100", "collector.workers=2",
-            "--no-progress"]
-    # held after the block of iteration 200, past the checkpoint of 100; Ctrl-C lands as it goes on
-    proc = _held(args, run, 200, entry_point)
-    try:
-        assert len(_session_processes(proc.pid)) >= 3, "expected the run and its two collector processes"
-        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole process group
-        os.killpg(proc.pid, signal.SIGCONT)
-        out, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-    assert proc.returncode == 130, f"exit {proc.returncode}\n{err}"
-    assert "--resume" in err and "Traceback" not in err, err
-    latest = ckpt.latest_checkpoint(run / "checkpoints")
-    state = ckpt.load_checkpoint(latest, "dqn", "CartPole-v0")
-    assert 200 <= state["counters"]["iteration"] < 300, state["counters"]  # where it stopped, not the one of 100
-    assert not list((run / "checkpoints").glob(".tmp-*"))
-    deadline = time.monotonic() + 60  # a collector process may take a moment to see its learner gone
-    while _session_processes(proc.pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert _session_processes(proc.pid) == [], "child processes outlived the interrupted run"
-
-    resumed = subprocess.run([*entry_point, "train", "dqn", "--resume", str(run), "--no-progress"], cwd=tmp_path,
-                             capture_output=True, text=True, timeout=300)
-    assert resumed.returncode == 0, resumed.stderr
-    assert "AverageReturn" in resumed.stdout
-    summary = json.loads((run / "summary.json").read_text())
-    assert summary["iterations"] == 300
-    assert summary["frames"] == 100 + 300
-    rows = metric_rows(run)
-    assert_no_duplicated_steps(rows)
-    assert int(rows[-1]["step"]) == 300
+# Ctrl-C to a run with collector processes, its checkpoint where it stopped, no child left and --resume to the end:
+# tests/test_collectors.py's `interrupted` run (twice, with the evaluator's process too) and
+# tests/test_resume_exact.py (equal to the uninterrupted run); the `rlpipe` entry point: tests/test_cli.py.
 
 
 def _logged_past(run: Path, step: int) -> bool:

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from test_ray import _is_collector_actor  # Ray's title for a collector actor's process
 
-from rlpipe.pipelines import sac, td3
+from rlpipe.pipelines import sac
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import apply_overrides
 
@@ -205,7 +205,9 @@ def spare_nodes():
 # --- a node lost -----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("sync", ["false", "true"])
+# collector.sync=true here (the learner finds the actor lost at its weight push); test_ray's killed actor
+# takes the other path (sync=false: found at the next block)
+@pytest.mark.parametrize("sync", ["true"])
 @pytest.mark.slow
 def test_a_node_removed_mid_run_its_actor_is_started_on_another_and_the_run_finishes(spare_nodes, tmp_path, sync):
     """The learner holds itself (SIGSTOP) right after the block of iteration 100; the node holding its
@@ -352,7 +354,7 @@ def test_kill_9_of_a_learner_inside_a_checkpoint_write_on_a_cluster_ends_its_act
 
 # --- it learns, with Ray collectors -----------------------------------------------------------------------
 
-# tests/test_sac.py's and tests/test_td3.py's learning checks, with the env stepped by one Ray actor
+# tests/test_sac.py's learning check, with the env stepped by one Ray actor
 # (a local Ray instance) that gets the learner's weights before each block (collector.sync=true).
 # Seen on this 2-core machine under load (3-4 min each): SAC at 3000 iterations -1268 -> -163, -164, -485, -163,
 # -819; TD3 -1383 -> -160, -156, -157 (random and untrained: -1100 to -1700). Runs of the same seed differ here
@@ -367,18 +369,11 @@ SAC_LEARN = [
     "checkpoint_interval=100000", "policy_save_interval=100000",
     "collector.backend=ray", "collector.workers=1", "collector.sync=true", "ray.address=",
 ]
-TD3_LEARN = [
-    "seed=0", "num_iterations=8000", "initial_collect_steps=1000", "learning_starts=1000",
-    "learning_rate=1e-3", "eval_interval=0", "num_eval_episodes=5", "log_interval=2000",
-    "checkpoint_interval=100000", "policy_save_interval=100000",
-    "collector.backend=ray", "collector.workers=1", "collector.sync=true", "ray.address=",
-]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("pipeline, overrides, iterations, threshold", [
-    pytest.param(sac.SAC, SAC_LEARN, 4000, -600, id="sac"),
-    pytest.param(td3.TD3, TD3_LEARN, 8000, -400, id="td3"),
+    pytest.param(sac.SAC, SAC_LEARN, 4000, -600, id="sac"),  # (td3 learns on Ray as well: its Ray path is sac's)
 ])
 def test_learns_pendulum_with_ray_collectors(run_dir, pipeline, overrides, iterations, threshold):
     result = pipeline(apply_overrides(pipeline.preset(pipeline.algo), overrides)).train(run_dir, progress=False)
