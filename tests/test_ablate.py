@@ -24,8 +24,8 @@ from rlpipe.scripts.cli import main
 CLI = [sys.executable, "-m", "rlpipe.scripts.cli"]
 VARIANTS = ("full", "no_clipped_double_q")
 STUDY = ["ablate", "td3", "--envs", "Pendulum-v1", "--seeds", "2", "--steps", "600", "--evals", "2",
-         "--eval-episodes", "1", "--variants", ",".join(VARIANTS), "--workers", "2",
-         "actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]", "batch_size=32"]  # small: the study is the subject
+         "--eval-episodes", "1", "--variants", ",".join(VARIANTS), "--workers", "2"]
+SMALL = ["actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]", "batch_size=32"]  # the study is the subject
 RUNS = [(variant, seed) for variant in VARIANTS for seed in (0, 1)]
 
 
@@ -69,7 +69,7 @@ def group_members(pgid: int) -> list[str]:
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     out = tmp_path_factory.mktemp("ablation") / "study"
-    command = [*CLI, *STUDY, "--continue", "checkpoint", "--out", str(out)]
+    command = [*CLI, *STUDY, *SMALL, "--continue", "checkpoint", "--out", str(out)]
     info = {"out": out}
 
     # 1. Ctrl-C (SIGINT to the process group, as a terminal sends it) while runs are in flight: the

@@ -18,7 +18,7 @@ import psutil
 import pytest
 import torch
 from tensordict import TensorDict
-from test_collectors import descendants, time_limit, wait_until
+from test_collectors import descendants, left_behind, time_limit, wait_until
 
 from rlpipe.pipelines import td3
 from rlpipe.pipelines.config import apply_overrides
@@ -73,6 +73,7 @@ def collected(request) -> dict:
     pipeline = pipeline_for(request.param, request)
     out = {"kind": request.param}
     backend = pipeline.make_backend()
+    existing = {pid for pid, _ in descendants(os.getpid())}
     with time_limit(600):  # a hang fails this fixture, not the suite
         try:
             backend.start(BLOCKS * BLOCK, 0, seed=1)
@@ -91,7 +92,7 @@ def collected(request) -> dict:
         finally:
             backend.close()
     wait_until(lambda: not any(_running(pid) for pid in out.get("pids", ())), 120)  # Ray reaps its actors after close
-    out["left"] = descendants(os.getpid()) if request.param == "local" else []
+    out["left"] = left_behind(existing) if request.param == "local" else []
     out["running"] = [pid for pid in out.get("pids", ()) if _running(pid)]
     return out
 
@@ -136,6 +137,7 @@ def broken(request) -> dict:
     pipeline = pipeline_for(request.param, request)
     out = {"kind": request.param}
     backend = pipeline.make_backend()
+    existing = {pid for pid, _ in descendants(os.getpid())}
     with time_limit(600):
         try:
             backend.start(10**6, 0, seed=2)
@@ -158,7 +160,7 @@ def broken(request) -> dict:
             backend.close()
     wait_until(lambda: not any(_running(pid) for pid in out.get("before", Health(0)).pids), 120)
     out["running"] = [pid for pid in out.get("before", Health(0)).pids if _running(pid)]
-    out["left"] = descendants(os.getpid()) if request.param == "local" else []
+    out["left"] = left_behind(existing) if request.param == "local" else []
     return out
 
 

@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+import psutil
 import pytest
 import torch
 from tensordict import TensorDict
@@ -75,6 +76,17 @@ def descendants(pid: int) -> list[tuple[int, str]]:
                 if not _is_resource_tracker(cmdline):
                     found.append((child, cmdline))
     return found
+
+
+def left_behind(existing: set[int]) -> list[tuple[int, str]]:
+    """This process's descendants but the ``existing`` ones (there when the backend started) and theirs: what
+    the backend left. (A local Ray of an earlier test in this worker, say, is there before, and starts workers.)"""
+    def new(pid: int) -> bool:
+        try:
+            return pid not in existing and not any(p.pid in existing for p in psutil.Process(pid).parents())
+        except psutil.Error:  # gone since
+            return False
+    return [(pid, cmd) for pid, cmd in descendants(os.getpid()) if new(pid)]
 
 
 def group_members(pgid: int) -> list[tuple[int, str]]:
@@ -169,10 +181,11 @@ def sync_run(tmp_path_factory):
     ])
     pipeline = td3.TD3(cfg)
     initial_policy = copy.deepcopy(pipeline.policy)
+    existing = {pid for pid, _ in descendants(os.getpid())}
     with time_limit(240):
         result = pipeline.train(tmp_path_factory.mktemp("sync") / "run", progress=False)
     return {"cfg": cfg, "pipeline": pipeline, "result": result, "initial_policy": initial_policy,
-            "left": descendants(os.getpid()), "active": multiprocessing.active_children()}
+            "left": left_behind(existing), "active": multiprocessing.active_children()}
 
 
 def test_sync_workers_all_deliver_frames(sync_run):
@@ -479,6 +492,7 @@ def pushed() -> dict:
         return ((block["action"] - greedy(block["observation"])).abs() > 1e-5).flatten()
 
     out = {}
+    existing = {pid for pid, _ in descendants(os.getpid())}
     collector = pipeline.make_collector(2000, 100)
     try:
         blocks = iter(collector)
@@ -498,7 +512,7 @@ def pushed() -> dict:
         out["stale_after_push"] = [int(mismatch(next(blocks).reshape(-1)).sum()) for _ in range(4)]
     finally:
         collector.shutdown()
-    out["left"] = descendants(os.getpid())
+    out["left"] = left_behind(existing)
     return out
 
 

@@ -240,8 +240,9 @@ def test_a_run_stopped_for_lost_workers_resumes_to_the_end(lost):
 
 @pytest.mark.parametrize("fault, status", [
     ("collected@100:SIGTERM:self", 143),  # the learner alone (`kill PID`, `timeout`, Kubernetes)
-    ("collected@100:SIGTERM", 143),  # the whole process group (SLURM, a terminal's job control)
-    ("collected@100:SIGHUP", 129),  # the terminal closing
+    # the whole process group, as a terminal closing sends it (and SLURM or job control send SIGTERM so: the
+    # same path; tests/test_resume_exact.py stops runs with SIGTERM to the group)
+    ("collected@100:SIGHUP", 129),
 ])
 @pytest.mark.slow
 def test_a_stop_signal_saves_a_checkpoint_and_resume_finishes(fault, status, tmp_path):
