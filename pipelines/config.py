@@ -299,7 +299,7 @@ class TrainConfig:
     cudagraph: bool | None = None
     """on device=cuda, replay the update as CUDA graphs (tensordict's CudaGraphModule: one launch instead of hundreds of small kernels); null: when `compile` is true"""
     num_threads: int = checked(-1, Check(lambda v: v >= -1, "-1 (chosen at start), 0 (torch's default) or a positive count"))
-    """torch threads of the learner; -1: chosen at the start of training (the cores collector processes leave free, then the fastest count there by a short timing of the loss), recorded in config.json; 0: torch's default"""
+    """torch threads of the learner; -1: chosen at the start of training (the cores collector processes leave free, at most OMP_NUM_THREADS where that is set, then the fastest count there by a short timing of the loss), recorded in config.json; 0: torch's default"""
     device: str = "cpu"
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
     initial_collect_policy: str = checked("random", one_of("random", "collect"))

@@ -357,6 +357,19 @@ def test_the_pipelines_summary_and_thread_choice_still_answer_where_they_were():
     assert pipeline.choose_threads() >= 1
 
 
+@pytest.mark.parametrize("omp, cap", [("1", 1), ("2", 2), ("0", None), ("many", None), (None, None)])
+def test_omp_num_threads_caps_the_threads_a_run_chooses(monkeypatch, omp, cap):
+    from rlpipe.pipelines.training.threads import omp_threads
+
+    if omp is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    assert omp_threads() == cap
+    if cap == 1:  # a user's one thread is kept, whatever a timing would have picked
+        assert td3.TD3(config("td3")).choose_threads() == 1
+
+
 def test_trigger_names_must_be_unique_and_a_refused_run_writes_nothing(tmp_path):
     with pytest.raises(InputError, match="unique"):
         dqn.DQN(config("dqn")).train(tmp_path / "run", progress=False,

@@ -16,7 +16,7 @@ from torchrl.objectives import LossModule
 if TYPE_CHECKING:
     from rlpipe.pipelines.base import OffPolicyPipeline
 
-__all__ = ["choose_threads", "loss_pass_seconds", "torch_threads"]
+__all__ = ["choose_threads", "loss_pass_seconds", "omp_threads", "torch_threads"]
 
 
 def choose_threads(pipeline: OffPolicyPipeline) -> int:
@@ -26,13 +26,20 @@ def choose_threads(pipeline: OffPolicyPipeline) -> int:
     they leave (at least one); within those, the thread count whose forward and backward pass
     of the loss on a replay-sized batch measured fastest (by 10% or more over fewer threads).
     The env steps in the learner's own process (``collector.workers=1``, ``sync=true``) take
-    turns with the updates, so there every core is the learner's. Parameters, optimisers and
+    turns with the updates, so there every core is the learner's. ``OMP_NUM_THREADS``, where it is
+    set, caps the count: a user (or a test suite, or a study running several runs at once) who gave
+    torch that many threads keeps them. (The timing sees the machine for a moment only: two threads
+    measured faster on a moment's idle core ran a td3 run 10x slower once another process took that
+    core, 371 s against 38 s, in this project's test suite on 2026-11-28.) Parameters, optimisers and
     the run's random state (and the loss's buffers) are left as they were; a loss that cannot run on the env's fake
     batch (a plug-in's own keys) gets one thread.
     """
     c = pipeline.config.collector
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     budget = max(1, cores - (0 if c.workers == 1 and c.sync else c.workers))
+    cap = omp_threads()
+    if cap is not None:
+        budget = min(budget, cap)
     if budget == 1:
         return 1
     candidates = sorted({*(2**k for k in range(budget.bit_length()) if 2**k <= budget), budget})
@@ -60,6 +67,15 @@ def choose_threads(pipeline: OffPolicyPipeline) -> int:
         if timings[n] < 0.9 * timings[chosen]:
             chosen = n
     return chosen
+
+
+def omp_threads() -> int | None:
+    """``OMP_NUM_THREADS`` when it is a positive count, else None."""
+    try:
+        n = int(os.environ.get("OMP_NUM_THREADS", ""))
+    except ValueError:
+        return None
+    return n if n > 0 else None
 
 
 @contextlib.contextmanager
