@@ -14,8 +14,8 @@ import torch  # noqa: E402
 
 torch.set_num_threads(1)
 # ... and every run a test starts, in this process or another: two pytest workers share 2 cores, and a run's own
-# choice (num_threads=-1) of two threads, timed on a moment's idle core, collapses once the other worker is busy
-# (a td3 learning check took 371 s instead of 38). rlpipe keeps OMP_NUM_THREADS as its cap.
+# choice (num_threads=-1) of two threads, timed on a moment's idle core, slows to a crawl once the other worker is
+# busy (most likely why a td3 learning check took 371 s in CI instead of ~40). rlpipe keeps OMP_NUM_THREADS as its cap.
 os.environ["OMP_NUM_THREADS"] = "1"
 
 # The tests press Ctrl-C as a terminal user does. Run from a background job or nohup, the suite

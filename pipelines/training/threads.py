@@ -29,8 +29,8 @@ def choose_threads(pipeline: OffPolicyPipeline) -> int:
     turns with the updates, so there every core is the learner's. ``OMP_NUM_THREADS``, where it is
     set, caps the count: a user (or a test suite, or a study running several runs at once) who gave
     torch that many threads keeps them. (The timing sees the machine for a moment only: a td3 learning
-    check that takes ~40 s took 371 s in this project's CI on 2026-11-28, its two threads on a 2-core
-    machine shared with another test worker.) Parameters, optimisers and
+    check that takes ~40 s took 371 s in this project's CI on 2026-11-28, most likely on two threads of a
+    2-core machine shared with another test worker.) Parameters, optimisers and
     the run's random state (and the loss's buffers) are left as they were; a loss that cannot run on the env's fake
     batch (a plug-in's own keys) gets one thread.
     """
