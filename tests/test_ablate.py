@@ -1,6 +1,7 @@
-"""`rlpipe ablate td3` as a user runs it: a tiny study (2 variants x 2 seeds, 600 env steps each)
-interrupted with Ctrl-C while its runs are in flight, rerun to completion, then rerun again (nothing
-left to do); and bad input refused before anything is created.
+"""`rlpipe ablate td3` as a user runs it: a tiny study (2 variants x 1 seed, 600 env steps each, both
+runs in flight together) interrupted with Ctrl-C while its runs are in flight, rerun to completion, then
+rerun again (nothing left to do); and bad input refused before anything is created. (Several seeds per
+variant: tests/test_analysis.py's studies.)
 
 ``--steps 600`` is 50 start-up steps (a tenth, in whole 50-step blocks) + 550 iterations, evaluated
 every 250 iterations and at the end.
@@ -23,10 +24,10 @@ from rlpipe.scripts.cli import main
 
 CLI = [sys.executable, "-m", "rlpipe.scripts.cli"]
 VARIANTS = ("full", "no_clipped_double_q")
-STUDY = ["ablate", "td3", "--envs", "Pendulum-v1", "--seeds", "2", "--steps", "600", "--evals", "2",
+STUDY = ["ablate", "td3", "--envs", "Pendulum-v1", "--seeds", "1", "--steps", "600", "--evals", "2",
          "--eval-episodes", "1", "--variants", ",".join(VARIANTS), "--workers", "2"]
 SMALL = ["actor_fc_layer_params=[32]", "critic_fc_layer_params=[32]", "batch_size=32"]  # the study is the subject
-RUNS = [(variant, seed) for variant in VARIANTS for seed in (0, 1)]
+RUNS = [(variant, seed) for variant in VARIANTS for seed in (0,)]
 
 
 def run_dir(out: Path, variant: str, seed: int) -> Path:
@@ -262,7 +263,7 @@ def test_every_env_is_checked_before_a_run_starts_and_box2d_envs_pass(tmp_path):
 
     args = _parser().parse_args([*_args(tmp_path / "study", ["--envs", "LunarLanderContinuous-v3,BipedalWalker-v3"])])
     jobs = plan(args)
-    assert {j.env for j in jobs} == {"LunarLanderContinuous-v3", "BipedalWalker-v3"} and len(jobs) == 8
+    assert {j.env for j in jobs} == {"LunarLanderContinuous-v3", "BipedalWalker-v3"} and len(jobs) == 2 * len(RUNS)
     assert not (tmp_path / "study").exists()
 
 

@@ -115,24 +115,6 @@ def cluster():
 
 
 @pytest.mark.slow
-def test_td3_on_a_two_node_ray_cluster_stopped_by_ctrl_c_then_resumed(cluster, tmp_path):
-    """A run joins the cluster, is stopped by Ctrl-C (checkpoint, exit 130) and resumed there; the
-    cluster stays up throughout, and neither run leaves a process behind."""
-    run = tmp_path / "run"
-    args = ["td3", *TINY, "collector.sync=false", f"ray.address={cluster.address}", "--out", "run"]
-    proc, sid = train(args, tmp_path, env={"RLPIPE_FAULT": "evaluate@150"})
-    assert proc.returncode == 130, proc.stderr[-3000:]
-    assert (run / "checkpoints" / "step_0000000150").is_dir()
-    assert_no_leftovers(sid)
-    assert cluster.remaining_processes_alive()
-    proc, sid = train(["td3", "--resume", "run"], tmp_path)
-    assert_finished(run, proc)
-    assert_no_leftovers(sid)
-    assert cluster.remaining_processes_alive()
-    assert json.loads((run / "config.json").read_text())["config"]["ray"]["address"] == cluster.address
-
-
-@pytest.mark.slow
 def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
     """Also with the evaluation in the background, which runs on a Ray actor (a Ray worker process,
     not a child of the learner)."""
@@ -267,15 +249,26 @@ RESUME_ARGS = ["td3", "num_iterations=200", "initial_collect_steps=100", "eval_i
 
 
 @pytest.mark.slow
-def test_ray_collectors_stopped_by_ctrl_c_and_resumed_equal_the_uninterrupted_run(tmp_path):
-    """Killed and resumed equals uninterrupted on Ray (tests/test_resume_exact.py does the processes): the actors'
+def test_ray_collectors_on_a_two_node_cluster_stopped_by_ctrl_c_and_resumed_there_equal_the_uninterrupted_run(
+        cluster, tmp_path):
+    """A run joins the cluster, is stopped by Ctrl-C (a checkpoint, no summary) and resumed there (the address kept in
+    its config); it equals the uninterrupted run (tests/test_resume_exact.py does the processes): the actors'
     generators are seeded (TorchRL's Ray set_seed seeds the env alone) and their envs' episodes go through
-    checkpoints as the processes' do."""
+    checkpoints as the processes' do. The cluster stays up throughout and keeps no actor of the runs."""
+    args = [*RESUME_ARGS, f"ray.address={cluster.address}"]
     reference = tmp_path / "uninterrupted" / "run"
     reference.parent.mkdir()
-    done = _train(RESUME_ARGS, reference)
+    done = _train(args, reference)
     assert done.returncode == 0, done.stderr[-3000:]
-    _assert_same_run(reference, _stopped_and_resumed(RESUME_ARGS, "SIGINT", 150, tmp_path))
+    run = _stopped_and_resumed(args, "SIGINT", 150, tmp_path)
+    _assert_same_run(reference, run)
+    assert json.loads((run / "config.json").read_text())["config"]["ray"]["address"] == cluster.address
+    assert cluster.remaining_processes_alive()
+    deadline = time.monotonic() + 60  # the runs' actors end with their drivers (not detached)
+    while (left := [_cmdline(p) for p in Path("/proc").glob("[0-9]*") if _is_collector_actor(p)]) \
+            and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not left, left
 
 
 def _is_collector_actor(proc_dir: Path) -> bool:

@@ -4,7 +4,8 @@ processes outlive a killed learner; then SAC and TD3 learning Pendulum with Ray 
 
 Runs are real ``rlpipe train`` processes, each in a session of its own: what a run's local Ray
 instance started is found by that session (other Ray instances may run on this machine at the
-same time), and a joined cluster's actors by their node's raylet (the cluster is the test's own).
+same time), and a joined cluster's actors by their node's raylet (the cluster is this file's own, shared by
+its last two tests, which run after the local-Ray ones).
 Faults come at exact points (``RLPIPE_FAULT``): a node is removed while the learner holds itself
 stopped (SIGSTOP) right after a block, never after a sleep.
 """
@@ -173,9 +174,10 @@ def log_rows(rows):
 # --- clusters ------------------------------------------------------------------------------------------
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def cluster():
-    """A Ray cluster of two nodes on this machine, a CPU each (as tests/test_ray.py's)."""
+    """A Ray cluster of two nodes on this machine, a CPU each (as tests/test_ray.py's), shared by this file's tests:
+    each checks that its runs left it up and without their actors."""
     from ray.cluster_utils import Cluster
 
     c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
@@ -248,7 +250,7 @@ def test_an_actor_that_stops_answering_is_killed_at_the_deadline_and_replaced(tm
     100: the learner's next block is not back within collector.timeout, so the actor is killed (the
     supervisor's deadline, ``RayBackend.kill``) and the collector started again."""
     run = tmp_path / "run"
-    proc = start([*RUN, "collector.workers=1", "collector.sync=true", "collector.timeout=30", "--out", "run"],
+    proc = start([*RUN, "collector.workers=1", "collector.sync=true", "collector.timeout=10", "--out", "run"],
                  tmp_path, fault="collected@100:SIGSTOP:self")
     try:
         wait_stopped(proc)
@@ -262,45 +264,10 @@ def test_an_actor_that_stops_answering_is_killed_at_the_deadline_and_replaced(tm
             _kill_session(proc.pid)
             proc.communicate()
     assert code == 0, err[-3000:]
-    assert "a block of env steps was not back within 30 s; restarting the collector (restart 1 of" in err, err[-3000:]
+    assert "a block of env steps was not back within 10 s; restarting the collector (restart 1 of" in err, err[-3000:]
     logged = log_rows(assert_whole_run(run))
     assert [r["collector_restarts"] for r in logged] == ["0", "0"] + ["1"] * 4, logged
     assert_no_leftovers(proc.pid)
-
-
-# --- SIGTERM, then --resume -----------------------------------------------------------------------------
-
-
-@pytest.mark.slow
-def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(cluster, tmp_path):
-    """SIGTERM to the learner alone right after the block of iteration 100: it saves a checkpoint at its
-    next safe point and exits 143, leaving the cluster up and no process of its own; ``--resume`` joins the same
-    cluster and finishes; the counters go on from the checkpoint (frames and updates exactly the
-    run's), and no metrics row is lost or written twice."""
-    run = tmp_path / "run"
-    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={cluster.address}",
-                            "--out", "run"], tmp_path, fault="collected@100:SIGTERM:self")
-    assert code == 143, err[-3000:]
-    last = [line for line in err.splitlines() if line.startswith("rlpipe:")][-1]
-    assert last.startswith("rlpipe: interrupted by SIGTERM") and "--resume" in last, err[-3000:]
-    # its next safe point: the triggers of iteration 150 (no update is owed before 256 frames); the
-    # checkpoint saved there records them as owed, and --resume does them first
-    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000150"
-    assert [int(r["step"]) for r in log_rows(metrics_rows(run))] == [50, 100]
-    assert_no_leftovers(sid)
-    poll_until(lambda: not collector_actors(cluster), "the stopped run's actors are still there")
-    assert cluster.remaining_processes_alive()
-
-    code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
-    assert code == 0, err[-3000:]
-    rows = assert_whole_run(run)
-    # (the row of 150, owed by the stopped run, is written before the resumed run's actors start)
-    logged = [r for r in log_rows(rows) if r["step"] != "150"]
-    assert all(r["collector_restarts"] == "0" and r["workers_alive"] == "2" for r in logged), logged
-    # the weights' version goes on from the checkpoint's update count
-    assert [int(r["weight_version"]) for r in logged] == [int(r["updates"]) for r in logged]
-    assert_no_leftovers(sid)
-    assert cluster.remaining_processes_alive()
 
 
 # --- kill -9 of the learner, then --resume ----------------------------------------------------------------
@@ -313,12 +280,12 @@ def test_kill_9_of_a_learner_with_a_local_ray_leaves_no_ray_process_and_resumes(
     fate-sharing with the driver that started them: the kernel kills them with it. The actors see
     their raylet gone and exit within seconds; Ray's dashboard and runtime-env agents see it within
     2 s, then try to tell the dead GCS for 60 s, a timeout fixed in Ray 2.60, and exit.) The run
-    resumes from its last checkpoint (one interval lost at most), whole."""
+    resumes from its last checkpoint (one interval lost at most), whole, at once: with a new local
+    Ray beside the old one's agents while they wait out their timeout."""
     run = tmp_path / "run"
-    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", "--out", "run"], tmp_path,
-                           fault="collected@250:SIGKILL:self")
+    code, err, killed_sid = train([*RUN, "collector.workers=2", "collector.sync=false", "--out", "run"], tmp_path,
+                                  fault="collected@250:SIGKILL:self")
     assert code == -signal.SIGKILL, err[-3000:]
-    assert_no_leftovers(sid, timeout=180)
     assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000200"
     assert int(log_rows(metrics_rows(run))[-1]["step"]) == 250  # rows past the checkpoint, dropped on resume
 
@@ -326,30 +293,7 @@ def test_kill_9_of_a_learner_with_a_local_ray_leaves_no_ray_process_and_resumes(
     assert code == 0, err[-3000:]
     assert_whole_run(run)
     assert_no_leftovers(sid)
-
-
-@pytest.mark.slow
-def test_kill_9_of_a_learner_inside_a_checkpoint_write_on_a_cluster_ends_its_actors_and_resumes(cluster, tmp_path):
-    """kill -9 of a learner that joined a cluster, halfway through writing the checkpoint of iteration
-    200: Ray ends the dead driver's actors (they are not detached), the cluster stays up, and
-    ``--resume`` there goes on from the checkpoint before (100) and finishes, whole: no corrupt file,
-    no row lost or doubled."""
-    run = tmp_path / "run"
-    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={cluster.address}",
-                            "--out", "run"], tmp_path, fault="checkpoint.write@200:SIGKILL:self")
-    assert code == -signal.SIGKILL, err[-3000:]
-    assert [p.name.split("-")[0] for p in (run / "checkpoints").glob(".tmp-*")] == [".tmp"], "the kill left no trace?"
-    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000100"
-    assert_no_leftovers(sid)
-    poll_until(lambda: not collector_actors(cluster), f"the dead learner's actors live on: {collector_actors(cluster)}",
-               timeout=120)
-    assert cluster.remaining_processes_alive()
-
-    code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
-    assert code == 0, err[-3000:]
-    assert_whole_run(run)
-    assert_no_leftovers(sid)
-    assert cluster.remaining_processes_alive()
+    assert_no_leftovers(killed_sid, timeout=180)
 
 
 # --- it learns, with Ray collectors -----------------------------------------------------------------------
@@ -385,3 +329,62 @@ def test_learns_pendulum_with_ray_collectors(run_dir, pipeline, overrides, itera
         f"{pipeline.algo.upper()} did not learn Pendulum-v1: {last['average_return']:.0f}"
     logged = [r for r in result.metrics if r.get("workers_alive")]
     assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
+
+
+# --- on a cluster the file's tests share (its fixture): SIGTERM, kill -9, then --resume --------------------
+
+
+@pytest.mark.slow
+def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(cluster, tmp_path):
+    """SIGTERM to the learner alone right after the block of iteration 100: it saves a checkpoint at its
+    next safe point and exits 143, leaving the cluster up and no process of its own; ``--resume`` joins the same
+    cluster and finishes; the counters go on from the checkpoint (frames and updates exactly the
+    run's), and no metrics row is lost or written twice."""
+    run = tmp_path / "run"
+    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={cluster.address}",
+                            "--out", "run"], tmp_path, fault="collected@100:SIGTERM:self")
+    assert code == 143, err[-3000:]
+    last = [line for line in err.splitlines() if line.startswith("rlpipe:")][-1]
+    assert last.startswith("rlpipe: interrupted by SIGTERM") and "--resume" in last, err[-3000:]
+    # its next safe point: the triggers of iteration 150 (no update is owed before 256 frames); the
+    # checkpoint saved there records them as owed, and --resume does them first
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000150"
+    assert [int(r["step"]) for r in log_rows(metrics_rows(run))] == [50, 100]
+    assert_no_leftovers(sid)
+    poll_until(lambda: not collector_actors(cluster), "the stopped run's actors are still there")
+    assert cluster.remaining_processes_alive()
+
+    code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
+    assert code == 0, err[-3000:]
+    rows = assert_whole_run(run)
+    # (the row of 150, owed by the stopped run, is written before the resumed run's actors start)
+    logged = [r for r in log_rows(rows) if r["step"] != "150"]
+    assert all(r["collector_restarts"] == "0" and r["workers_alive"] == "2" for r in logged), logged
+    # the weights' version goes on from the checkpoint's update count
+    assert [int(r["weight_version"]) for r in logged] == [int(r["updates"]) for r in logged]
+    assert_no_leftovers(sid)
+    assert cluster.remaining_processes_alive()
+
+
+@pytest.mark.slow
+def test_kill_9_of_a_learner_inside_a_checkpoint_write_on_a_cluster_ends_its_actors_and_resumes(cluster, tmp_path):
+    """kill -9 of a learner that joined a cluster, halfway through writing the checkpoint of iteration
+    200: Ray ends the dead driver's actors (they are not detached), the cluster stays up, and
+    ``--resume`` there goes on from the checkpoint before (100) and finishes, whole: no corrupt file,
+    no row lost or doubled."""
+    run = tmp_path / "run"
+    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={cluster.address}",
+                            "--out", "run"], tmp_path, fault="checkpoint.write@200:SIGKILL:self")
+    assert code == -signal.SIGKILL, err[-3000:]
+    assert [p.name.split("-")[0] for p in (run / "checkpoints").glob(".tmp-*")] == [".tmp"], "the kill left no trace?"
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000100"
+    assert_no_leftovers(sid)
+    poll_until(lambda: not collector_actors(cluster), f"the dead learner's actors live on: {collector_actors(cluster)}",
+               timeout=120)
+    assert cluster.remaining_processes_alive()
+
+    code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
+    assert code == 0, err[-3000:]
+    assert_whole_run(run)
+    assert_no_leftovers(sid)
+    assert cluster.remaining_processes_alive()

@@ -25,7 +25,6 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 __all__ = [
     "AGG_RESAMPLES",
@@ -86,6 +85,8 @@ def iqm(scores: np.ndarray) -> float:
     ``aggregate_iqm``); NaN when none is finite."""
     x = np.asarray(scores, dtype=float).ravel()
     x = x[np.isfinite(x)]
+    from scipy import stats
+
     return float(stats.trim_mean(x, 0.25)) if x.size else float("nan")
 
 
