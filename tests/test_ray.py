@@ -24,6 +24,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_collectors import wait_until
 from test_resume_exact import _assert_same_run, _stopped_and_resumed, _train
 
 from rlpipe.pipelines import td3
@@ -255,11 +256,10 @@ def test_ray_collectors_on_a_two_node_cluster_stopped_by_ctrl_c_and_resumed_ther
     _assert_same_run(reference, run)
     assert json.loads((run / "config.json").read_text())["config"]["ray"]["address"] == cluster.address
     assert cluster.remaining_processes_alive()
-    deadline = time.monotonic() + 60  # the runs' actors end with their drivers (not detached)
-    while (left := [_cmdline(p) for p in Path("/proc").glob("[0-9]*") if _is_collector_actor(p)]) \
-            and time.monotonic() < deadline:
-        time.sleep(0.5)
-    assert not left, left
+    def actors() -> list[str]:
+        return [_cmdline(p) for p in Path("/proc").glob("[0-9]*") if _is_collector_actor(p)]
+
+    assert wait_until(lambda: not actors(), 60), actors()  # the runs' actors end with their drivers (not detached)
 
 
 def _is_collector_actor(proc_dir: Path) -> bool:
