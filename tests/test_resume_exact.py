@@ -190,10 +190,11 @@ def _assert_same_run(a: Path, b: Path) -> None:
 
 DQN_ARGS = ["dqn", "num_iterations=300", "initial_collect_steps=100", "eval_interval=100",
             "num_eval_episodes=2", "log_interval=50", "checkpoint_interval=100"]
-# collector processes: in the learner's process (the td3 preset's own collection) the resumed run's losses differ
-# from step 151 on (found 2026-11-28, not yet explained; see the session's note)
+# In the learner's process, in lock-step (collector.sync=true): the td3 preset's own collection, one worker process
+# stepping asynchronously (sync=false), is not exact by design and its summary says so (the test below), and the
+# collector processes' way is the sac runs'.
 TD3_ARGS = ["td3", "num_iterations=200", "initial_collect_steps=100", "eval_interval=100",
-            "num_eval_episodes=1", "log_interval=50", "checkpoint_interval=100", "collector.workers=2",
+            "num_eval_episodes=1", "log_interval=50", "checkpoint_interval=100", "collector.workers=1",
             "collector.sync=true", "batch_size=64"]
 
 
@@ -230,7 +231,7 @@ def test_dqn_stopped_by_ctrl_c_and_resumed_equals_the_uninterrupted_run(uninterr
 
 # Each way of stopping is checked once or twice (Ctrl-C and SIGTERM save where they stop through the same path;
 # kill -9 saves nothing and the run goes on from its last checkpoint), and each collection path once: in the
-# learner's process (dqn, the Minitaur), collector processes (td3, sac), Ray actors (tests/test_ray.py). A resumed
+# learner's process (dqn, td3, the Minitaur), collector processes (sac), Ray actors (tests/test_ray.py). A resumed
 # run equal to the uninterrupted one also says that the same seed twice gives the same run.
 
 
@@ -241,7 +242,7 @@ def test_dqn_killed_and_resumed_equals_the_uninterrupted_run(uninterrupted, tmp_
 
 
 @pytest.mark.slow
-def test_td3_with_collector_processes_killed_and_resumed_equals_the_uninterrupted_run(uninterrupted, tmp_path):
+def test_td3_killed_and_resumed_equals_the_uninterrupted_run(uninterrupted, tmp_path):
     _assert_same_run(uninterrupted(TD3_ARGS), _stopped_and_resumed(TD3_ARGS, "SIGKILL", 150, tmp_path))
 
 
@@ -259,7 +260,7 @@ SAC_ARGS = ["sac", "env=Pendulum-v1", "num_iterations=200", "initial_collect_ste
             "num_eval_episodes=1", "log_interval=50", "checkpoint_interval=100", "collector.workers=2",
             "collector.sync=true", "eval_in_background=false", "batch_size=64"]
 # In the learner's process: the pybullet replay is the env's own (the same in a collector process, whose snapshots'
-# way through the pipes the td3 and sac runs check)
+# way through the pipes the sac runs check)
 MINITAUR_ARGS = ["sac", "num_iterations=150", "initial_collect_steps=100", "eval_interval=0", "num_eval_episodes=1",
                  "log_interval=50", "checkpoint_interval=100", "collector.workers=1", "collector.sync=true",
                  "eval_in_background=false", "batch_size=64", "baseline_episodes=0"]
