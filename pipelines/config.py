@@ -279,7 +279,7 @@ class TrainConfig:
     eval_in_background: bool = False
     """evaluate in a separate process on a snapshot of the policy while training goes on; results land at the iteration they were taken"""
     live_report: bool = True
-    """refresh RUN/report.html from the log rows too (the first row at once, later ones within ~2% of the run's time); false: at evaluations and at the end only (a preset sized for time to a target: the first page costs about a second, a tenth of a Pendulum run)"""
+    """refresh RUN/report.html and RUN/returns.png while the run goes on, at evaluations and log rows (the first of each at once, later ones within ~2% of the run's time); false: at the end only, and when the run stops early (a preset sized for time to a target: the first page costs about a second, a tenth of a Pendulum run)"""
     eval_timeout: float = checked(600.0, POSITIVE)
     """seconds a background evaluation may take before its process counts as failed (it is restarted and asked again, as for `collector.max_restarts`)"""
     log_interval: int = checked(1000, POSITIVE)

@@ -403,14 +403,35 @@ def test_a_stopped_runs_page_and_figures_tell_the_truth_through_its_resume(tmp_p
 
 
 def test_live_report_false_writes_the_page_at_the_end_only(tmp_path):
-    """The sized presets' setting: no page from the log rows (the first costs 1-2 s of a 10-s run), one at the end."""
-    args = ["train", "dqn", *TINY, "eval_interval=0", "initial_eval=false", "live_report=false", "log_interval=50",
+    """The sized presets' setting: no page or plot from the log rows or evaluations (the first page costs 1-2 s of a
+    10-s run), both at the end."""
+    args = ["train", "dqn", *TINY, "eval_interval=50", "initial_eval=false", "live_report=false", "log_interval=50",
             "--no-progress", "--out", "run"]
     run = tmp_path / "run"
     with held(args, tmp_path, "collected@150") as proc:
-        assert [int(r["step"]) for r in metric_rows(run) if r["steps_per_s"]][:2] == [50, 100]  # log rows were written
-        assert not (run / "report.html").exists()
+        rows = metric_rows(run)
+        assert [int(r["step"]) for r in rows if r["steps_per_s"]][:2] == [50, 100]  # log rows were written
+        assert [int(r["step"]) for r in rows if r["average_return"]][:2] == [50, 100]  # and evaluations
+        assert not (run / "report.html").exists() and not (run / "returns.png").exists()
         resume_go_on(proc)
         code, _, err = finish(proc)
     assert code == 0, err
     assert facts_of((run / "report.html").read_text())["status"] == "finished"
+    assert (run / "returns.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_page_and_plot_follow_evaluations_at_a_bounded_cost(trained, tmp_path):
+    """The DQN tutorial evaluates 21 times in a ~30-s run: drawing at each one took 14 s of it. The first evaluation
+    draws at once; one soon after waits (the page's bound); the run's end draws what came since."""
+    from rlpipe.pipelines.training.page import ReportPage
+
+    run = copy_of(trained, tmp_path / "run")
+    (run / "returns.png").unlink()
+    evaluations = [{"step": 0, "average_return": 10.0, "average_episode_length": 10.0}]
+    page = ReportPage(run, evaluations, title="dqn on CartPole-v0")
+    assert page.evaluated() and (run / "returns.png").exists() and (run / "report.html").exists()
+    first = (run / "returns.png").read_bytes()
+    evaluations.append({"step": 100, "average_return": 200.0, "average_episode_length": 200.0})
+    assert not page.evaluated() and (run / "returns.png").read_bytes() == first  # within the bound: not drawn
+    page.write(running=False)
+    assert (run / "returns.png").read_bytes() != first  # the end: both points

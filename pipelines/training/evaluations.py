@@ -3,7 +3,8 @@ actor (started, restarted when it fails, its results taken and recorded), and th
 baseline played once at the start.
 
 An evaluation's result becomes a metrics row (``average_return``, ``average_episode_length``), the
-tutorials' live line, a point of RUN/returns.png and a refreshed RUN/report.html.
+tutorials' live line, and (``live_report``, at a bounded cost: ``page``) a point of RUN/returns.png and a
+refreshed RUN/report.html.
 """
 
 from __future__ import annotations
@@ -128,17 +129,14 @@ class Evaluations:
                 failure = WorkerFailure("evaluator", f"the evaluator did not start again: {exc}")
 
     def record(self, result: dict[str, Any], at: dict[str, int]) -> None:
-        from rlpipe.pipelines.analysis import plot_training_returns  # matplotlib: imported when first needed
-
         loop = self.loop
         loop.evaluations.append({**at, **result})
         loop.log({"average_return": result["average_return"],
                   "average_episode_length": result["average_episode_length"], "wall_time": loop.clock.wall()}, at)
         loop.echo(eval_line(at["step"], result, *loop.speeds()))
-        with loop.clock.paused():  # from the evaluations in memory: metrics.csv is not read again
-            plot_training_returns(loop.evaluations, loop.run_dir.returns_png,
-                                  title=f"{loop.pipeline.algo} on {loop.config.env}")
-            loop.page.write()
+        if loop.config.live_report:
+            with loop.clock.paused():  # returns.png from the evaluations in memory, and the page: at a bounded cost
+                loop.page.evaluated()
         loop.bar.set_postfix(avg_return=f"{loop.last_return:.1f}", refresh=False)
 
     def measure_random_baseline(self) -> None:

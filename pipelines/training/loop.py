@@ -95,7 +95,7 @@ class Loop:
         self.logger, self.callbacks = logger, list(callbacks)
         self.clock = Clock(self.state.wall_time_s, self.state.train_time_s)  # a resumed run's earlier stretches
         self.interval_stats, self.stop = IntervalStats(), DeferredInterrupt()
-        self.page = ReportPage(run.path)
+        self.page = ReportPage(run.path, evaluations, title=f"{pipeline.algo} on {self.config.env}")
         if self.state.interval is not None:
             self.interval_stats.load_state_dict(self.state.interval)
         self.supervisor = Supervisor(self.config.collector.max_restarts, self.config.collector.timeout)

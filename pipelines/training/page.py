@@ -1,12 +1,14 @@
-"""The run's ``report.html`` as the run writes it: at every evaluation, with the log rows at a bounded cost,
-and once more when the run stops early (saying so, and how to continue).
+"""The run's ``report.html`` and ``returns.png`` as the run writes them: at evaluations and log rows at a bounded
+cost, at the end, and when the run stops early (saying so, and how to continue).
 
-A page costs about 0.9 s to write on this 2-core machine (three SVG figures and the tables; 1.7 s with
-10,000 log rows, measured with ``write_run_report`` on a DQN run directory), too much for every log row
-of a fast run: the first log row of a run (or of its resumed stretch) refreshes it, so that its losses and
-speeds show from the start; a later one only when ``MIN_INTERVAL_S`` have passed since it was last written
-and at least ``COST_RATIO`` times the last write's cost, so the page never takes more than about 2% of
-the run's time.
+A page costs about 0.55 s to write on this 2-core machine and ``returns.png`` 0.13 s more (three SVG figures
+and the tables; 1.7 s with 10,000 log rows, measured with ``write_run_report`` on a DQN run directory): too much
+for every log row of a fast run, and for every evaluation of one (the DQN tutorial evaluates 21 times in a
+~30-s run: 14 s of it went to drawing, 2026-11-28). With ``live_report`` the first log row and the first
+evaluation of a run (or of its resumed stretch) write them at once, so that its losses, speeds and first
+return show from the start; a later one only when ``MIN_INTERVAL_S`` have passed since they were last written
+and at least ``COST_RATIO`` times the last write's cost, so they never take more than about 2% of the run's
+time. The run's end (``write(running=False)``) always writes both.
 """
 
 from __future__ import annotations
@@ -21,27 +23,51 @@ COST_RATIO = 50.0
 
 
 class ReportPage:
-    """``RUN/report.html`` of the run in ``path``, written by the run."""
+    """``RUN/report.html`` and ``RUN/returns.png`` of the run in ``path``, written by the run.
 
-    def __init__(self, path: Path):
+    ``evaluations`` is the run's list of evaluation results (the loop appends to it); ``title`` the plot's."""
+
+    def __init__(self, path: Path, evaluations: list[dict] | None = None, title: str = ""):
         self.path = Path(path)
+        self.evaluations = evaluations if evaluations is not None else []
+        self.title = title
         self.written_at: float | None = None  # time.monotonic() of the last write
         self.cost_s = 0.0  # how long the last write took
         self.log_shown = False  # whether a log row has refreshed it yet
+        self.evaluation_shown = False  # whether an evaluation has refreshed it yet
+        self._plotted = -1  # how many evaluations returns.png shows (-1: not drawn by this run yet)
 
     def write(self, running: bool = True) -> None:
-        """The page from what the run directory holds now; ``running=False``: the run is stopping early."""
-        from rlpipe.pipelines.analysis.pages import write_run_report  # matplotlib: imported when first needed
+        """``returns.png`` (where evaluations came since it was drawn) and the page from what the run directory
+        holds now; ``running=False``: the run is finishing or stopping early."""
+        from rlpipe.pipelines.analysis import plot_training_returns  # matplotlib: imported when first needed
+        from rlpipe.pipelines.analysis.pages import write_run_report
 
         start = time.monotonic()
+        if len(self.evaluations) != self._plotted:
+            plot_training_returns(self.evaluations, self.path / "returns.png", title=self.title)
+            self._plotted = len(self.evaluations)
         write_run_report(self.path, running=running)
         self.written_at = time.monotonic()
         self.cost_s = self.written_at - start
 
+    def due(self) -> bool:
+        """Whether a write now keeps within the bound (see the module's docstring)."""
+        return (self.written_at is None
+                or time.monotonic() - self.written_at >= max(MIN_INTERVAL_S, COST_RATIO * self.cost_s))
+
     def refresh(self) -> bool:
-        """After a log row: write the page if it is due (see the module's docstring); whether it was written."""
-        if self.log_shown and time.monotonic() - self.written_at < max(MIN_INTERVAL_S, COST_RATIO * self.cost_s):
+        """After a log row: write if it is due (the first log row at once); whether it was written."""
+        if self.log_shown and not self.due():
             return False
         self.write()
         self.log_shown = True
+        return True
+
+    def evaluated(self) -> bool:
+        """After an evaluation: write if it is due (the first evaluation at once); whether it was written."""
+        if self.evaluation_shown and not self.due():
+            return False
+        self.write()
+        self.evaluation_shown = True
         return True

@@ -23,7 +23,6 @@ from rlpipe.pipelines.artifacts.files import STORAGE_ERRNOS, FileWriteError, wri
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_dir, notice
 from rlpipe.pipelines.config import config_to_dict
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.training.evaluations import write_report
 from rlpipe.pipelines.training.loop import Loop, TrainResult
 from rlpipe.pipelines.training.meters import Clock
 from rlpipe.pipelines.training.state import EVAL, RunState
@@ -94,7 +93,7 @@ class Run:
         for trigger in loop.triggers.values():
             summary.update(getattr(trigger, "summary", lambda _: {})(loop))  # a trigger not made from ``Trigger``: none
         write_json_atomic(loop.run_dir.summary_path, summary)
-        write_report(loop.run_dir.path, running=False)  # it still holds the run's lock: done, all the same
+        loop.page.write(running=False)  # returns.png and the page; it still holds the run's lock: done, all the same
         return TrainResult(policy=self.pipeline.policy, run_dir=loop.run_dir.path, metrics=loop.metrics.rows(),
                            summary=summary, evaluations=loop.evaluations)
 
