@@ -71,9 +71,14 @@ def test_gym_collectors_steps_land_in_the_same_parts():
     worker = (("_main_async_collector", "/site-packages/torchrl/collectors/_runner.py"),
               ("Collector.iterator", "/site-packages/torchrl/collectors/_single.py"),
               ("GymCollector.rollout", gc), ("GymCollector._rollout", gc))
-    assert bp.classify_worker((*worker, ("_egreedy_step.<locals>.act", "/work/rlpipe/modules/tensor_policy.py"),
-                               ("Module._call_impl", "/site-packages/torch/nn/modules/module.py"))) == "collection policy"
+    steps = ("GymCollector._steps", gc)  # its per-step loop
+    policy = (("_egreedy_step.<locals>.act", "/work/rlpipe/modules/tensor_policy.py"),
+              ("EGreedyQPolicy.act", "/work/rlpipe/modules/exploration.py"))
+    assert bp.classify_worker((*worker, *policy)) == "collection policy"
+    assert bp.classify_worker((*worker, steps, *policy)) == "collection policy"
     assert bp.classify_worker((*worker, ("CartPoleEnv.step", "/site-packages/gymnasium/envs/classic_control/cartpole.py"))
+                              ) == "env step"
+    assert bp.classify_worker((*worker, steps, ("TimeLimit.step", "/site-packages/gymnasium/wrappers/common.py"))
                               ) == "env step"
     assert bp.classify_worker((*worker, ("GymCollector._block", gc))) == \
         "collector bookkeeping (trajectory ids, stacking, copies)"
@@ -81,6 +86,12 @@ def test_gym_collectors_steps_land_in_the_same_parts():
                ("Loop.collect", "/work/rlpipe/pipelines/training/loop.py"), *worker[1:])
     assert bp.classify_learner((*learner, ("TimeLimit.step", "/site-packages/gymnasium/wrappers/common.py"))) == \
         "env step (in-process collector)"
+    assert bp.classify_learner((*learner, steps, *policy)) == "collection policy (in-process collector)"
+    # rlpipe's own replay sample (pipelines/training/sampling.py), not ReplayBuffer.sample
+    updates = (("Loop.run", "/work/rlpipe/pipelines/training/loop.py"),
+               ("Loop.pay_updates", "/work/rlpipe/pipelines/training/loop.py"))
+    assert bp.classify_learner((*updates, ("sample", "/work/rlpipe/pipelines/training/sampling.py"),
+                                ("_gather", "/work/rlpipe/pipelines/training/sampling.py"))) == "replay sample"
 
 
 def test_processes_roles_and_shares():

@@ -112,7 +112,10 @@ def _rollout(stack: tuple[Frame, ...]) -> tuple[Frame, ...] | None:
     """The frames below a collector's per-step loop: TorchRL's ``Collector.rollout``, or ``GymCollector``'s
     own (``GymCollector._rollout``, which steps the gymnasium env directly); None outside one."""
     frames = _after(stack, "GymCollector._rollout")
-    return frames if frames is not None else _after(stack, "Collector.rollout")
+    if frames is not None:  # its per-step loop is ``_steps``: what that calls is the step's work
+        steps = _after(frames, "GymCollector._steps")
+        return steps if steps is not None else frames
+    return _after(stack, "Collector.rollout")
 
 
 def _is_env(stack: tuple[Frame, ...]) -> bool:
@@ -139,7 +142,7 @@ def classify_learner(stack: tuple[Frame, ...], in_process: bool = False) -> str:
     if top == "Loop.pay_updates":
         if _has(loop, "push_weights"):
             return "weight push to collectors"
-        if _has(loop, "ReplayBuffer.sample"):
+        if _has(loop, "ReplayBuffer.sample") or _has(loop, path="/training/sampling.py"):  # rlpipe's own gather
             return "replay sample"
         if _has(loop, path="target_updates.py") or _has(loop, "Update.step"):
             return "update: target update"
