@@ -134,7 +134,7 @@ class Evaluations:
         loop.log({"average_return": result["average_return"],
                   "average_episode_length": result["average_episode_length"], "wall_time": loop.clock.wall()}, at)
         loop.echo(eval_line(at["step"], result, *loop.speeds()))
-        if loop.config.live_report:
+        if loop.config.live_report and at["step"] < loop.config.num_iterations:  # the last: the run's end draws it
             with loop.clock.paused():  # returns.png from the evaluations in memory, and the page: at a bounded cost
                 loop.page.evaluated()
         loop.bar.set_postfix(avg_return=f"{loop.last_return:.1f}", refresh=False)
