@@ -58,16 +58,15 @@ class ReportPage:
 
     def refresh(self) -> bool:
         """After a log row: write if it is due (the first log row at once); whether it was written."""
-        if self.log_shown and not self.due():
-            return False
-        self.write()
-        self.log_shown = True
-        return True
+        return self._write_if_due("log_shown")
 
     def evaluated(self) -> bool:
         """After an evaluation: write if it is due (the first evaluation at once); whether it was written."""
-        if self.evaluation_shown and not self.due():
+        return self._write_if_due("evaluation_shown")
+
+    def _write_if_due(self, shown: str) -> bool:
+        if getattr(self, shown) and not self.due():
             return False
         self.write()
-        self.evaluation_shown = True
+        setattr(self, shown, True)
         return True
