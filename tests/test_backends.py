@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 import warnings
 
 import psutil
@@ -30,6 +31,8 @@ pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 BLOCK, BLOCKS = 50, 8
 PUSH_AFTER = 2  # blocks taken before the learner's weights change and are pushed
+BUSY_S = 2.5  # the learner busy after each of those (an evaluation, a checkpoint): past TorchRL's 1-s hand-over timeout
+EPISODE = 200  # Pendulum-v1's steps
 IN_FLIGHT = 2  # blocks after a push that may predate it (one per worker)
 BACKENDS = ["local", pytest.param("ray", marks=pytest.mark.slow)]
 
@@ -78,8 +81,12 @@ def collected(request) -> dict:
         try:
             backend.start(BLOCKS * BLOCK, 0, seed=1)
             out["health"] = backend.health()
-            blocks = iter(backend)
-            out["stale_before"] = [stale_frames(pipeline, next(blocks)) for _ in range(PUSH_AFTER)]
+            out["steps"] = steps = []
+            blocks = (b for b in backend if not steps.append(b["step_count"].reshape(-1).clone()))
+            out["stale_before"] = []
+            for _ in range(PUSH_AFTER):
+                out["stale_before"].append(stale_frames(pipeline, next(blocks)))
+                time.sleep(BUSY_S)  # the learner busy, the other worker's block waiting to be taken
             with torch.no_grad():  # an update, as far as the workers can tell
                 for p in pipeline.policy.parameters():
                     p.add_(0.3 * torch.randn_like(p))
@@ -110,6 +117,21 @@ def test_started_for_n_frames_it_gives_exactly_the_blocks_promised(collected):
     health = collected["health"]
     assert isinstance(health, Health) and health.total == 2 and health.failure is None, health
     assert len(set(health.pids)) == 2 and os.getpid() not in health.pids, health  # workers of their own
+
+
+def test_a_learner_slower_than_its_workers_loses_no_block(collected):
+    """TorchRL's MultiAsyncCollector has room in its queue for one block: a worker whose block waits there over 1 s
+    collects another over it and the first is lost (rlpipe's ``AsyncCollector`` has room for every worker's; Ray's
+    actors hand each block over on request). Each worker's env steps must arrive whole: its episodes' steps run
+    0, 1, 2, ... with none missing, however the blocks were shared between the two workers."""
+    steps = sorted(torch.cat(collected["steps"]).tolist())
+
+    def whole(frames: int) -> list[int]:  # one worker's step counts over `frames` frames of whole episodes
+        return [i % EPISODE for i in range(frames)]
+
+    assert len(steps) == BLOCKS * BLOCK
+    assert any(sorted(whole(a * BLOCK) + whole((BLOCKS - a) * BLOCK)) == steps for a in range(BLOCKS + 1)), \
+        (collected["kind"], [(int(s[0]), int(s[-1])) for s in collected["steps"]])
 
 
 def test_pushed_weights_reach_the_workers(collected):

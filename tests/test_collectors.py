@@ -419,25 +419,6 @@ def test_async_workers_all_deliver_frames(interrupted):
                                  f"the buffer: {stretches(data)}") from None
 
 
-def test_a_learner_slower_than_its_async_workers_loses_no_block():
-    """TorchRL's MultiAsyncCollector has room in its queue for one block: a worker whose block waits there over
-    1 s (the learner busy: an evaluation, a checkpoint, a slow update) collects another over it, and the first
-    is lost. rlpipe's ``AsyncCollector`` has room for every worker's."""
-    cfg = apply_overrides(td3.preset("td3"), [*SMALL_TD3, "collector.workers=2", "collector.sync=false"])
-    backend = td3.TD3(cfg).make_backend().start(10 * FRAMES_PER_BATCH, 0, seed=0)
-    blocks = []
-    try:
-        for block in backend:
-            blocks.append(block.reshape(-1).clone())
-            if len(blocks) <= 3:  # the learner busy past the 1 s, with the other worker's block in the queue
-                time.sleep(2.5)
-    finally:
-        backend.close()
-    data = torch.cat(blocks)
-    assert data.numel() == 10 * FRAMES_PER_BATCH
-    assert_frames_from_two_workers(data)
-
-
 @pytest.mark.parametrize("where, call", [
     # where a Ctrl-C lands most of the time: in the updates a block pays for (the 75th critic step,
     # paid by the block that takes iteration 50 -> 100)
