@@ -81,8 +81,14 @@ def collected(request) -> dict:
         try:
             backend.start(BLOCKS * BLOCK, 0, seed=1)
             out["health"] = backend.health()
-            out["steps"] = steps = []
-            blocks = (b for b in backend if not steps.append(b["step_count"].reshape(-1).clone()))
+            out["steps"] = steps = []  # each block's step counts, in the order taken
+
+            def taken():
+                for block in backend:
+                    steps.append(block["step_count"].reshape(-1).clone())
+                    yield block
+
+            blocks = taken()
             out["stale_before"] = []
             for _ in range(PUSH_AFTER):
                 out["stale_before"].append(stale_frames(pipeline, next(blocks)))
