@@ -19,7 +19,7 @@ import psutil
 import pytest
 import torch
 from tensordict import TensorDict
-from test_collectors import descendants, left_behind, time_limit, wait_until
+from test_collectors import assert_frames_from_two_workers, descendants, left_behind, time_limit, wait_until
 
 from rlpipe.pipelines import td3
 from rlpipe.pipelines.config import apply_overrides
@@ -81,11 +81,11 @@ def collected(request) -> dict:
         try:
             backend.start(BLOCKS * BLOCK, 0, seed=1)
             out["health"] = backend.health()
-            out["steps"] = steps = []  # each block's step counts, in the order taken
+            out["blocks"] = taken_blocks = []  # each block's step counts and trajectory ids, in the order taken
 
             def taken():
                 for block in backend:
-                    steps.append(block["step_count"].reshape(-1).clone())
+                    taken_blocks.append(block.select("step_count", ("collector", "traj_ids")).reshape(-1).clone())
                     yield block
 
             blocks = taken()
@@ -130,14 +130,20 @@ def test_a_learner_slower_than_its_workers_loses_no_block(collected):
     collects another over it and the first is lost (rlpipe's ``AsyncCollector`` has room for every worker's; Ray's
     actors hand each block over on request). Each worker's env steps must arrive whole: its episodes' steps run
     0, 1, 2, ... with none missing, however the blocks were shared between the two workers."""
-    steps = sorted(torch.cat(collected["steps"]).tolist())
+    steps = sorted(torch.cat([b["step_count"] for b in collected["blocks"]]).flatten().tolist())
 
     def whole(frames: int) -> list[int]:  # one worker's step counts over `frames` frames of whole episodes
         return [i % EPISODE for i in range(frames)]
 
     assert len(steps) == BLOCKS * BLOCK
     assert any(sorted(whole(a * BLOCK) + whole((BLOCKS - a) * BLOCK)) == steps for a in range(BLOCKS + 1)), \
-        (collected["kind"], [(int(s[0]), int(s[-1])) for s in collected["steps"]])
+        (collected["kind"], [(int(b["step_count"][0]), int(b["step_count"][-1])) for b in collected["blocks"]])
+
+
+def test_each_trajectory_id_is_one_episode_of_one_worker(collected):
+    """TorchRL's key for sampling by trajectory (``SliceSampler(traj_key=("collector", "traj_ids"))``): two workers'
+    episodes never share an id (each Ray actor numbered its own from 1 until ``ray.StridedTrajectoryPool``)."""
+    assert_frames_from_two_workers(torch.cat(collected["blocks"]))
 
 
 def test_pushed_weights_reach_the_workers(collected):

@@ -29,6 +29,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.collectors.utils import _TrajectoryPool  # TorchRL 0.14's; StridedTrajectoryPool says why
 
 from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS, set_model_version
 from rlpipe.pipelines.config import TrainConfig
@@ -316,8 +317,27 @@ def _ray_collectors(env_fn, policy, config: TrainConfig, *, total_frames: int, i
     return backend.start(total_frames, init_random_frames)
 
 
+class StridedTrajectoryPool(_TrajectoryPool):
+    """Trajectory ids ``index, index + stride, index + 2 * stride, ...``: actor ``index`` of ``stride``.
+
+    Why: each of ``RayCollector``'s actors numbers its trajectories with a pool of its own (TorchRL's
+    multi-process collectors share one across processes), so two actors' first trajectories were both 1 and a
+    user's ``SliceSampler`` on ``("collector", "traj_ids")`` merged them (seen 2026-11-28: two actors' 10 blocks
+    as trajectories 1, 1, 1, 1, 1, 2, 2). Its state (``state_dict``) is the actor's own count, as TorchRL's.
+    It can go when TorchRL's ``RayCollector`` numbers trajectories across its actors itself (here, not in
+    ``compat.torchrl``: that module is imported where TorchRL is not, and this class needs TorchRL's at import)."""
+
+    def __init__(self, index: int, stride: int):
+        super().__init__()
+        self.index, self.stride = index, stride
+
+    def get_traj_and_increment(self, n=1, device=None):
+        return super().get_traj_and_increment(n, device) * self.stride + self.index
+
+
 def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_random_frames: int, scheme):
-    """TorchRL's ``RayCollector``: one single-env ``Collector`` per actor, frames tagged with their weights' version."""
+    """TorchRL's ``RayCollector``: one single-env ``Collector`` per actor, frames tagged with their weights' version,
+    trajectory ids unique across the actors (``StridedTrajectoryPool``)."""
     from torchrl.collectors.distributed import RayCollector
 
     c, r = config.collector, config.ray
@@ -331,7 +351,8 @@ def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_
             # set_seed seeds the actor's torch and NumPy generators too (TorchRL's seeds the env alone, so
             # the exploration noise of two runs of one seed differed)
             collector_class=WorkerSnapshotCollector,
-            collector_kwargs={"track_policy_version": True, **COLLECTOR_KWARGS},
+            collector_kwargs=[{"track_policy_version": True, "traj_pool": StridedTrajectoryPool(i, c.workers),
+                               **COLLECTOR_KWARGS} for i in range(c.workers)],
             frames_per_batch=c.frames_per_batch, total_frames=total_frames, init_random_frames=init_random_frames,
             # the learner's device is not the actors' business: they step and act on CPU
             device="cpu", storing_device="cpu",
