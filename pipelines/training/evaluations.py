@@ -171,9 +171,14 @@ class Evaluations:
 
 
 def write_report(path, running: bool | None = None) -> None:
-    """RUN/report.html from what the run directory at ``path`` holds now (``running``: see ``write_run_report``)."""
+    """Deprecated (the run writes its page through ``page.ReportPage`` now): ``analysis.pages.write_run_report``."""
+    import warnings
+
     from rlpipe.pipelines.analysis.pages import write_run_report
 
+    warnings.warn("rlpipe.pipelines.training.evaluations.write_report is deprecated: call "
+                  "rlpipe.pipelines.analysis.pages.write_run_report; the old name goes in the next release",
+                  DeprecationWarning, stacklevel=2)
     write_run_report(path, running=running)
 
 

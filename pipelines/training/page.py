@@ -16,6 +16,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from rlpipe.pipelines.artifacts.rundir import RunDir
+
 __all__ = ["ReportPage"]
 
 MIN_INTERVAL_S = 30.0
@@ -45,7 +47,7 @@ class ReportPage:
 
         start = time.monotonic()
         if len(self.evaluations) != self._plotted:
-            plot_training_returns(self.evaluations, self.path / "returns.png", title=self.title)
+            plot_training_returns(self.evaluations, RunDir(self.path).returns_png, title=self.title)
             self._plotted = len(self.evaluations)
         write_run_report(self.path, running=running)
         self.written_at = time.monotonic()
