@@ -261,7 +261,7 @@ class TrainConfig:
     batch_size: int = checked(256, POSITIVE)
     """transitions per update, sampled uniformly"""
     replay_all_keys: bool = False
-    """store every key the collector returns (true: e.g. to inspect ("collector", "traj_ids") or step counts in the buffer); false stores only the keys the loss reads (`loss_module.in_keys`): less memory, faster sampling"""
+    """store every key the collector returns (true: e.g. to inspect ("collector", "traj_ids") or step counts in the buffer; each trajectory id is one episode across the run's collectors, restarted or resumed ones included); false stores only the keys the loss reads (`loss_module.in_keys`): less memory, faster sampling"""
     gamma: float = checked(0.99, Check(lambda v: 0.0 < v <= 1.0, "a discount in (0, 1]"))
     """discount factor"""
     target_update_tau: float = checked(0.005, Check(lambda v: 0.0 < v <= 1.0, "a value in (0, 1]"))

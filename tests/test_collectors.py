@@ -419,6 +419,22 @@ def test_async_workers_all_deliver_frames(interrupted):
                                  f"the buffer: {stretches(data)}") from None
 
 
+def test_trajectory_ids_are_not_reused_after_a_resume(interrupted):
+    """Each resume starts new collector processes whose trajectory ids would begin at 0 again; a user's
+    ``SliceSampler`` on ``("collector", "traj_ids")`` would then join episodes of two stretches into one.
+    Across the whole buffer, each id is one episode: its steps count up one by one."""
+    state = latest_state(interrupted["run"])
+    rb = ReplayBuffer(storage=LazyTensorStorage(100_000))
+    ckpt.load_replay_buffer(rb, state["replay_buffer"])
+    data = rb[:]
+    traj, steps = data["collector", "traj_ids"].flatten(), data["step_count"].flatten()
+    for i in traj.unique().tolist():
+        run = steps[traj == i]
+        assert torch.equal(run, torch.arange(int(run[0]), int(run[0]) + len(run))), (i, stretches(data))
+    first = interrupted["first"]["state"]["frames"]
+    assert traj[first:].min() > traj[:first].max(), stretches(data)  # a resumed run's ids follow the stored ones
+
+
 @pytest.mark.parametrize("where, call", [
     # where a Ctrl-C lands most of the time: in the updates a block pays for (the 75th critic step,
     # paid by the block that takes iteration 50 -> 100)

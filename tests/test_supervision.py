@@ -125,7 +125,7 @@ def killed(tmp_path_factory):
     """Two MultiAsyncCollector workers and the background evaluator: worker 0 kill -9'd after the block
     of iteration 100, the evaluator's process kill -9'd right after the evaluation at 150 was asked."""
     run = tmp_path_factory.mktemp("killed") / "run"
-    done = train([*TD3_RUN, "collector.sync=false", "eval_in_background=true"], run,
+    done = train([*TD3_RUN, "collector.sync=false", "eval_in_background=true", "replay_all_keys=true"], run,
                  fault="collector_worker@100:SIGKILL;evaluator_worker@150:SIGKILL")
     return run, done
 
@@ -162,6 +162,12 @@ def test_a_restart_loses_no_replay_data(killed):
     data = replay_data(checkpoint(run))
     assert data.numel() == TOTAL_FRAMES
     assert checkpoint(run)["counters"]["frames"] == TOTAL_FRAMES
+    # the new workers number their trajectories after the stored ones: each id is one episode, its steps
+    # counting up one by one (the new pool starts at 0 again; a SliceSampler on the ids would join two episodes)
+    traj, steps = data["collector", "traj_ids"].flatten(), data["step_count"].flatten()
+    for i in traj.unique().tolist():
+        episode = steps[traj == i]
+        assert torch.equal(episode, torch.arange(int(episode[0]), int(episode[0]) + len(episode))), (i, traj, steps)
 
 
 @pytest.fixture(scope="module")

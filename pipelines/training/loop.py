@@ -63,6 +63,8 @@ if TYPE_CHECKING:
 
 __all__ = ["LIVE_LOG", "Loop", "TrainResult"]
 
+TRAJ_IDS = ("collector", "traj_ids")
+
 LIVE_LOG = logging.getLogger("rlpipe.train")
 """The live log, the tutorials' printed lines (``step = 1000: AverageReturn = ...``), as INFO records.
 ``rlpipe train`` shows them on stdout; from Python, ``logging.basicConfig(level=logging.INFO,
@@ -253,6 +255,8 @@ class Loop:
             backend = self.pipeline.make_backend().start(cfg.total_frames - state.frames,
                                                          max(0, cfg.initial_collect_steps - state.frames), seed,
                                                          restore=snapshot)
+        if not backend.restored:  # it numbers trajectories from 0: above the ones stored (RunState.traj_offset)
+            state.traj_offset = state.traj_next
         if state.backend_metrics and not restarts:  # what the last collector had gathered for its next row
             backend.load_metrics_state(state.backend_metrics)
         state.backend_metrics = None
@@ -273,6 +277,13 @@ class Loop:
         # Collectors round their budget up to whole blocks; the run stops at its own.
         batch = batch.reshape(-1)[: cfg.total_frames - self.state.frames]
         keys = pipeline.replay_keys
+        if keys is None or TRAJ_IDS in keys:  # stored: unique across the run's collectors (RunState.traj_offset)
+            ids = batch.get(TRAJ_IDS, None)
+            if ids is not None and ids.numel():
+                if self.state.traj_offset:
+                    ids = ids + self.state.traj_offset
+                    batch.set(TRAJ_IDS, ids)
+                self.state.traj_next = max(self.state.traj_next, int(ids.max()) + 1)
         pipeline.replay_buffer.extend(batch if keys is None else batch.select(*keys))
         ended = self.interval_stats.add_frames(batch)
         if ended:

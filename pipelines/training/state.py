@@ -59,6 +59,13 @@ class RunState:
     """what the collector backend's ``metrics`` had gathered (``metrics_state``), for its next row"""
     inexact: str | None = None
     """why the run can no longer equal an uninterrupted one of its seed (None: it still does)"""
+    traj_offset: int = 0
+    """added to the current collector's trajectory ids (``("collector", "traj_ids")``): a collector made without
+    its predecessor's envs (a restart, an asynchronous resume) numbers its trajectories from 0 again, and stored
+    ids must not repeat (a ``SliceSampler`` on them would join two episodes into one)"""
+    traj_next: int = 0
+    """one above the largest trajectory id the replay buffer was given (offset included): the next fresh
+    collector's offset"""
 
     @classmethod
     def fresh(cls, cfg: TrainConfig) -> RunState:
@@ -100,6 +107,7 @@ class RunState:
                          "episodes": self.episodes, "triggers": list(self.owed),
                          "wall_time_s": self.wall_time_s, "train_time_s": self.train_time_s},
             "limiter": self.limiter.state_dict(),
+            "trajectories": {"offset": self.traj_offset, "next": self.traj_next},
             "background_evals": [{"at": dict(at), "weights": dict(w.flatten_keys("/").items())}
                                  for at, w in self.pending_evals],
             **({"envs": self.envs} if self.envs is not None else {}),
@@ -125,3 +133,6 @@ class RunState:
         self.interval = state.get("interval")
         self.workers = state.get("workers")
         self.backend_metrics = state.get("backend_metrics")
+        # a checkpoint from before the offset was kept: ids from 0, as that rlpipe numbered them
+        trajectories = state.get("trajectories", {})
+        self.traj_offset, self.traj_next = int(trajectories.get("offset", 0)), int(trajectories.get("next", 0))
