@@ -59,6 +59,9 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
     train.add_argument("--keys", action="store_true", help="list the preset's keys with their values and meaning, then exit")
+    train.add_argument("--start-method", choices=("forkserver", "spawn"), default="forkserver",
+                       help="how collector and evaluator processes start: forked from a server that has imported "
+                            "torch and TorchRL once (default), or each a fresh interpreter (TorchRL's spawn)")
 
     ev = sub.add_parser("eval", help="evaluate a run's exported policy (or a random agent)")
     ev.add_argument("run_dir", type=Path, nargs="?", help="the run whose policy/policy.onnx to evaluate")
@@ -110,6 +113,8 @@ def cmd_train(args) -> int:
     from rlpipe.pipelines.artifacts.rundir import RunDir, default_run_dir
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
+    from rlpipe.pipelines.system.runtime import start_fork_server
+    from rlpipe.pipelines.workers.factory import backend_class
     from rlpipe.pipelines.workers.supervision import NoRestartLeft
 
     algo, cfg = resolve_preset(args.preset)
@@ -134,6 +139,8 @@ def cmd_train(args) -> int:
         if hint:
             print(f"rlpipe: hint: {hint}", file=sys.stderr)
         return 0
+    if args.fork_server and args.start_method == "forkserver" and backend_class(cfg).starts_processes(cfg):
+        start_fork_server()  # its imports run while the pipeline is built
     pipeline = Pipeline(cfg)
     if hint:  # once the env is known to fit (else the error is the one line); a hint: the run goes on as asked
         print(f"rlpipe: hint: {hint}", file=sys.stderr)
@@ -389,12 +396,16 @@ def _error_log(args, argv: list[str], exc: BaseException) -> Path:
     return Path(name)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, fork_server: bool | None = None) -> int:
+    """``rlpipe ARGV`` (None: the command line). ``fork_server``: whether ``train`` may start its worker processes
+    from a fork server (``--start-method``), which sets this process's multiprocessing start method; default: only
+    when run as the program (``argv`` None), not when called from a program of its own with ``argv``."""
     from rlpipe.envs import EnvError
     from rlpipe.pipelines.errors import InputError, TrainingDiverged
 
     parser = _parser()
     args, extra = parser.parse_known_args(argv)
+    args.fork_server = argv is None if fork_server is None else fork_server
     # key=value overrides may come after options too (`--resume RUN num_iterations=40000`).
     if extra and hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
         args.overrides = [*args.overrides, *extra]

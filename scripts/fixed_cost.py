@@ -89,7 +89,7 @@ def main(argv: list[str]) -> int:
     for name in ("EvalTrigger", "ExportTrigger", "CheckpointTrigger"):
         _wrap(getattr(triggers, name), "final", after=lambda s, r, name=name: f"{name}.final ({s:.2f} s)")
     _wrap(run.Run, "finish", after=lambda s, r: "summary and report written")
-    return cli.main(argv)
+    return cli.main(argv, fork_server=True)  # as `rlpipe` runs
 
 
 if __name__ == "__main__":  # spawned collector and evaluator processes import this module: no run there

@@ -29,6 +29,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from rlpipe.pipelines import td3
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import apply_overrides, config_from_dict
+from rlpipe.pipelines.system.runtime import STOP_SIGNALS
 from rlpipe.pipelines.training.triggers import EVAL
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -91,6 +92,17 @@ def left_behind(existing: set[int]) -> list[tuple[int, str]]:
 
 def group_members(pgid: int) -> list[tuple[int, str]]:
     return [(pid, cmd) for pid, (_, pgrp, cmd) in _processes().items() if pgrp == pgid]
+
+
+def worker_processes(pgid: int) -> list[tuple[int, str]]:
+    """The collector and evaluator processes of the group: spawned ones (``spawn_main``), or forks of
+    ``rlpipe train``'s fork server (each keeps the server's command line; the server is their parent)."""
+    table = _processes()
+
+    def forked(ppid: int, cmd: str) -> bool:
+        return "multiprocessing.forkserver" in cmd and "multiprocessing.forkserver" in table.get(ppid, (0, 0, ""))[2]
+    return [(pid, cmd) for pid, (ppid, pgrp, cmd) in table.items()
+            if pgrp == pgid and ("spawn_main" in cmd or forked(ppid, cmd))]
 
 
 @contextlib.contextmanager
@@ -261,8 +273,18 @@ def read_rows(path: Path) -> list[dict]:
         return []
 
 
+def blocked_signals(pid: int) -> set[int]:
+    """The signals ``pid`` has blocked (its ``SigBlk`` mask in /proc)."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            mask = int(next(line for line in fh if line.startswith("SigBlk:")).split()[1], 16)
+    except (OSError, StopIteration):
+        return set()
+    return {n + 1 for n in range(64) if mask >> n & 1}
+
+
 def spawned_workers(pid: int) -> int:
-    return len([cmd for _, cmd in group_members(pid) if "spawn_main" in cmd])
+    return len(worker_processes(pid))
 
 
 def interrupt(proc: subprocess.Popen, ready, timeout: float) -> dict:
@@ -272,6 +294,8 @@ def interrupt(proc: subprocess.Popen, ready, timeout: float) -> dict:
     assert wait_until(lambda: ready() or proc.poll() is not None, 120, 0.02)
     assert proc.poll() is None, f"the run ended before it could be interrupted: {proc.communicate()}"
     out["members_before"] = group_members(proc.pid)
+    out["workers_before"] = worker_processes(proc.pid)
+    out["blocked"] = {pid: blocked_signals(pid) for pid, _ in out["workers_before"]}
     os.killpg(proc.pid, signal.SIGINT)
     try:
         _, out["stderr"] = proc.communicate(timeout=timeout)
@@ -358,14 +382,25 @@ def assert_clean_ctrl_c(stop: dict) -> None:
 
 
 def test_ctrl_c_with_a_background_evaluation_pending_exits_at_once(interrupted):
-    assert len(interrupted["first"]["members_before"]) >= 4  # the run, 2 workers, the evaluator's worker
-    assert_clean_ctrl_c(interrupted["first"])
+    first = interrupted["first"]
+    assert len(first["workers_before"]) >= 3  # 2 collector workers, the evaluator's
+    assert_clean_ctrl_c(first)
+
+
+def test_workers_are_forked_from_the_fork_server_deaf_to_stop_signals(interrupted):
+    """`rlpipe train` starts its workers from a fork server (torch and TorchRL imported once, not per worker),
+    each with the stop signals blocked as a spawned worker has them: Ctrl-C to the group reaches the learner alone."""
+    for stop in ("first", "second"):
+        workers = interrupted[stop]["workers_before"]
+        assert workers and all("multiprocessing.forkserver" in cmd for _, cmd in workers), workers
+        for pid, _ in workers:
+            assert {int(s) for s in STOP_SIGNALS} <= interrupted[stop]["blocked"][pid], (pid, interrupted[stop]["blocked"])
 
 
 def test_ctrl_c_stops_a_multi_worker_run_at_once(interrupted):
     second = interrupted["second"]
     # both collector workers (and the evaluator's, running the evaluation saved by the first Ctrl-C)
-    assert len([m for m in second["members_before"] if "spawn_main" in m[1]]) >= 2
+    assert len(second["workers_before"]) >= 2
     assert_clean_ctrl_c(second)
     assert not interrupted["summary_before_end"]
 
@@ -496,6 +531,7 @@ def pushed() -> dict:
         # the first blocks: random actions for the first initial_collect_steps frames, then the policy
         first = [next(blocks).reshape(-1) for _ in range(6)]
         out["random_frames"] = [int(mismatch(b).sum()) for b in first]
+        out["first_step"] = [int(b["step_count"][0]) for b in first]
         for b in first:
             pipeline.replay_buffer.extend(b)
         before = [p.detach().clone() for p in pipeline.policy.parameters()]
@@ -514,9 +550,12 @@ def pushed() -> dict:
 
 
 def test_async_collect_starts_with_initial_collect_steps_random_frames(pushed):
-    random_frames = pushed["random_frames"]
-    # the first 100 frames are random, and only those (each worker's block in flight counted)
-    assert random_frames == [50, 50, 0, 0, 0, 0], random_frames
+    random_frames, first_step = pushed["random_frames"], pushed["first_step"]
+    # the first 100 frames are random, and only those (each worker's block in flight counted): each worker's
+    # first block (its env's first steps), whole. Which worker hands over first, and whether one hands over its
+    # second block before the other its first, is timing ([50, 0, 50, ...] under load: seen 2026-11-28)
+    assert sorted(random_frames) == [0, 0, 0, 0, 50, 50], random_frames
+    assert all(first_step[i] == 0 for i, n in enumerate(random_frames) if n), (random_frames, first_step)
 
 
 def test_learner_updates_reach_async_workers(pushed):

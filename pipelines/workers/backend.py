@@ -92,6 +92,13 @@ class CollectorBackend(abc.ABC):
         return None
 
     @classmethod
+    def starts_processes(cls, config: TrainConfig) -> bool:
+        """Whether a run with ``config`` starts worker processes of its own on this machine (multiprocessing's
+        children; here the background evaluator's): ``rlpipe train`` starts their fork server early for them
+        (``runtime.start_fork_server``)."""
+        return config.eval_in_background
+
+    @classmethod
     def start_evaluator(cls, config: TrainConfig, *, env_fn: Callable[[], EnvBase], policy: nn.Module,
                         pending: deque, start_timeout: float, watchdog: Watchdog) -> AsyncEvaluator:
         """The background evaluator (``eval_in_background=true``) beside this backend's workers, started:

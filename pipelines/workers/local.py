@@ -108,6 +108,11 @@ class LocalBackend(CollectorBackend):
 
     _collector = None
 
+    @classmethod
+    def starts_processes(cls, config: TrainConfig) -> bool:
+        c = config.collector
+        return not (c.workers == 1 and c.sync) or super().starts_processes(config)
+
     def _start(self, total_frames: int, init_random_frames: int) -> None:
         self._collector = local_collector(self.config, policy=self.policy, env_fn=self.env_fn, env=self.env,
                                           device=self.device, total_frames=total_frames,

@@ -80,6 +80,10 @@ class RayBackend(CollectorBackend):
         return hold_ray(config)
 
     @classmethod
+    def starts_processes(cls, config: TrainConfig) -> bool:
+        return False  # its workers and its evaluator are Ray's actors
+
+    @classmethod
     def start_evaluator(cls, config: TrainConfig, *, env_fn, policy, pending, start_timeout: float, watchdog):
         """On a Ray actor (``ray_eval.RayEvaluator``), on the Ray the run holds (``hold``); Ray's own
         deadline on placing it is ``start_timeout``."""

@@ -390,12 +390,18 @@ class SupervisedCollector:
 def kill_new_children() -> Callable[[], None]:
     """An action killing the child processes started from now on (a collector's workers, while its
     constructor waits for them: TorchRL 0.14 reads their first message with no timeout)."""
-    before = {p.pid for p in psutil.Process().children()}
+    me = psutil.Process()
+    before = {p.pid for p in me.children(recursive=True)}
+
+    def helper(child) -> bool:  # multiprocessing's, this process's own: its resource tracker, its fork server
+        cmdline = " ".join(_cmdline(child))
+        return "resource_tracker" in cmdline or ("multiprocessing.forkserver" in cmdline and child.ppid() == me.pid)
 
     def expire():
-        for child in psutil.Process().children():
-            if child.pid not in before and "resource_tracker" not in " ".join(_cmdline(child)):
-                with contextlib.suppress(psutil.Error):
+        # recursive: workers started from a fork server (runtime.start_fork_server) are its children
+        for child in me.children(recursive=True):
+            with contextlib.suppress(psutil.Error):
+                if child.pid not in before and not helper(child):
                     child.kill()
     return expire
 
