@@ -181,9 +181,10 @@ def start_fork_server(preload: tuple[str, ...] = WORKER_MODULES) -> None:
     ``preload`` imported in it, deaf to the stop signals (multiprocessing's ``forkserver`` start method).
 
     Why: TorchRL starts its collector processes with ``spawn``, a fresh interpreter each that imports torch,
-    tensordict, TorchRL and rlpipe again before its first env step: 5.1 s for the collector process of
-    ``rlpipe train sac env=Pendulum-v1`` (launch to the first block, 2026-11-28, this 2-core machine), each time
-    a worker starts or restarts. A worker forked from a server that has them imported starts in 0.7 s, and the
+    tensordict, TorchRL and rlpipe again before its first env step: 4.0-4.3 s for the collector process of
+    ``rlpipe train sac env=Pendulum-v1`` (from the start asked to its first block, 2026-11-28, this 2-core machine;
+    BENCHMARKS.md, "The fixed cost of a run"), each time a worker starts or restarts. Forked from a server that
+    has them imported, 0.5-0.7 s; the whole one-iteration run ends in 11.1-12.5 s instead of 17.2-17.8. And the
     server's own imports run beside the learner's start-up (the pipeline built, the random baseline), not
     before the first worker. Workers inherit the server's blocked stop signals (``stop_signals_blocked``), as
     spawned ones inherit the learner's; the server ends when this process does.
