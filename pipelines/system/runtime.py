@@ -195,6 +195,9 @@ def start_fork_server(preload: tuple[str, ...] = WORKER_MODULES) -> None:
     can hang the child.
     """
     import multiprocessing
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():  # Windows: workers spawn, as TorchRL's
+        return
     from multiprocessing import forkserver
 
     multiprocessing.set_start_method("forkserver", force=True)  # TorchRL set "spawn" at its import
