@@ -217,7 +217,7 @@ class CollectorConfig:
     frames_per_batch: int = checked(50, POSITIVE)
     """env steps gathered per block (all workers together); the block's updates follow at the same update-to-data ratio (1 = the tutorials' exact interleave). Triggers land on round iterations when it divides `initial_collect_steps` and the intervals"""
     policy_device: str = checked("", one_of("", "cpu"))
-    """where the collect policy acts: '' on the learner's `device`; 'cpu' from a CPU copy of the policy (TorchRL's `policy_device`), its weights copied from the learner's after each block's updates: with device=cuda, each env step then pays no host-device round trip, only each block does"""
+    """where the collect policy acts: '' on the learner's `device`; 'cpu' from a CPU copy of the policy (TorchRL's `policy_device`), its weights copied from the learner's after each block's updates: with device=cuda, each env step then pays no host-device round trip, only each block does. Worker processes (workers>1 or sync=false) act from their own CPU copies, store their blocks on the CPU and never start CUDA; the learner copies each block to its device"""
     weight_sync_interval: int = checked(1, POSITIVE)
     """updates between pushes of fresh policy weights to collector processes (the tutorial's variable container); with backend=ray a worker gets the learner's weights each time it is asked for a block"""
     backend: str = checked("local", one_of(*COLLECTOR_BACKENDS, expected=" or ".join(

@@ -233,3 +233,26 @@ def test_the_fast_policy_paths_act_on_a_gpu(algo):
         collector.shutdown()
     bound = float(p.env.action_spec_unbatched.space.high.max())
     assert block.device.type == "cuda" and block["action"].abs().max() <= bound + 1e-6
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (checked on the GPU machine)")
+def test_a_collector_process_acting_from_a_cpu_copy_hands_its_blocks_to_a_gpu_learner():
+    from rlpipe.pipelines.workers.local import LocalBackend
+
+    p = pipeline("sac", "device=cuda", "collector.policy_device=cpu", "collector.sync=false",
+                 "collector.frames_per_batch=16")
+    backend = p.make_backend().start(total_frames=64, init_random_frames=0, seed=0)
+    try:
+        assert isinstance(backend, LocalBackend) and len(backend.health().pids) == 1  # one worker process
+        bound = float(p.env.action_spec_unbatched.space.high.max())
+        seen = []
+        for block in backend:  # stored on the CPU by the worker, on the learner's GPU once handed out
+            assert block.device.type == "cuda" and block["action"].abs().max() <= bound + 1e-6
+            seen.append(block["action"].cpu())
+            with torch.no_grad():  # new weights for the worker: its later blocks act from them
+                for param in p.collect_policy.parameters():
+                    param.mul_(0.5)
+            backend.push_weights()
+        assert len(seen) == 4
+    finally:
+        backend.close()

@@ -89,6 +89,11 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
         # ask for that many fewer, and exactly `init_random_frames` come out random (to a block).
         # (Each async worker's block is a whole `frames_per_batch`.)
         common["init_random_frames"] = max(1, init_random_frames - (c.workers - 1) * c.frames_per_batch)
+    if c.policy_device == "cpu":
+        # Worker processes acting from a CPU copy store their blocks on the CPU too (shared memory, as the
+        # weights): the learner moves each block to its device (``LocalBackend.blocks``). Stored on a GPU,
+        # each worker would start CUDA and hand its blocks over through CUDA's inter-process handles.
+        common["storing_device"] = torch.device("cpu")
     cls = MultiSyncCollector if c.sync else AsyncCollector
     scheme = TimedSharedMemScheme(ack_timeout=c.timeout)
     return cls([env_fn] * c.workers, policy, weight_sync_schemes={"policy": scheme},
@@ -162,6 +167,8 @@ class LocalBackend(CollectorBackend):
                 if failure is None:
                     raise
                 raise failure from exc
+            if batch.device != self.device:  # stored on the CPU by worker processes (collector.policy_device=cpu)
+                batch = batch.to(self.device)
             yield batch
 
     def push_weights(self) -> None:

@@ -72,6 +72,8 @@ def add_parser(sub) -> None:
                        "two timed training runs (default: --steps and 2000 more)")
     bench.add_argument("--parts", nargs="+", choices=["updates", "training"], default=["updates", "training"],
                        help="gpu: which tables to measure (default: both)")
+    bench.add_argument("--modes", nargs="+", choices=["step", "blocks", "cpu-copy", "process"],
+                       help="gpu: the training table's loop modes (default: all; scripts/bench/gpu.py TRAIN_MODES)")
     bench.add_argument("--seed", type=int, default=0, help="cleanrl: seed of both sides")
     bench.add_argument("--tasks", nargs="+", help="time-to-return: tasks to run (default: all; see "
                        "scripts/bench/time_to_return.py TASKS)")

@@ -14,8 +14,11 @@ Two tables, both on the machine's first GPU, each row in the same run:
    trip per step); blocks of 32 env steps then their 32 updates (the loop's per-block work, the
    block's copy to the GPU, the replay write and the divergence check, paid once per 32 steps); the
    same with the collect policy acting from a CPU copy (``collector.policy_device=cpu``, weights copied
-   after each block's updates: no round trip per step). The rate is the in-run one (log rows after
-   learning starts; start-up and compilation left out). LeanRL does not run here (no peer venv on the
+   after each block's updates: no round trip per step); the same blocks from one collector process
+   (``collector.sync=false``: TorchRL's ``MultiAsyncCollector``, the worker collecting the next block from
+   its CPU copy while the learner makes this block's updates, its blocks stored on the CPU and copied to
+   the GPU by the learner). ``--modes`` picks among them (step, blocks, cpu-copy, process). The rate is
+   the in-run one (log rows after learning starts; start-up and compilation left out). LeanRL does not run here (no peer venv on the
    GPU machine): its figures are quoted, not a ratio measured in this run.
 """
 
@@ -44,10 +47,13 @@ TRAIN_COMMON = ["device=cuda", "compile=true", "collector.workers=1", "collector
                 "num_eval_episodes=1", "initial_eval=false", "baseline_episodes=0", "checkpoint_interval=1000000",
                 "policy_save_interval=1000000", "log_interval=1000", "replay_buffer_capacity=1000000"]
 TRAIN_MODES = [
-    ("1 step, 1 update; policy on the GPU", ["collector.frames_per_batch=1"]),
-    ("blocks of 32; policy on the GPU", ["collector.frames_per_batch=32"]),
-    ("blocks of 32; policy on a CPU copy", ["collector.frames_per_batch=32", "collector.policy_device=cpu"]),
+    ("step", "1 step, 1 update; policy on the GPU", ["collector.frames_per_batch=1"]),
+    ("blocks", "blocks of 32; policy on the GPU", ["collector.frames_per_batch=32"]),
+    ("cpu-copy", "blocks of 32; policy on a CPU copy", ["collector.frames_per_batch=32", "collector.policy_device=cpu"]),
+    ("process", "blocks of 32 from a collector process, overlapping the updates; policy on its CPU copy",
+     ["collector.frames_per_batch=32", "collector.policy_device=cpu", "collector.sync=false"]),
 ]
+"""(``--modes`` key, column, overrides) of the training table"""
 
 
 def bench_gpu(args, out: Path) -> dict:
@@ -76,9 +82,11 @@ def bench_gpu(args, out: Path) -> dict:
     steps = args.steps or 6000
     cells: dict[tuple[str, str], float | None] = {}
     cases = TRAIN_CASES if "training" in args.parts else []
-    # the CPU copy first, then the per-step loop: a command cut short by its time limit keeps the main figures
-    for m in (2, 0, 1):
-        mode, flags = TRAIN_MODES[m]
+    # the collector process and the CPU copy first, then the per-step loop: a command cut short by its time
+    # limit keeps the main figures
+    modes = [m for m in (3, 2, 0, 1) if TRAIN_MODES[m][0] in (args.modes or [k for k, _, _ in TRAIN_MODES])]
+    for m in modes:
+        _, mode, flags = TRAIN_MODES[m]
         for preset, overrides, label in cases:
             run_dir = out / f"{preset}-mode{m}"
             cells[label, mode] = None
@@ -93,8 +101,9 @@ def bench_gpu(args, out: Path) -> dict:
                                         "wall_s": run["wall_s"], "command": run["command"]})
             print(f"[bench gpu] {label} training, {mode}: {rate or 0:.0f} env steps/s with one update each, in the run "
                   f"({run['wall_s']:.0f} s from launch)", file=sys.stderr, flush=True)
+    columns = [TRAIN_MODES[m][1] for m in sorted(modes)]
     train_rows = [f"| {label}, HalfCheetah-v5 | " + " | ".join(
-        f"{cells[label, mode]:.0f}" if cells.get((label, mode)) else "-" for mode, _ in TRAIN_MODES) + " |"
+        f"{cells[label, mode]:.0f}" if cells.get((label, mode)) else "-" for mode in columns) + " |"
         for _, _, label in cases]
     table = "\n".join([
         f"GPU: {name} (torch {torch.__version__}); every row measured in this run.",
@@ -106,8 +115,8 @@ def bench_gpu(args, out: Path) -> dict:
         "Training runs (`rlpipe train ... device=cuda compile=true`, one update per env step, env on the CPU in the "
         "learner's process): env steps/s (= updates/s) inside the run, from its log rows after learning starts.",
         "",
-        "| run | " + " | ".join(mode for mode, _ in TRAIN_MODES) + " |",
-        "|---|" + "---|" * len(TRAIN_MODES),
+        "| run | " + " | ".join(columns) + " |",
+        "|---|" + "---|" * len(columns),
         *train_rows,
     ])
     return {**figures, "table": table}
