@@ -37,8 +37,8 @@ from rlpipe.pipelines.errors import InputError
 
 _moved.install()  # the module paths from before the rooms (``rlpipe.pipelines.loop``, ...), with a DeprecationWarning
 
-__all__ = ["ALGOS", "InputError", "PresetInfo", "pipeline_class", "preset_info", "presets", "resolve_preset",
-           "size_hint", "sized_presets"]
+__all__ = ["ALGOS", "InputError", "PresetInfo", "device_hint", "pipeline_class", "preset_info", "presets",
+           "resolve_preset", "size_hint", "sized_presets"]
 
 # algorithm -> "module:class"; a fourth algorithm is one new module and one line here.
 ALGOS = {
@@ -106,3 +106,16 @@ def size_hint(name: str, cfg) -> str | None:
     return (f"{what} and none is sized for {cfg.env}; what matters most for a run's size: {networks} (networks), "
             f"initial_collect_steps (random steps), collector.workers and collector.sync (a process for the env, "
             f"or the learner's own), batch_size, num_threads")
+
+
+def device_hint(cfg) -> str | None:
+    """One line for a run on a GPU whose collect policy acts on the GPU (``collector.policy_device=''``): each
+    env step then waits on a GPU call, and the loop runs several times slower than it can. None otherwise."""
+    c = cfg.collector
+    if not str(cfg.device).startswith("cuda") or c.policy_device or c.backend != "local":
+        return None
+    return (f"device={cfg.device} with the collect policy on the GPU: each env step waits on a GPU call; on an H200 "
+            "(BENCHMARKS.md, 'Whole training loops on a GPU') SAC on HalfCheetah-v5 ran 1,572 env steps/s with "
+            "collector.policy_device=cpu collector.sync=false collector.frames_per_batch=32 (a collector process acting "
+            "from a CPU copy while the GPU updates) against 235 with one step a block and 756 with 32, the policy on "
+            "the GPU")

@@ -58,6 +58,7 @@ __all__ = [
     "config_from_dict",
     "field_docs",
     "flat_keys",
+    "steps_in_learner",
     "layer_sizes",
     "one_of",
     "validate",
@@ -227,6 +228,12 @@ class CollectorConfig:
     """restarts allowed (each of the collector and of the background evaluator, per session) when a worker process dies or stops answering; one more failure saves a checkpoint and stops the run (exit status 75)"""
     timeout: float = checked(120.0, POSITIVE)
     """seconds any wait on collector processes may take (a block of env steps, a weight push; their start-up: at least 300) before the wait counts as a failed worker"""
+
+
+def steps_in_learner(c: CollectorConfig) -> bool:
+    """Whether the env steps in the learner's own process: one local worker, synchronous (TorchRL's
+    ``Collector``, no process to start or watch); collection and updates then take turns."""
+    return c.backend == "local" and c.workers == 1 and c.sync
 
 
 @dataclass

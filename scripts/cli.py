@@ -109,7 +109,7 @@ def _positive(name: str, value: int) -> None:
 
 
 def cmd_train(args) -> int:
-    from rlpipe.pipelines import pipeline_class, resolve_preset, size_hint
+    from rlpipe.pipelines import device_hint, pipeline_class, resolve_preset, size_hint
     from rlpipe.pipelines.artifacts.rundir import RunDir, default_run_dir
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
@@ -142,8 +142,9 @@ def cmd_train(args) -> int:
     if args.fork_server and args.start_method == "forkserver" and backend_class(cfg).starts_processes(cfg):
         start_fork_server()  # its imports run while the pipeline is built
     pipeline = Pipeline(cfg)
-    if hint:  # once the env is known to fit (else the error is the one line); a hint: the run goes on as asked
-        print(f"rlpipe: hint: {hint}", file=sys.stderr)
+    for line in (hint, device_hint(pipeline.config)):  # once the env and device are known to fit (else the error
+        if line:                                        # is the one line); a hint: the run goes on as asked
+            print(f"rlpipe: hint: {line}", file=sys.stderr)
     args.pipeline = pipeline  # where main() writes a traceback, once the run directory exists
     out = args.resume if args.resume is not None else args.out
     check_output_dir(out if out is not None else default_run_dir(algo, pipeline.config.env),

@@ -5,12 +5,13 @@ skips the start-up work it does not want (untrained evaluation, random baseline,
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 
 import pytest
 
 import rlpipe.envs  # noqa: F401  (registers MinitaurBulletEnv-v0)
-from rlpipe.pipelines import pipeline_class, preset_info, presets, resolve_preset, size_hint, sized_presets
+from rlpipe.pipelines import device_hint, pipeline_class, preset_info, presets, resolve_preset, size_hint, sized_presets
 from rlpipe.pipelines.config import apply_overrides
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -106,6 +107,17 @@ def test_no_hint_on_the_presets_own_env():
         assert size_hint(name, resolve_preset(name)[1]) is None, name
     cfg = apply_overrides(resolve_preset("dqn")[1], ["env=CartPole-v1"])
     assert "rlpipe train dqn-cartpole-v1-fast" in size_hint("dqn", cfg)
+
+
+def test_a_gpu_run_whose_policy_acts_on_the_gpu_is_told_the_faster_collector_keys():
+    cfg = resolve_preset("sac-halfcheetah")[1]
+    assert device_hint(cfg) is None  # on the CPU: nothing to say
+    on_gpu = dataclasses.replace(cfg, device="cuda")
+    hint = device_hint(on_gpu)
+    for key in ("collector.policy_device=cpu", "collector.sync=false", "collector.frames_per_batch=32"):
+        assert key in hint
+    cpu_copy = dataclasses.replace(on_gpu, collector=dataclasses.replace(cfg.collector, policy_device="cpu"))
+    assert device_hint(cpu_copy) is None  # already acting from a CPU copy
 
 
 def test_a_sized_preset_starts_training_without_the_untrained_evaluation(tmp_path):

@@ -13,6 +13,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import LossModule
 
+from rlpipe.pipelines.config import steps_in_learner
+
 if TYPE_CHECKING:
     from rlpipe.pipelines.base import OffPolicyPipeline
 
@@ -36,7 +38,7 @@ def choose_threads(pipeline: OffPolicyPipeline) -> int:
     """
     c = pipeline.config.collector
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    budget = max(1, cores - (0 if c.workers == 1 and c.sync else c.workers))
+    budget = max(1, cores - (0 if steps_in_learner(c) else c.workers))
     cap = omp_threads()
     if cap is not None:
         budget = min(budget, cap)

@@ -24,7 +24,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.envs import make_env
 from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
-from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.config import TrainConfig, steps_in_learner
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
 from rlpipe.pipelines.workers.gym_collector import GymCollector, WorkerGymCollector, gym_env_of
 from rlpipe.pipelines.workers.snapshot import SNAPSHOT, SnapshotCollector, WorkerSnapshotCollector, why_not_exact
@@ -77,7 +77,7 @@ def local_collector(config: TrainConfig, *, policy: nn.Module, env_fn: Callable[
                   policy_device=torch.device(c.policy_device) if c.policy_device else device,
                   storing_device=device)
     direct = direct_collection(config, env_fn, env)
-    if c.workers == 1 and c.sync:
+    if steps_in_learner(c):
         # Its constructor runs the policy on a fake step (a draw of the exploring policy's): on the
         # learner's generators, that draw would make a run resumed mid-way (a collector more) differ.
         with torch.random.fork_rng(devices=[]):
@@ -115,8 +115,7 @@ class LocalBackend(CollectorBackend):
 
     @classmethod
     def starts_processes(cls, config: TrainConfig) -> bool:
-        c = config.collector
-        return not (c.workers == 1 and c.sync) or super().starts_processes(config)
+        return not steps_in_learner(config.collector) or super().starts_processes(config)
 
     def _start(self, total_frames: int, init_random_frames: int) -> None:
         self._collector = local_collector(self.config, policy=self.policy, env_fn=self.env_fn, env=self.env,
