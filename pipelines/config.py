@@ -58,9 +58,9 @@ __all__ = [
     "config_from_dict",
     "field_docs",
     "flat_keys",
-    "steps_in_learner",
     "layer_sizes",
     "one_of",
+    "steps_in_learner",
     "validate",
 ]
 

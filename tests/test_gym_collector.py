@@ -249,10 +249,10 @@ def test_a_collector_process_acting_from_a_cpu_copy_hands_its_blocks_to_a_gpu_le
         for block in backend:  # stored on the CPU by the worker, on the learner's GPU once handed out
             assert block.device.type == "cuda" and block["action"].abs().max() <= bound + 1e-6
             seen.append(block["action"].cpu())
-            with torch.no_grad():  # new weights for the worker: its later blocks act from them
+            with torch.no_grad():  # new weights on the GPU: the push copies them into the worker's CPU copy
                 for param in p.collect_policy.parameters():
                     param.mul_(0.5)
-            backend.push_weights()
+            backend.push_weights()  # a push across devices that failed, or a dead worker, raises here
         assert len(seen) == 4
     finally:
         backend.close()

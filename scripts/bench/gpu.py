@@ -18,8 +18,8 @@ Two tables, both on the machine's first GPU, each row in the same run:
    (``collector.sync=false``: TorchRL's ``MultiAsyncCollector``, the worker collecting the next block from
    its CPU copy while the learner makes this block's updates, its blocks stored on the CPU and copied to
    the GPU by the learner). ``--modes`` picks among them (step, blocks, cpu-copy, process). The rate is
-   the in-run one (log rows after learning starts; start-up and compilation left out). LeanRL does not run here (no peer venv on the
-   GPU machine): its figures are quoted, not a ratio measured in this run.
+   the in-run one (log rows after learning starts; start-up and compilation left out). LeanRL does not
+   run here (no peer venv on the GPU machine): its figures are quoted, not a ratio measured in this run.
 """
 
 from __future__ import annotations
