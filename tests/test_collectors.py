@@ -283,10 +283,6 @@ def blocked_signals(pid: int) -> set[int]:
     return {n + 1 for n in range(64) if mask >> n & 1}
 
 
-def spawned_workers(pid: int) -> int:
-    return len(worker_processes(pid))
-
-
 def interrupt(proc: subprocess.Popen, ready, timeout: float) -> dict:
     """Wait until ``ready()``, press Ctrl-C (SIGINT to the process group, as a terminal does), and
     give the process ``timeout`` seconds to end; a process still running then is dumped and killed."""
@@ -348,7 +344,7 @@ def interrupted(tmp_path_factory):
     # row of step 150; the worker takes seconds to start (imports): the evaluation is pending
     with launch([*INTERRUPTED, "--out", str(run)], run.parent) as proc:
         out["first"] = interrupt(proc, lambda: any(int(r["step"]) >= 150 for r in read_rows(run / "metrics.csv"))
-                                 and spawned_workers(proc.pid) >= 3, HANG_S)
+                                 and len(worker_processes(proc.pid)) >= 3, HANG_S)
     out["first"]["state"] = latest_state(run)["counters"]
     out["first"]["rows"] = read_rows(run / "metrics.csv")
 
