@@ -153,11 +153,46 @@ def run_stacked_mlp(layers: Layers, params: dict[str, torch.Tensor], x: torch.Te
             # An elementwise layer (ReLU, Tanh, ...) is indifferent to the layout; any other parameter-free
             # layer (a LayerNorm without affine weights, TorchRL's MLP ``norm_class``) acts on the last dim,
             # so it sees rows there, as it would in the network's own forward.
-            x = layer(x) if type(layer) in ELEMENTWISE else layer(x.mT).mT
+            if type(layer) in ELEMENTWISE:
+                x = layer(x)
+            elif _is_plain_layer_norm(layer):
+                # normalised over the features where they lie (dim -2): layer(x.mT).mT hands the norm and
+                # the ReLU after it transposed activations, copied forward and backward (sac-minitaur's
+                # update, 64x64 critics, one thread, 2026-11-28: 5.45 ms that way, 4.2 ms this way, 3.3 ms
+                # without the norm)
+                x = _ColumnLayerNorm.apply(x, layer.eps)
+            else:
+                x = layer(x.mT).mT
         else:
             weight, bias = params[f"{layer}.weight"], params.get(f"{layer}.bias")
             x = torch.matmul(weight, x) if bias is None else torch.baddbmm(bias.unsqueeze(-1), weight, x)
     return x.mT.reshape(copies, *batch_shape, -1)
+
+
+class _ColumnLayerNorm(torch.autograd.Function):
+    """``F.layer_norm`` without weights over dim -2 of ``[copies, features, rows]`` activations, with its
+    backward written out: ``dx = (g - mean(g) - y * mean(g * y)) / std`` (sac-minitaur's update: 4.2 ms,
+    4.45 ms with autograd's backward of the same forward ops)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, eps: float) -> torch.Tensor:
+        centred = x - x.mean(dim=-2, keepdim=True)
+        inv_std = torch.rsqrt(centred.square().mean(dim=-2, keepdim=True) + eps)
+        ctx.save_for_backward(centred, inv_std)  # not y: an in-place activation after the norm changes it
+        return centred * inv_std
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        centred, inv_std = ctx.saved_tensors
+        y = centred * inv_std
+        inner = grad - grad.mean(dim=-2, keepdim=True) - y * (grad * y).mean(dim=-2, keepdim=True)
+        return inner * inv_std, None
+
+
+def _is_plain_layer_norm(layer) -> bool:
+    """A LayerNorm over the last dim without weights: what ``make_qvalue_critic(layer_norm=True)`` builds."""
+    return (type(layer) is torch.nn.LayerNorm and not layer.elementwise_affine
+            and len(layer.normalized_shape) == 1)
 
 
 def module_forward(module: torch.nn.Module):
