@@ -21,6 +21,8 @@ import torch
 CASES = [
     ("sac", ["env=Pendulum-v1"], "SAC, Pendulum-v1, 256x256, batch 256 (CleanRL's sizes; the tutorial's too)"),
     ("sac", [], "SAC, Minitaur (28 obs, 8 actions), 256x256, batch 256 (the tutorial)"),
+    ("sac-minitaur", [], "SAC, Minitaur, 64x64, batch 256 (`sac-minitaur`)"),
+    ("sac-minitaur", ["critic_layer_norm=true"], "SAC, Minitaur, 64x64, batch 256, critics with LayerNorm"),
     ("td3", ["actor_fc_layer_params=[256,256]", "critic_fc_layer_params=[256,256]"],
      "TD3, Pendulum-v1, 256x256, batch 256 (CleanRL's sizes)"),
     ("td3", [], "TD3, Pendulum-v1, 256, batch 256 (the tutorial)"),
