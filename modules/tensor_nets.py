@@ -151,8 +151,8 @@ def run_stacked_mlp(layers: Layers, params: dict[str, torch.Tensor], x: torch.Te
     for kind, layer in layers:
         if kind == "other":
             # An elementwise layer (ReLU, Tanh, ...) is indifferent to the layout; any other parameter-free
-            # layer (a LayerNorm without affine weights, TorchRL's MLP ``norm_class``) acts on the last dim,
-            # so it sees rows there, as it would in the network's own forward.
+            # layer acts on the last dim, so it sees rows there, as it would in the network's own forward;
+            # a LayerNorm without weights (TorchRL's MLP ``norm_class``) is normalised over the columns.
             if type(layer) in ELEMENTWISE:
                 x = layer(x)
             elif _is_plain_layer_norm(layer):
