@@ -212,12 +212,20 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
         not_terminated = (~terminated.squeeze(-1)).int()
         return reward.squeeze(-1) + self.value_estimator.gamma * not_terminated * next_value
 
-    def losses(self, observation, action, next_observation, reward, terminated, weights=None) -> dict[str, torch.Tensor]:
+    def losses(self, observation, action, next_observation, reward, terminated, weights=None,
+               actor: bool = True) -> dict[str, torch.Tensor]:
         """SACLoss's losses from tensors: ``loss_qvalue``, ``loss_actor``, ``loss_alpha``, and
-        ``alpha``, ``entropy`` (detached), ``td_error`` (per sample, detached)."""
+        ``alpha``, ``entropy`` (detached), ``td_error`` (per sample, detached).
+
+        ``actor=False`` computes the critics' loss and ``td_error`` only (a delayed policy update's
+        other steps): no actor sample at ``observation``, no critic pass for it, nothing to backpropagate
+        into the actor or the temperature."""
         target = self.value_target(next_observation, reward, terminated)
         predictions = self.qvalues(cached_flat_params(self, "qvalue_network_params"), observation, action)
         loss_qvalue = distance_loss(predictions, target.expand_as(predictions), loss_function=self.loss_function).sum(0)
+        td_error = (predictions - target).abs().detach().amax(0)
+        if not actor:
+            return {"loss_qvalue": self._reduce_loss(loss_qvalue, weights=weights), "td_error": td_error}
         action_sample, log_prob = self.sample_action(observation)
         # The critics judge the actor's action with their parameters detached: the gradient
         # reaches the actor only, as in SACLoss.actor_loss.
@@ -230,7 +238,7 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
             "loss_alpha": self._reduce_loss(self._alpha_loss(log_prob_detached), weights=weights),
             "alpha": alpha,
             "entropy": -log_prob_detached.mean(),
-            "td_error": (predictions - target).abs().detach().amax(0),
+            "td_error": td_error,
             "log_prob": log_prob_detached,
         }
 

@@ -32,6 +32,7 @@ from rlpipe.pipelines.config import (
     GRADIENT_CLIPPING,
     LAYER_SIZES,
     LEARNING_RATE,
+    POSITIVE,
     Check,
     CollectorConfig,
     PresetInfo,
@@ -90,6 +91,8 @@ class SACConfig(TrainConfig):
     """critic weights: 'torch' (nn.Linear's default) or 'glorot_uniform' with zero biases (the actor-learner tutorial's CriticNetwork)"""
     critic_layer_norm: bool = False
     """normalise each critic hidden layer over its features (LayerNorm without weights, before the ReLU), as DroQ's and RLPD's critics do to keep Q-values from running away"""
+    policy_delay: int = checked(1, POSITIVE)
+    """update the actor and the temperature (and the averaged greedy policy) on every policy_delay-th update only, the critics on every one (TD3's delayed policy updates, CrossQ's policy_delay); 1: every update, as SAC and the tutorial do"""
 
     def validate_extra(self) -> None:
         check_learning_rate_schedule(self)
@@ -295,29 +298,39 @@ class SAC(TanhNormalPipeline):
     def make_target_updater(self):
         return make_target_updater(self.loss_module, self.config.target_update_tau)
 
+    def update_periods(self) -> list[int]:
+        return [self.config.policy_delay, self.config.target_update_period]
+
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
-        loss_module = self.loss_module
+        cfg, loss_module = self.config, self.loss_module
+        # update_index is a Python int: under torch.compile the delay picks one of two graphs
+        actor_step = update_index % cfg.policy_delay == 0
         if isinstance(loss_module, LeanSACLoss) and loss_module.lean:
             obs, action, next_obs, reward, terminated = loss_module.tensors_from(batch)
-            if self.config.reward_scale_factor != 1.0:
-                reward = reward * self.config.reward_scale_factor
+            if cfg.reward_scale_factor != 1.0:
+                reward = reward * cfg.reward_scale_factor
             out = loss_module.losses(obs, action, next_obs, reward, terminated,
-                                     weights=importance_weights(loss_module, batch))
+                                     weights=importance_weights(loss_module, batch), actor=actor_step)
         else:
-            out = loss_module(scale_rewards(batch, self.config.reward_scale_factor))
-        loss = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
-        loss.backward()
-        if self.config.gradient_clipping is not None:
-            for name, opt in self.optimizers.items():
+            # a stock SACLoss computes every loss; off the actor's steps only the critics' is used (its
+            # target is computed without gradients, so nothing reaches the actor or the temperature)
+            out = loss_module(scale_rewards(batch, cfg.reward_scale_factor))
+        names = ("actor", "qvalue", "alpha") if actor_step else ("qvalue",)
+        sum(out[f"loss_{name}"] for name in names).backward()
+        for name in names:
+            opt = self.optimizers[name]
+            if cfg.gradient_clipping is not None:
                 params = [p for group in opt.param_groups for p in group["params"]]
                 # the twin critics' parameters are stacked [2, ...]: each critic's tensor on its own
-                optim.clip_gradient_norms(params, self.config.gradient_clipping, stacked=name == "qvalue")
-        for opt in self.optimizers.values():
+                optim.clip_gradient_norms(params, cfg.gradient_clipping, stacked=name == "qvalue")
             opt.step()
             opt.zero_grad(set_to_none=True)
-        self.average_policy()
-        if update_index % self.config.target_update_period == 0:
+        if actor_step:
+            self.average_policy()
+        if update_index % cfg.target_update_period == 0:
             self.target_updater.step()
+        if not actor_step:
+            return {"qvalue": out["loss_qvalue"].detach()}
         return {"actor": out["loss_actor"].detach(), "qvalue": out["loss_qvalue"].detach(),
                 "alpha": out["loss_alpha"].detach(), "alpha_value": out["alpha"].detach(),
                 "entropy": out["entropy"].detach()}

@@ -124,6 +124,39 @@ def test_the_greedy_policy_follows_the_actor_as_a_polyak_average_and_checkpoints
         resumed.load_state_dict(plain.state_dict())
 
 
+@pytest.mark.parametrize("lean", [True, False])
+def test_a_delayed_policy_update_steps_the_critics_every_time_and_the_actor_and_temperature_every_nth(lean):
+    # policy_delay=2: updates 1, 3 move the critics only (and their targets); 2, 4 move all three and
+    # the averaged policy. The same on rlpipe's loss on tensors and on a stock TorchRL SACLoss.
+    cfg = apply_overrides(resolve_preset("sac")[1], [
+        "env=Pendulum-v1", "replay_buffer_capacity=1000", "batch_size=32", "actor_fc_layer_params=[16]",
+        "critic_joint_fc_layer_params=[16]", "num_threads=0", "policy_delay=2", "policy_average_tau=0.5"])
+    pipeline = sac.SAC(cfg)
+    if not lean:
+        pipeline.loss_module._critic_layers = None  # the TensorDict path a user's own SACLoss takes
+    assert pipeline.loss_module.lean is lean
+    loss = pipeline.loss_module
+    batch = pipeline.env.rollout(32, break_when_any_done=False).select(*pipeline.replay_keys)
+
+    def snapshot():
+        return ([p.detach().clone() for p in pipeline.collect_policy.parameters()],
+                [p.detach().clone() for p in pipeline.policy.parameters()],
+                float(loss.log_alpha), loss.qvalue_network_params.clone(), loss.target_qvalue_network_params.clone())
+
+    for index in (1, 2, 3, 4):
+        actor, average, log_alpha, critics, targets = snapshot()
+        out = pipeline.update(batch.clone(), index)
+        assert (loss.qvalue_network_params != critics).any() and (loss.target_qvalue_network_params != targets).any()
+        moved = [not torch.equal(a, b) for a, b in zip(actor, pipeline.collect_policy.parameters())]
+        averaged = [not torch.equal(a, b) for a, b in zip(average, pipeline.policy.parameters())]
+        if index % 2:
+            assert set(out) == {"qvalue"} and not any(moved) and not any(averaged)
+            assert float(loss.log_alpha) == log_alpha
+        else:
+            assert set(out) == set(sac.SAC.loss_names) and all(moved) and all(averaged)
+            assert float(loss.log_alpha) != log_alpha
+
+
 def test_the_entropy_target_and_learning_rates_move_with_the_frames_collected_and_a_resumed_run_picks_them_up(tmp_path):
     # target_entropy_final: the temperature's target goes linearly from target_entropy to it over
     # target_entropy_anneal's env steps, as a function of the frames collected (random ones included);

@@ -73,6 +73,11 @@ def test_canonical_index_takes_the_same_branches():
         assert [index % p == 0 for p in periods] == [c % p == 0 for p in periods]
     assert {canonical_index(i, periods) for i in range(1, 50)} == {1, 2, 4}
     assert {canonical_index(i, [1]) for i in range(1, 10)} == {1}
+    periods = [2, 3]  # SAC: actor every 2nd update, targets every 3rd: neither divides the other
+    for index in range(1, 50):
+        c = canonical_index(index, periods)
+        assert c <= index and [index % p == 0 for p in periods] == [c % p == 0 for p in periods]
+    assert {canonical_index(i, periods) for i in range(1, 50)} == {1, 2, 3, 6}
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CPU pass-through; on a GPU the tests below record real graphs")

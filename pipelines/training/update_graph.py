@@ -7,7 +7,7 @@ the recording and replay (what LeanRL uses for CleanRL's scripts); this module a
 rlpipe update needs around it, and nothing else:
 
 - an update branches on its index in Python (SAC's and DQN's target update every
-  ``target_update_period`` updates, TD3's delayed actor and its targets), and a graph cannot
+  ``target_update_period`` updates, SAC's and TD3's delayed actor, TD3's targets), and a graph cannot
   branch: one graph per branch pattern, each recorded with a representative index
   (``canonical_index``), so a run of any length records at most a handful;
 - the replay batch is handed to the graph as a flat tuple of tensors (keys fixed at the first
@@ -20,6 +20,7 @@ leave the same parameters as eager ones after N updates on the same batches.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -32,16 +33,14 @@ __all__ = ["GraphedUpdate", "canonical_index"]
 def canonical_index(update_index: int, periods: Sequence[int]) -> int:
     """The smallest index that takes the same branches as ``update_index``.
 
-    ``periods`` is the chain of intervals the update tests with ``update_index % p == 0`` (each
-    dividing the next, e.g. TD3's ``[policy_delay, policy_delay * target_update_period]``): the
-    largest of them that divides ``update_index``, or 1 when none does. Two indices with the same
-    canonical index run the same code, so they can share one recorded graph.
+    ``periods`` are the intervals the update tests with ``update_index % p == 0`` (TD3's
+    ``[policy_delay, policy_delay * target_update_period]``, SAC's ``[policy_delay,
+    target_update_period]``): the least common multiple of those that divide ``update_index`` (1
+    when none does), which every one of them divides and no other (a period dividing it would divide
+    ``update_index``). Two indices with the same canonical index run the same code, so they can share
+    one recorded graph.
     """
-    chosen = 1
-    for p in periods:
-        if p > 1 and update_index % p == 0:
-            chosen = max(chosen, p)
-    return chosen
+    return math.lcm(1, *(int(p) for p in periods if update_index % p == 0))
 
 
 class GraphedUpdate:
