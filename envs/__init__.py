@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 from gymnasium.error import DependencyNotInstalled
-from gymnasium.wrappers import DtypeObservation, FlattenObservation
+from gymnasium.wrappers import DtypeObservation, FlattenObservation, RescaleObservation
 from torchrl.data import Categorical, OneHot, TensorSpec
 from torchrl.envs import (
     Compose,
@@ -34,7 +34,7 @@ from torchrl.envs.batched_envs import BatchedEnvBase
 
 __all__ = [
     "EnvError", "MINITAUR_ID", "describe_action_space", "env_id_of", "env_label", "is_discrete", "make_env", "resolve_env_id",
-    "with_episode_return",
+    "observation_rescaling", "rescaling_bounds", "with_episode_return",
 ]
 
 MINITAUR_ID = "rlpipe/MinitaurBullet-v0"
@@ -92,6 +92,7 @@ def make_env(
     device: str = "cpu",
     render_mode: str | None = None,
     num_envs: int = 1,
+    rescale_observations: bool = False,
     **gym_kwargs,
 ) -> TransformedEnv:
     """A TorchRL env for ``env_id`` with ``StepCounter``, ``RewardSum``, ``InitTracker``, and
@@ -100,6 +101,9 @@ def make_env(
     Discrete actions are integer indices (``categorical_action_encoding``), as in gymnasium, so an
     exported policy's action goes straight into ``gymnasium.Env.step``. Extra keywords go to
     ``gymnasium.make`` (for example Minitaur's ``env_randomizer=None``).
+
+    ``rescale_observations`` maps a Box observation from its bounds to [-1, 1] with gymnasium's
+    ``RescaleObservation`` (``rescaling_bounds`` says from what), before TorchRL sees it.
 
     ``num_envs > 1`` makes one env of batch size ``[num_envs]``: gymnasium's ``SyncVectorEnv``
     stepping the copies in this process as one call, wrapped by TorchRL's ``GymWrapper`` (which
@@ -115,13 +119,14 @@ def make_env(
     with _extra_named(gym_id):
         if num_envs > 1:
             vector = gymnasium.vector.SyncVectorEnv(
-                [lambda: _flat_observations(gymnasium.make(gym_id, **gym_kwargs), gym_id)] * num_envs,
+                [lambda: _rescaled(_flat_observations(gymnasium.make(gym_id, **gym_kwargs), gym_id), gym_id,
+                                   rescale_observations)] * num_envs,
                 autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
             )
             base = GymWrapper(vector, device=device, categorical_action_encoding=True)
         else:
             base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
-            flat = _flat_observations(base._env, gym_id)
+            flat = _rescaled(_flat_observations(base._env, gym_id), gym_id, rescale_observations)
             if flat is not base._env:
                 base = GymWrapper(flat, device=device, categorical_action_encoding=True)
     transforms = [StepCounter(), RewardSum(), InitTracker()]
@@ -184,6 +189,38 @@ def _flat_observations(env: gymnasium.Env, gym_id: str) -> gymnasium.Env:
         raise EnvError(f"env {gym_id!r} has a {obs} observation space; expected a Box, Dict, or Discrete, "
                        "MultiDiscrete, MultiBinary or Tuple spaces of them (flattened into one vector)")
     return DtypeObservation(FlattenObservation(env), np.float32)
+
+
+def rescaling_bounds(space: spaces.Space, gym_id: str) -> tuple[np.ndarray, np.ndarray]:
+    """The (low, high) an observation space is rescaled from, as float32 arrays: a flat Box's own
+    bounds, which must be finite (``EnvError`` otherwise, naming the env and what is expected)."""
+    if not isinstance(space, spaces.Box) or len(space.shape) != 1:
+        raise EnvError(f"rescale_observations=true: env {gym_id!r} has a {space} observation space; expected a flat "
+                       "Box with finite bounds, or rescale_observations=false")
+    low, high = space.low.astype(np.float32), space.high.astype(np.float32)
+    if not (np.isfinite(low).all() and np.isfinite(high).all()):
+        raise EnvError(f"rescale_observations=true: env {gym_id!r} has observation bounds that are not finite "
+                       f"({int((~np.isfinite(low) | ~np.isfinite(high)).sum())} of {low.size} entries); expected "
+                       "finite low and high, or rescale_observations=false")
+    return low, high
+
+
+def observation_rescaling(env: EnvBase) -> tuple[np.ndarray, np.ndarray] | None:
+    """The (low, high) ``make_env(..., rescale_observations=True)`` maps ``env``'s observations from, or None
+    where it does not rescale them."""
+    gym_env = getattr(getattr(env, "base_env", env), "_env", None)
+    if isinstance(gym_env, gymnasium.vector.SyncVectorEnv):
+        gym_env = gym_env.envs[0]
+    if isinstance(gym_env, RescaleObservation):
+        return rescaling_bounds(gym_env.env.observation_space, "")
+    return None
+
+
+def _rescaled(env: gymnasium.Env, gym_id: str, rescale: bool) -> gymnasium.Env:
+    if not rescale:
+        return env
+    rescaling_bounds(env.observation_space, gym_id)
+    return RescaleObservation(env, np.float32(-1.0), np.float32(1.0))
 
 
 def _flattenable(space: spaces.Space) -> bool:

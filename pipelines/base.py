@@ -34,9 +34,9 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 
-from rlpipe.envs import EnvError, env_id_of, env_label, is_discrete, make_env, resolve_env_id
+from rlpipe.envs import EnvError, env_id_of, env_label, is_discrete, make_env, observation_rescaling, resolve_env_id
 from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
-from rlpipe.modules.plain_policy import TensorDictPolicy
+from rlpipe.modules.plain_policy import OnRescaledObservations, TensorDictPolicy
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, PresetInfo, TrainConfig, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
@@ -132,7 +132,8 @@ class OffPolicyPipeline:
         self.device = torch.device(cfg.device)
         self.env_fn, self.env = factory_and_env(env, cfg)
         # Evaluation plays one env copy: the collection env may be a vector of them.
-        self.eval_env_fn = self.env_fn if cfg.collector.envs_per_worker == 1 else functools.partial(make_env, cfg.env, device="cpu")
+        self.eval_env_fn = self.env_fn if cfg.collector.envs_per_worker == 1 else functools.partial(
+            make_env, cfg.env, device="cpu", rescale_observations=cfg.rescale_observations)
         self.eval_env = eval_env_of(eval_env, self.eval_env_fn)
         self.env.set_seed(cfg.seed)
         self.eval_env.set_seed(cfg.seed + EVAL_SEED_OFFSET)
@@ -169,8 +170,16 @@ class OffPolicyPipeline:
         """Called after each collected block with its frame count (exploration schedules go here)."""
 
     def export_module(self) -> nn.Module:
-        """The deterministic policy as a plain module: observations [B, D] -> actions."""
+        """The deterministic policy as a plain module: observations [B, D] -> actions (the observations the
+        networks read: rescaled with ``rescale_observations``; ``exported_policy`` takes the env's own)."""
         raise NotImplementedError
+
+    def exported_policy(self) -> nn.Module:
+        """What a run exports to ``policy/``: ``export_module()`` on the env's own observations, i.e. after
+        the map to [-1, 1] that ``rescale_observations`` puts in the envs (``OnRescaledObservations``)."""
+        module = self.export_module()
+        bounds = observation_rescaling(self.env)
+        return module if bounds is None else OnRescaledObservations(module, *bounds)
 
     # --- assembled once, the same for every pipeline ------------------------------------------------
 

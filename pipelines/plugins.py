@@ -30,8 +30,12 @@ def factory_and_env(env: EnvArg, cfg: TrainConfig) -> tuple[Callable[[], EnvBase
     if env is not None and cfg.collector.envs_per_worker > 1:
         raise InputError(f"collector.envs_per_worker={cfg.collector.envs_per_worker} makes vector envs from config.env; "
                          "with env= given, expected collector.envs_per_worker=1 (batch your own env, e.g. a SerialEnv)")
+    if env is not None and cfg.rescale_observations:
+        raise InputError("rescale_observations=true rescales the envs made from config.env; with env= given, expected "
+                         "rescale_observations=false (rescale in your own env, e.g. gymnasium's RescaleObservation)")
     if env is None:
-        factory = functools.partial(make_env, cfg.env, device="cpu", num_envs=cfg.collector.envs_per_worker)
+        factory = functools.partial(make_env, cfg.env, device="cpu", num_envs=cfg.collector.envs_per_worker,
+                                    rescale_observations=cfg.rescale_observations)
     elif isinstance(env, EnvBase):
         if cfg.collector.workers > 1 or not cfg.collector.sync:
             raise InputError("collector.workers>1 or collector.sync=false: pass env as a function that makes the env")

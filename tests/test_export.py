@@ -175,6 +175,29 @@ def test_onnx_gives_the_deterministic_policys_actions(name, tmp_path):
     np.testing.assert_allclose(one, expected[7].numpy(), rtol=1e-4, atol=1e-5)
 
 
+def test_a_policy_trained_on_rescaled_observations_is_exported_on_the_envs_own(tmp_path):
+    # rescale_observations=true: the networks read observations mapped from the space's bounds to
+    # [-1, 1] (Pendulum-v1's: [-1, -1, -8] to [1, 1, 8]); the exported policy takes the env's own and maps
+    # them itself, as gymnasium's RescaleObservation does.
+    pipeline = sac.SAC(apply_overrides(sac.SACConfig(env="Pendulum-v1"), [*SHORT, "rescale_observations=true"]))
+    with torch.no_grad():
+        for p in pipeline.policy.parameters():
+            p.add_(torch.randn_like(p) * 0.3)
+    raw = make_env("Pendulum-v1", seed=3).rollout(50, break_when_any_done=False)["observation"]
+    assert raw[:, 2].abs().max() > 1  # the angular velocity, bounded by 8
+    to_unit = gymnasium.wrappers.utils.rescale_box(gymnasium.make("Pendulum-v1").observation_space,
+                                                   np.float32(-1), np.float32(1))[1]
+    rescaled = torch.from_numpy(to_unit(raw.numpy()))
+    seen = pipeline.env.rollout(50, break_when_any_done=False)["observation"]
+    assert seen.abs().max() <= 1 and seen[:, 2].abs().max() < 1
+    export_policy(pipeline.exported_policy(), pipeline.observation_dim, tmp_path, pipeline.export_info())
+    policy, _ = load_policy(tmp_path)
+    torch.testing.assert_close(policy(raw), deterministic_actions(pipeline.policy, rescaled), rtol=1e-4, atol=1e-5)
+    with pytest.raises(InputError, match="rescale_observations=true: env 'HalfCheetah-v5' has observation bounds "
+                                         "that are not finite .*; expected finite low and high"):
+        sac.SAC(apply_overrides(sac.SACConfig(env="HalfCheetah-v5"), [*SHORT, "rescale_observations=true"]))
+
+
 def test_the_pt2_gives_actions_without_grad(tmp_path):
     folder = tmp_path / "policy"
     export_policy(nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 1)), 3, folder, {})

@@ -213,7 +213,7 @@ class ExportTrigger(Trigger):
     def __call__(self, loop: Loop) -> None:
         pipeline = loop.pipeline
         with loop.clock.paused():
-            export_policy(pipeline.export_module(), pipeline.observation_dim, loop.run_dir.policy_dir,
+            export_policy(pipeline.exported_policy(), pipeline.observation_dim, loop.run_dir.policy_dir,
                           pipeline.export_info(), step=loop.state.iteration, keep=loop.config.policy_keep)
         self.exported_at = loop.state.iteration
 
