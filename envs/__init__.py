@@ -191,6 +191,10 @@ def _flat_observations(env: gymnasium.Env, gym_id: str) -> gymnasium.Env:
     return DtypeObservation(FlattenObservation(env), np.float32)
 
 
+RESCALE_MAX_WIDTH = 1e6
+"""observation bounds wider than this are unbounded for ``rescale_observations``"""
+
+
 def rescaling_bounds(space: spaces.Space, gym_id: str) -> tuple[np.ndarray, np.ndarray]:
     """The (low, high) an observation space is rescaled from, as float32 arrays: a flat Box's own
     bounds, which must be finite (``EnvError`` otherwise, naming the env and what is expected)."""
@@ -198,10 +202,13 @@ def rescaling_bounds(space: spaces.Space, gym_id: str) -> tuple[np.ndarray, np.n
         raise EnvError(f"rescale_observations=true: env {gym_id!r} has a {space} observation space; expected a flat "
                        "Box with finite bounds, or rescale_observations=false")
     low, high = space.low.astype(np.float32), space.high.astype(np.float32)
-    if not (np.isfinite(low).all() and np.isfinite(high).all()):
+    # CartPole bounds its velocities by float32's largest value: finite, but a map from that width to [-1, 1]
+    # would squash them to ~1e-39, so a width past RESCALE_MAX_WIDTH counts as unbounded
+    unbounded = ~np.isfinite(low) | ~np.isfinite(high) | (high.astype(np.float64) - low > RESCALE_MAX_WIDTH)
+    if unbounded.any():
         raise EnvError(f"rescale_observations=true: env {gym_id!r} has observation bounds that are not finite "
-                       f"({int((~np.isfinite(low) | ~np.isfinite(high)).sum())} of {low.size} entries); expected "
-                       "finite low and high, or rescale_observations=false")
+                       f"({int(unbounded.sum())} of {low.size} entries infinite or wider than {RESCALE_MAX_WIDTH:g}); "
+                       "expected finite low and high, or rescale_observations=false")
     return low, high
 
 

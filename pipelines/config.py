@@ -254,7 +254,7 @@ class TrainConfig:
     env: str = ""
     """gymnasium env id (the tutorials' ids work too, e.g. MinitaurBulletEnv-v0)"""
     rescale_observations: bool = False
-    """map each observation linearly from the observation space's bounds to [-1, 1] (gymnasium's RescaleObservation) in the envs made from `env`, so that no input dwarfs the others (Minitaur's motor velocities are bounded by 168, its angles by 3.2); the exported policy takes the env's own observations and rescales them itself. Needs finite bounds"""
+    """map each observation linearly from the observation space's bounds to [-1, 1] (gymnasium's RescaleObservation) in the envs made from `env`, so that no input dwarfs the others (Minitaur's motor velocities are bounded by 168, its motor angles by 3.15); the exported policy takes the env's own observations and rescales them itself. Needs finite bounds"""
     seed: int = checked(0, Check(lambda v: 0 <= v <= MAX_SEED, f"an integer from 0 to {MAX_SEED}"))
     """seed for networks, replay sampling, exploration and envs; worker seeds derive from it"""
     num_iterations: int = checked(100_000, POSITIVE)

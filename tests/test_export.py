@@ -196,6 +196,9 @@ def test_a_policy_trained_on_rescaled_observations_is_exported_on_the_envs_own(t
     with pytest.raises(InputError, match="rescale_observations=true: env 'HalfCheetah-v5' has observation bounds "
                                          "that are not finite .*; expected finite low and high"):
         sac.SAC(apply_overrides(sac.SACConfig(env="HalfCheetah-v5"), [*SHORT, "rescale_observations=true"]))
+    with pytest.raises(InputError, match="'CartPole-v1' has observation bounds that are not finite [(]2 of 4 entries "
+                                         "infinite or wider than 1e[+]06[)]"):  # its velocities: float32's largest
+        dqn.DQN(apply_overrides(dqn.DQNConfig(env="CartPole-v1"), [*SHORT, "rescale_observations=true"]))
 
 
 def test_the_pt2_gives_actions_without_grad(tmp_path):
