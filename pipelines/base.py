@@ -175,8 +175,8 @@ class OffPolicyPipeline:
         raise NotImplementedError
 
     def exported_policy(self) -> nn.Module:
-        """What a run exports to ``policy/``: ``export_module()`` on the env's own observations, i.e. after
-        the map to [-1, 1] that ``rescale_observations`` puts in the envs (``OnRescaledObservations``)."""
+        """What a run exports to ``policy/``: the policy on the env's own observations, i.e. ``export_module()``
+        preceded by the map to [-1, 1] that ``rescale_observations`` puts in the envs (``OnRescaledObservations``)."""
         module = self.export_module()
         bounds = observation_rescaling(self.env)
         return module if bounds is None else OnRescaledObservations(module, *bounds)
