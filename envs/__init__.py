@@ -215,7 +215,10 @@ def rescaling_bounds(space: spaces.Space, gym_id: str) -> tuple[np.ndarray, np.n
 def observation_rescaling(env: EnvBase) -> tuple[np.ndarray, np.ndarray] | None:
     """The (low, high) ``make_env(..., rescale_observations=True)`` maps ``env``'s observations from, or None
     where it does not rescale them."""
-    gym_env = getattr(getattr(env, "base_env", env), "_env", None)
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    if not isinstance(base, GymWrapper):  # a user's own env (a SerialEnv's __getattr__ would ask each copy)
+        return None
+    gym_env = base._env
     if isinstance(gym_env, gymnasium.vector.SyncVectorEnv):
         gym_env = gym_env.envs[0]
     if isinstance(gym_env, RescaleObservation):

@@ -178,7 +178,7 @@ class OffPolicyPipeline:
         """What a run exports to ``policy/``: the policy on the env's own observations, i.e. ``export_module()``
         preceded by the map to [-1, 1] that ``rescale_observations`` puts in the envs (``OnRescaledObservations``)."""
         module = self.export_module()
-        bounds = observation_rescaling(self.env)
+        bounds = observation_rescaling(self.env) if self.config.rescale_observations else None
         return module if bounds is None else OnRescaledObservations(module, *bounds)
 
     # --- assembled once, the same for every pipeline ------------------------------------------------
