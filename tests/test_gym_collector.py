@@ -146,7 +146,9 @@ def test_user_envs_and_direct_false_keep_torchrls_collector():
     assert direct_collection(p.config, p.env_fn, p.env)
     rescaled = pipeline("td3", "rescale_observations=true")  # the rescale is a gymnasium wrapper: still direct
     assert direct_collection(rescaled.config, rescaled.env_fn, rescaled.env)
-    assert isinstance(rescaled.make_collector(total_frames=50, init_random_frames=0), GymCollector)
+    collector = rescaled.make_collector(total_frames=50, init_random_frames=0)
+    assert isinstance(collector, GymCollector)
+    collector.shutdown()
     off = apply_overrides(p.config, ["collector.direct=false"])
     assert not direct_collection(off, p.env_fn, p.env)
     vector = pipeline("dqn", "env=CartPole-v1", "collector.envs_per_worker=2", "collector.frames_per_batch=50")
