@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from gymnasium import spaces
+from gymnasium.wrappers.utils import rescale_box
 from tensordict import TensorDict
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -30,20 +32,20 @@ class TensorDictPolicy(nn.Module):
 class OnRescaledObservations(nn.Module):
     """``observation [B, D] -> module(observation mapped linearly from [low, high] to [-1, 1])``.
 
-    The map is gymnasium's ``RescaleObservation(env, -1, 1)``, with its float32 gradient and intercept
-    computed as it computes them, so a policy trained on rescaled observations (``rescale_observations=true``)
-    is exported to take the env's own.
+    The map is gymnasium's own (``rescale_box``, what ``RescaleObservation(env, -1, 1)`` applies), read
+    off as its intercept (the image of 0) and gradient (of 1, less the intercept), so a policy trained on
+    rescaled observations (``rescale_observations=true``) is exported to take the env's own.
     """
 
     def __init__(self, module: nn.Module, low: np.ndarray, high: np.ndarray):
         super().__init__()
-        low, high = np.asarray(low, np.float32), np.asarray(high, np.float32)
-        wide = np.longdouble  # gymnasium's high - low is float128 where numpy has it
-        gradient = (np.full(low.shape, 2.0, np.float32) / (high.astype(wide) - low.astype(wide))).astype(np.float32)
-        intercept = gradient * -low + np.full(low.shape, -1.0, np.float32)
+        box = spaces.Box(np.asarray(low, np.float32), np.asarray(high, np.float32), dtype=np.float32)
+        to_unit = rescale_box(box, np.float32(-1.0), np.float32(1.0))[1]
+        intercept = to_unit(np.zeros(box.shape, np.float32))
+        gradient = to_unit(np.ones(box.shape, np.float32)) - intercept
         self.module = module
         self.register_buffer("gradient", torch.from_numpy(gradient))
-        self.register_buffer("intercept", torch.from_numpy(intercept.astype(np.float32)))
+        self.register_buffer("intercept", torch.from_numpy(intercept))
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         return self.module(self.gradient * observation + self.intercept)
