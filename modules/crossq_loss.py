@@ -35,7 +35,13 @@ from torchrl.objectives.value import TD0Estimator
 
 from rlpipe.modules.critics import BatchRenorm1d, _Joined
 from rlpipe.modules.sac_loss import LeanTanhNormalActor
-from rlpipe.modules.tensor_nets import cached_detached_params, cached_flat_params, is_plain_module, transition_tensors
+from rlpipe.modules.tensor_nets import (
+    bootstrap_discount,
+    cached_detached_params,
+    cached_flat_params,
+    is_plain_module,
+    transition_tensors,
+)
 
 __all__ = ["LeanCrossQLoss", "renorm_critic_layers"]
 
@@ -181,7 +187,8 @@ class LeanCrossQLoss(LeanTanhNormalActor, CrossQLoss):
         current, following = q.split(batch, dim=1)
         next_value = (following.amin(0) - self._alpha * next_log_prob).detach()
         not_terminated = (~terminated.squeeze(-1)).int()
-        target = reward.squeeze(-1) + self.value_estimator.gamma * not_terminated * next_value
+        gamma = bootstrap_discount(self, tensordict, next_value)  # gamma ** steps_to_next_obs for n-step transitions
+        target = reward.squeeze(-1) + gamma * not_terminated * next_value
         loss = distance_loss(current, target.expand_as(current), loss_function=self.loss_function).sum(0)
         td_error = (current - target).abs().detach().amax(0)
         return self._reduce_loss(loss, tensordict=tensordict), {"td_error": td_error}

@@ -19,7 +19,14 @@ from torchrl.objectives import DQNLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
-from rlpipe.modules.tensor_nets import cached_flat_params, is_plain_module, mlp_layers, run_mlp, transition_tensors
+from rlpipe.modules.tensor_nets import (
+    bootstrap_discount,
+    cached_flat_params,
+    is_plain_module,
+    mlp_layers,
+    run_mlp,
+    transition_tensors,
+)
 
 __all__ = ["LeanDQNLoss"]
 
@@ -69,7 +76,8 @@ class LeanDQNLoss(DQNLoss):
             else:
                 next_value = next_q.max(-1, keepdim=True).values
             not_terminated = (~terminated).int()
-            target = (reward + self.value_estimator.gamma * not_terminated * next_value).squeeze(-1)
+            gamma = bootstrap_discount(self, tensordict, reward)  # gamma ** steps_to_next_obs for n-step transitions
+            target = (reward + gamma * not_terminated * next_value).squeeze(-1)
             tensordict.set(keys.priority, (predicted - target).pow(2).unsqueeze(-1), inplace=True)
         loss = distance_loss(predicted, target, self.loss_function)
         weights = None

@@ -39,6 +39,7 @@ from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
 from rlpipe.modules.tensor_nets import (
+    bootstrap_discount,
     cached_detached_params,
     cached_flat_params,
     is_plain_module,
@@ -201,26 +202,28 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
     # -- SAC on tensors -------------------------------------------------------------------------
 
     @torch.no_grad()
-    def value_target(self, next_observation, reward, terminated) -> torch.Tensor:
+    def value_target(self, next_observation, reward, terminated, discount=None) -> torch.Tensor:
         """``r + gamma * (1 - terminated) * min_i(Q_target_i(s', a') - alpha * log pi(a'|s'))``, ``[*batch]``.
 
-        ``a'`` is sampled from the online actor, as ``SACLoss`` v2 does.
+        ``a'`` is sampled from the online actor, as ``SACLoss`` v2 does. ``discount`` (``[*batch]``, or None:
+        ``gamma``) replaces ``gamma`` per sample: ``gamma ** steps_to_next_obs`` for n-step transitions.
         """
         next_action, next_log_prob = self.sample_action(next_observation)
         next_q = self.qvalues(cached_flat_params(self, "target_qvalue_network_params"), next_observation, next_action)
         next_value = (next_q - self._alpha * next_log_prob).amin(0)
         not_terminated = (~terminated.squeeze(-1)).int()
-        return reward.squeeze(-1) + self.value_estimator.gamma * not_terminated * next_value
+        gamma = self.value_estimator.gamma if discount is None else discount
+        return reward.squeeze(-1) + gamma * not_terminated * next_value
 
     def losses(self, observation, action, next_observation, reward, terminated, weights=None,
-               actor: bool = True) -> dict[str, torch.Tensor]:
+               actor: bool = True, discount=None) -> dict[str, torch.Tensor]:
         """SACLoss's losses from tensors: ``loss_qvalue``, ``loss_actor``, ``loss_alpha``, and
         ``alpha``, ``entropy`` (detached), ``td_error`` (per sample, detached).
 
         ``actor=False`` computes the critics' loss and ``td_error`` only (a delayed policy update's
         other steps): no actor sample at ``observation``, no critic pass for it, nothing to backpropagate
-        into the actor or the temperature."""
-        target = self.value_target(next_observation, reward, terminated)
+        into the actor or the temperature. ``discount``: as in ``value_target``."""
+        target = self.value_target(next_observation, reward, terminated, discount)
         predictions = self.qvalues(cached_flat_params(self, "qvalue_network_params"), observation, action)
         loss_qvalue = distance_loss(predictions, target.expand_as(predictions), loss_function=self.loss_function).sum(0)
         td_error = (predictions - target).abs().detach().amax(0)
@@ -252,8 +255,10 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
         if not self.lean:
             return super().forward(tensordict)
         # SACLoss.forward calls qvalue_v2_loss, then actor_loss: one pass of `losses` serves both.
+        tensors = self.tensors_from(tensordict)
         self.__dict__["_pending_losses"] = self.losses(
-            *self.tensors_from(tensordict), weights=self._maybe_get_priority_weight(tensordict)
+            *tensors, weights=self._maybe_get_priority_weight(tensordict),
+            discount=bootstrap_discount(self, tensordict, tensors[3].squeeze(-1)),
         )
         try:
             return super().forward(tensordict)

@@ -43,6 +43,7 @@ from torchrl.objectives.utils import distance_loss
 
 from rlpipe.modules.actors import TanhBoundedMLP
 from rlpipe.modules.tensor_nets import (
+    bootstrap_discount,
     cached_flat_params,
     importance_weights,
     is_plain_module,
@@ -257,11 +258,14 @@ class TD3AblationLoss(TD3Loss):
         next_observation: torch.Tensor,
         reward: torch.Tensor,
         terminated: torch.Tensor,
+        discount: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(r + gamma * (1 - terminated) * Q_target(s', a'), Q_target(s', a'))``, shaped like r.
 
         Q_target is the min over the target critics (clipped double Q), or the first target
         critic alone when ``clipped_double_q`` is off (then the other critics are not evaluated).
+        ``discount`` (shaped like r, or None: ``gamma``) replaces ``gamma`` per sample: ``gamma **
+        steps_to_next_obs`` for n-step transitions (``tensor_nets.bootstrap_discount``).
         """
         next_action = self.target_action(next_observation)
         if self.clipped_double_q:
@@ -271,7 +275,7 @@ class TD3AblationLoss(TD3Loss):
             next_q = self._qvalues(
                 "target_qvalue_network_params", next_observation, next_action, index=0
             )
-        gamma = self.value_estimator.gamma
+        gamma = self.value_estimator.gamma if discount is None else discount
         not_terminated = 1 - terminated.to(reward.dtype)
         return reward + gamma * not_terminated * next_q, next_q
 
@@ -283,6 +287,7 @@ class TD3AblationLoss(TD3Loss):
         reward: torch.Tensor,
         terminated: torch.Tensor,
         weights: torch.Tensor | None = None,
+        discount: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Critic loss: every critic regresses on the shared target.
 
@@ -290,9 +295,9 @@ class TD3AblationLoss(TD3Loss):
         the sum over critics of each one's mean loss: the critics share no parameters, so the
         gradients are the tutorial's two separate ``mse_loss`` backward passes.
         ``weights`` (importance weights of a prioritized buffer, shape of ``reward`` without its
-        last dim) make each critic's mean a weighted one, as TD3Loss's.
+        last dim) make each critic's mean a weighted one, as TD3Loss's. ``discount``: as in ``value_target``.
         """
-        target, next_q = self.value_target(next_observation, reward, terminated)
+        target, next_q = self.value_target(next_observation, reward, terminated, discount)
         predictions = self._qvalues("qvalue_network_params", observation, action)
         per_sample = distance_loss(
             predictions, target.expand_as(predictions), loss_function=self.loss_function
@@ -328,8 +333,9 @@ class TD3AblationLoss(TD3Loss):
 
     def value_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         weights = self._maybe_get_priority_weight(tensordict)
+        tensors = self.tensors_from(tensordict)
         loss, predictions, target, next_q = self.qvalue_loss_from_tensors(
-            *self.tensors_from(tensordict), weights=weights
+            *tensors, weights=weights, discount=bootstrap_discount(self, tensordict, tensors[3])
         )
         predictions, target = predictions.squeeze(-1), target.squeeze(-1)
         metadata = {
@@ -395,7 +401,7 @@ def td3_update(
         observation, action, next_observation, reward, terminated = loss.tensors_from(batch)
         weights = importance_weights(loss, batch)
         critic_loss = loss.qvalue_loss_from_tensors(observation, action, next_observation, reward, terminated,
-                                                    weights)[0]
+                                                    weights, bootstrap_discount(loss, batch, reward))[0]
     else:
         critic_loss = loss.value_loss(batch)[0]
     critic_optimizer.zero_grad(set_to_none=True)

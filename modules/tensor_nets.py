@@ -18,7 +18,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.modules import MLP
 
 __all__ = ["ELEMENTWISE", "importance_weights", "is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
-           "transition_tensors", "module_forward"]
+           "transition_tensors", "bootstrap_discount", "module_forward"]
 
 Layers = list[tuple[str, object]]
 
@@ -118,6 +118,17 @@ def transition_tensors(tensordict, observation_key, tensor_keys) -> tuple[torch.
         tensordict.get(("next", tensor_keys.reward)),
         tensordict.get(("next", tensor_keys.terminated)),
     )
+
+
+def bootstrap_discount(loss, tensordict, like: torch.Tensor):
+    """The discount of each sample's bootstrapped value, shaped like ``like``: the loss's ``gamma``, or
+    ``gamma ** steps_to_next_obs`` where the batch holds n-step transitions (that key, as TorchRL's
+    ``TD0Estimator`` reads it: ``loss.value_estimator.tensor_keys.steps_to_next_obs``)."""
+    estimator = loss.value_estimator
+    steps = tensordict.get(estimator.tensor_keys.steps_to_next_obs, None)
+    if steps is None:
+        return estimator.gamma
+    return estimator.gamma ** steps.to(like.dtype).reshape(like.shape)
 
 
 def importance_weights(loss, tensordict) -> torch.Tensor | None:

@@ -52,6 +52,7 @@ from rlpipe.pipelines.system.memory import check_memory
 from rlpipe.pipelines.system.runtime import start_resource_tracker
 from rlpipe.pipelines.training.loop import TrainResult
 from rlpipe.pipelines.training.meters import Clock
+from rlpipe.pipelines.training.nstep import STEPS_KEY
 from rlpipe.pipelines.training.run import Run, seed_everything
 from rlpipe.pipelines.training.state import RunState
 from rlpipe.pipelines.training.threads import choose_threads
@@ -204,10 +205,11 @@ class OffPolicyPipeline:
         loss is built (the memory check), the transition's keys, which every built-in loss reads."""
         if self.config.replay_all_keys:
             return None
+        steps = [STEPS_KEY] if self.config.n_step > 1 else []
         if hasattr(self, "loss_module"):
-            return list(self.loss_module.in_keys)
+            return [*self.loss_module.in_keys, *steps]
         obs = self.observation_key
-        return [obs, "action", ("next", obs), ("next", "reward"), ("next", "done"), ("next", "terminated")]
+        return [obs, "action", ("next", obs), ("next", "reward"), ("next", "done"), ("next", "terminated"), *steps]
 
     def update_periods(self) -> list[int]:
         """The index periods ``update`` branches on (``update_index % p == 0``), each dividing the

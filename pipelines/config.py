@@ -273,6 +273,8 @@ class TrainConfig:
     """store every key the collector returns (true: e.g. to inspect ("collector", "traj_ids") or step counts in the buffer; each trajectory id is one episode across the run's collectors, restarted or resumed ones included); false stores only the keys the loss reads (`loss_module.in_keys`): less memory, faster sampling"""
     gamma: float = checked(0.99, Check(lambda v: 0.0 < v <= 1.0, "a discount in (0, 1]"))
     """discount factor"""
+    n_step: int = checked(1, POSITIVE)
+    """n-step returns: each stored transition's reward is the discounted sum of the next n rewards of its episode and its next observation the one n env steps on (fewer at an episode's end or a collected block's), the bootstrap discounted by gamma**n (`steps_to_next_obs`, as TorchRL's TD0 reads it); 1: one-step TD"""
     target_update_tau: float = checked(0.005, Check(lambda v: 0.0 < v <= 1.0, "a value in (0, 1]"))
     """target network soft-update factor (1.0 copies the online network)"""
     target_update_period: int = checked(1, POSITIVE)

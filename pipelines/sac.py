@@ -25,7 +25,7 @@ from rlpipe.modules.critics import INITIALIZERS, make_qvalue_critic
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.sac_loss import LeanSACLoss
 from rlpipe.modules.target_updates import make_target_updater
-from rlpipe.modules.tensor_nets import importance_weights
+from rlpipe.modules.tensor_nets import bootstrap_discount, importance_weights
 from rlpipe.pipelines.base import Agent, TanhNormalPipeline, observation_key_of, scale_rewards
 from rlpipe.pipelines.config import (
     ANNEAL_WINDOW,
@@ -310,7 +310,8 @@ class SAC(TanhNormalPipeline):
             if cfg.reward_scale_factor != 1.0:
                 reward = reward * cfg.reward_scale_factor
             out = loss_module.losses(obs, action, next_obs, reward, terminated,
-                                     weights=importance_weights(loss_module, batch), actor=actor_step)
+                                     weights=importance_weights(loss_module, batch), actor=actor_step,
+                                     discount=bootstrap_discount(loss_module, batch, reward.squeeze(-1)))
         else:
             # a stock SACLoss computes every loss; off the actor's steps only the critics' is used (its
             # target is computed without gradients, so nothing reaches the actor or the temperature)

@@ -182,6 +182,8 @@ def test_lean_loss_gives_crossqlosss_values_gradients_and_statistics(warmup):
     stock = stock_twin(pipeline)
     for index in range(4):
         batch = batch_of(pipeline)
+        if index >= 2:  # n-step transitions (n_step > 1): the bootstrap discounted by gamma ** steps_to_next_obs
+            batch["steps_to_next_obs"] = torch.randint(1, 4, (32,), generator=torch.Generator().manual_seed(index))
         for loss in (lean, stock):
             loss.zero_grad(set_to_none=True)
             torch.manual_seed(index)

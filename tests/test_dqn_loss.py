@@ -18,7 +18,9 @@ pytestmark = pytest.mark.unit
 
 @pytest.mark.parametrize("double_dqn, delay_value", [(False, False), (False, True), (True, True)])
 @pytest.mark.parametrize("loss_function", ["l2", "smooth_l1"])
-def test_lean_loss_matches_dqnloss(double_dqn, delay_value, loss_function):
+@pytest.mark.parametrize("n_step", [False, True])
+def test_lean_loss_matches_dqnloss(double_dqn, delay_value, loss_function, n_step):
+    # n_step: transitions that look 1-3 steps ahead (steps_to_next_obs), bootstrapped with gamma ** steps
     spec = Categorical(3)
     torch.manual_seed(0)
     actor = make_qvalue_actor(4, spec, [16, 8])
@@ -39,6 +41,8 @@ def test_lean_loss_matches_dqnloss(double_dqn, delay_value, loss_function):
         "next": {"observation": torch.randn(32, 4, generator=g), "reward": torch.randn(32, 1, generator=g),
                  "terminated": torch.rand(32, 1, generator=g) < 0.3, "done": torch.zeros(32, 1, dtype=torch.bool)},
     }, [32])
+    if n_step:
+        batch["steps_to_next_obs"] = torch.randint(1, 4, (32,), generator=g)
     grads = []
     for loss, data in ((stock, batch.clone()), (lean, batch.clone())):
         out = loss(data)

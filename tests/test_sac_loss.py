@@ -121,3 +121,20 @@ def test_other_structures_go_through_sacloss():
     assert not lean.lean
     out = lean(batch())
     assert torch.isfinite(out["loss_qvalue"]) and torch.isfinite(out["loss_actor"])
+
+
+def test_n_step_transitions_bootstrap_with_gamma_to_their_steps_as_sacloss_does():
+    # steps_to_next_obs (n_step > 1): TorchRL's TD0 discounts each bootstrap by gamma ** steps; so must the lean loss
+    stock, lean = losses_pair()
+    data = batch()
+    data["steps_to_next_obs"] = torch.randint(1, 4, (B,), generator=torch.Generator().manual_seed(3))
+    torch.manual_seed(5)
+    expected = stock(data.clone())
+    for through_forward in (True, False):
+        torch.manual_seed(5)
+        obs, action, next_obs, reward, terminated = lean.tensors_from(data)
+        got = lean(data.clone()) if through_forward else lean.losses(
+            obs, action, next_obs, reward, terminated, discount=0.97 ** data["steps_to_next_obs"])
+        torch.testing.assert_close(got["loss_qvalue"], expected["loss_qvalue"], rtol=1e-6, atol=1e-6)
+    torch.manual_seed(5)
+    assert not torch.allclose(lean(data.exclude("steps_to_next_obs"))["loss_qvalue"], expected["loss_qvalue"])

@@ -350,3 +350,25 @@ def test_pendulum_rollout_and_exploration_noise():
     for index in (1, 2):
         out = td3_update(loss, data, critic_opt, actor_opt, updater, index)
     assert torch.isfinite(out["loss_qvalue"]) and torch.isfinite(out["loss_actor"])
+
+
+def test_n_step_transitions_bootstrap_with_gamma_to_their_steps_as_td3loss_does():
+    """steps_to_next_obs (n_step > 1): TD3Loss's TD0 discounts each bootstrap by gamma ** steps; so do the
+    TensorDict interface and td3_update's tensor path."""
+    torch.manual_seed(1)
+    actor = make_deterministic_actor(OBS, SPEC, HIDDEN)
+    critic = make_qvalue_critic(OBS, ACT, HIDDEN)
+    ours = TD3AblationLoss(actor, critic, action_spec=SPEC, target_policy_smoothing=False)
+    stock = TD3Loss(actor, critic, action_spec=SPEC, policy_noise=0.0, loss_function="l2")
+    with torch.no_grad():
+        stock.qvalue_network_params.data.copy_(ours.qvalue_network_params.data)
+        stock.target_qvalue_network_params.data.copy_(ours.target_qvalue_network_params.data)
+    td = make_batch()
+    td["steps_to_next_obs"] = torch.tensor([1, 3, 2, 3, 1, 2])
+    mine, theirs, one_step = ours(td.clone()), stock(td.clone()), ours(td.exclude("steps_to_next_obs"))
+    torch.testing.assert_close(mine["target_value"], theirs["target_value"])
+    torch.testing.assert_close(mine["loss_qvalue"], theirs["loss_qvalue"])
+    assert not torch.allclose(mine["target_value"], one_step["target_value"])
+    critic_opt, actor_opt = optimizers(ours)
+    out = td3_update(ours, td.clone(), critic_opt, actor_opt, make_target_updater(ours, 0.005), update_index=1)
+    torch.testing.assert_close(out["loss_qvalue"], theirs["loss_qvalue"])

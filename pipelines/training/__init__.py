@@ -7,6 +7,7 @@
     state.py         where a run is (counters, owed triggers, pending evaluations) and the triggers' names
     rate_limiter.py  updates per frame (TF-Agents' SampleToInsertRatio)
     sampling.py      the replay batch for each update (``ReplayBuffer.sample``'s batch, gathered leaf by leaf)
+    nstep.py         n-step transitions (``n_step``), made from each collected block before it is stored
     meters.py        training time, speeds, losses, episode returns between two log rows
     divergence.py    the check that stops a run whose loss or parameters turned NaN or infinite
     threads.py       the learner's torch threads (``num_threads=-1``)

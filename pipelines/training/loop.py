@@ -50,6 +50,7 @@ from rlpipe.pipelines.system.runtime import (
 )
 from rlpipe.pipelines.training.divergence import check_finite
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
+from rlpipe.pipelines.training.nstep import n_step_transitions
 from rlpipe.pipelines.training.page import ReportPage
 from rlpipe.pipelines.training.sampling import sample
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
@@ -284,7 +285,10 @@ class Loop:
                     ids = ids + self.state.traj_offset
                     batch.set(TRAJ_IDS, ids)
                 self.state.traj_next = max(self.state.traj_next, int(ids.max()) + 1)
-        pipeline.replay_buffer.extend(batch if keys is None else batch.select(*keys))
+        # the loss's own discount (a user's loss_module may have its own); the stats below read the steps as taken
+        stored = n_step_transitions(batch, cfg.n_step, float(pipeline.loss_module.value_estimator.gamma)) if (
+            cfg.n_step > 1) else batch
+        pipeline.replay_buffer.extend(stored if keys is None else stored.select(*keys))
         ended = self.interval_stats.add_frames(batch)
         if ended:
             self.recent_returns.extend(self.interval_stats.episode_returns[-ended:])
