@@ -24,7 +24,8 @@ SIZED = {
     "sac-invpendulum": ("InvertedPendulum-v5", (950.0,)),
     "td3-invpendulum": ("InvertedPendulum-v5", (950.0,)),
     "sac-halfcheetah-100k": ("HalfCheetah-v5", (3000.0,)),
-    "sac-minitaur": ("MinitaurBulletEnv-v0", (1.0, 5.0)),
+    "sac-minitaur": ("MinitaurBulletEnv-v0", (1.0,)),
+    "sac-minitaur-5": ("MinitaurBulletEnv-v0", (5.0,)),
 }
 
 
@@ -54,7 +55,7 @@ def test_every_preset_has_its_task_and_the_sized_ones_are_found_by_env():
         assert preset_info(name) is not None, name
         assert preset_info(name).env == resolve_preset(name)[1].env, name
     assert sized_presets("Pendulum-v1") == ["td3-pendulum", "sac-pendulum", "crossq-pendulum"]
-    assert sized_presets("MinitaurBulletEnv-v0") == ["sac-minitaur", "crossq-minitaur"]
+    assert sized_presets("MinitaurBulletEnv-v0") == ["sac-minitaur", "sac-minitaur-5", "crossq-minitaur"]
     assert sized_presets("Acrobot-v1") == []
 
 
@@ -63,7 +64,7 @@ def test_rlpipe_presets_lists_each_with_its_task_and_measured_time(tmp_path, mon
 
     times = tmp_path / "preset_times.json"
     times.write_text(json.dumps({"sac-pendulum": {"seconds": 12.34, "date": "2026-11-25", "commit": "abc1234"},
-                                 "sac-minitaur": {"seconds": 447.5, "target": 1.0}}))
+                                 "crossq-minitaur": {"seconds": 447.5, "target": 1.0}}))
     monkeypatch.setattr(cli, "PRESET_TIMES", times)
     assert cli.main(["presets"]) == 0
     lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
@@ -72,7 +73,7 @@ def test_rlpipe_presets_lists_each_with_its_task_and_measured_time(tmp_path, mon
         assert env in lines[name] and f"{targets[0]:g}" in lines[name], lines[name]
     assert "12.3 s (2026-11-25, abc1234)" in lines["sac-pendulum"]
     assert "not measured yet" in lines["td3-pendulum"]
-    assert "1 then 5" in lines["sac-minitaur"] and "447.5 s to 1" in lines["sac-minitaur"]  # which of its two
+    assert "1 then 5" in lines["crossq-minitaur"] and "447.5 s to 1" in lines["crossq-minitaur"]  # which of its two
 
 
 def test_a_tutorial_preset_on_a_sized_env_hints_at_its_preset_and_trains_on(tmp_path, monkeypatch, capfd):

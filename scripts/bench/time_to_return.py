@@ -90,7 +90,7 @@ TASKS: dict[str, Task] = {
     # iterations; 5.0: a gait (issue 21's main job). The peers' CleanRL venv has no pybullet.
     "minitaur-sac-1": Task("MinitaurBulletEnv-v0", "sac", 1.0, 300_000, "sac-minitaur", ("sac", ()),
                            crossq="crossq-minitaur", peers=("sb3", "sbx", "tfagents"), why="the SAC tutorial's task"),
-    "minitaur-sac-5": Task("MinitaurBulletEnv-v0", "sac", 5.0, 1_000_000, "sac-minitaur", ("sac", ()),
+    "minitaur-sac-5": Task("MinitaurBulletEnv-v0", "sac", 5.0, 1_000_000, "sac-minitaur-5", ("sac", ()),
                            crossq="crossq-minitaur", peers=("sb3", "sbx"), why="the main job"),
 }
 
