@@ -193,6 +193,10 @@ class OffPolicyPipeline:
         self.policy = agent.policy.to(self.device)
         self.collect_policy = agent.collect_policy.to(self.device)
         self.loss_module = agent.loss_module.to(self.device)
+        if self.config.n_step > 1 and _value_estimator(self.loss_module) is None:
+            raise InputError(f"n_step={self.config.n_step} needs a loss that bootstraps through a TorchRL value "
+                             f"estimator (its gamma, and steps_to_next_obs); {type(self.loss_module).__name__} has "
+                             "none: expected n_step=1 or a TorchRL loss")
         self.optimizers = self.make_optimizers()
         self.target_updater = self.make_target_updater()
         self.replay_buffer = self.make_replay_buffer()
@@ -422,3 +426,11 @@ class TanhNormalPipeline(OffPolicyPipeline):
         if self._export_network_only:
             return TanhNormalMode.from_actor(self.policy, self.action_spec)
         return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
+
+
+def _value_estimator(loss: nn.Module):
+    """``loss``'s TorchRL value estimator (built on first use, as TorchRL's losses do), or None for a loss without one."""
+    try:
+        return loss.value_estimator
+    except (AttributeError, NotImplementedError):
+        return None
