@@ -152,9 +152,8 @@ def test_matches_torchrl_td3loss_without_noise():
         torch.testing.assert_close(mine[key], theirs[key])
 
 
-def test_importance_weights_weigh_the_losses_as_td3loss_does():
-    """A prioritized buffer's weights ("priority_weight", TorchRL 0.14's key) give TD3Loss's weighted
-    means, through the TensorDict interface and through td3_update's tensor path alike."""
+def without_smoothing_and_stock() -> tuple[TD3AblationLoss, TD3Loss]:
+    """Ours with smoothing off and the stock TD3Loss without noise, same actor and critics' parameters."""
     torch.manual_seed(1)
     actor = make_deterministic_actor(OBS, SPEC, HIDDEN)
     critic = make_qvalue_critic(OBS, ACT, HIDDEN)
@@ -163,6 +162,13 @@ def test_importance_weights_weigh_the_losses_as_td3loss_does():
     with torch.no_grad():
         stock.qvalue_network_params.data.copy_(ours.qvalue_network_params.data)
         stock.target_qvalue_network_params.data.copy_(ours.target_qvalue_network_params.data)
+    return ours, stock
+
+
+def test_importance_weights_weigh_the_losses_as_td3loss_does():
+    """A prioritized buffer's weights ("priority_weight", TorchRL 0.14's key) give TD3Loss's weighted
+    means, through the TensorDict interface and through td3_update's tensor path alike."""
+    ours, stock = without_smoothing_and_stock()
     td = make_batch()
     td["priority_weight"] = torch.tensor([0.1, 1.0, 0.5, 2.0, 0.0, 1.5])
     mine, theirs, unweighted = ours(td.clone()), stock(td.clone()), ours(td.exclude("priority_weight"))
@@ -355,14 +361,7 @@ def test_pendulum_rollout_and_exploration_noise():
 def test_n_step_transitions_bootstrap_with_gamma_to_their_steps_as_td3loss_does():
     """steps_to_next_obs (n_step > 1): TD3Loss's TD0 discounts each bootstrap by gamma ** steps; so do the
     TensorDict interface and td3_update's tensor path."""
-    torch.manual_seed(1)
-    actor = make_deterministic_actor(OBS, SPEC, HIDDEN)
-    critic = make_qvalue_critic(OBS, ACT, HIDDEN)
-    ours = TD3AblationLoss(actor, critic, action_spec=SPEC, target_policy_smoothing=False)
-    stock = TD3Loss(actor, critic, action_spec=SPEC, policy_noise=0.0, loss_function="l2")
-    with torch.no_grad():
-        stock.qvalue_network_params.data.copy_(ours.qvalue_network_params.data)
-        stock.target_qvalue_network_params.data.copy_(ours.target_qvalue_network_params.data)
+    ours, stock = without_smoothing_and_stock()
     td = make_batch()
     td["steps_to_next_obs"] = torch.tensor([1, 3, 2, 3, 1, 2])
     mine, theirs, one_step = ours(td.clone()), stock(td.clone()), ours(td.exclude("steps_to_next_obs"))
