@@ -15,7 +15,8 @@ observations are the terminal one). Its windows also run across the blocks it is
 blocks of several collector processes arrive interleaved, so it would join steps of different envs.
 
 Windows here stay inside one collected block and one trajectory (``("collector", "traj_ids")`` where the
-block has them, and the done flags): nothing is carried from block to block, so a resumed run stores what an
+block has them, and the done flags; the loop hands over each block flattened, ``[envs * T]`` with each env's steps
+in order, and the ids keep the envs apart): nothing is carried from block to block, so a resumed run stores what an
 uninterrupted one would. The last ``n-1`` steps of a block look fewer steps ahead (``k < n``); with blocks of
 ``collector.frames_per_batch`` steps that is ``(n-1)/frames_per_batch`` of the transitions (4% at n=3 and 50).
 As with every uncorrected n-step return, the rewards after the first come from the policy that collected them,
