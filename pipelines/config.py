@@ -274,7 +274,7 @@ class TrainConfig:
     gamma: float = checked(0.99, Check(lambda v: 0.0 < v <= 1.0, "a discount in (0, 1]"))
     """discount factor"""
     n_step: int = checked(1, POSITIVE)
-    """n-step returns: each stored transition's reward is the discounted sum of the next n rewards of its episode and its next observation the one n env steps on (fewer at an episode's end or a collected block's), the bootstrap discounted by gamma**n (`steps_to_next_obs`, as TorchRL's TD0 reads it); 1: one-step TD"""
+    """n-step returns: each stored transition's reward is the discounted sum of the next n rewards of its episode and its next observation the one n env steps on (fewer at an episode's end or a collected block's), its bootstrap discounted by gamma**k for a window of k steps (`steps_to_next_obs`, as TorchRL's TD0 reads it); 1: one-step TD"""
     target_update_tau: float = checked(0.005, Check(lambda v: 0.0 < v <= 1.0, "a value in (0, 1]"))
     """target network soft-update factor (1.0 copies the online network)"""
     target_update_period: int = checked(1, POSITIVE)
