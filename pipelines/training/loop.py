@@ -285,10 +285,14 @@ class Loop:
                     ids = ids + self.state.traj_offset
                     batch.set(TRAJ_IDS, ids)
                 self.state.traj_next = max(self.state.traj_next, int(ids.max()) + 1)
-        # the loss's own discount (a user's loss_module may have its own); the stats below read the steps as taken
-        stored = n_step_transitions(batch, cfg.n_step, float(pipeline.loss_module.value_estimator.gamma)) if (
-            cfg.n_step > 1) else batch
-        pipeline.replay_buffer.extend(stored if keys is None else stored.select(*keys))
+        if cfg.n_step == 1:
+            stored = batch if keys is None else batch.select(*keys)
+        else:  # on the stored keys and what the windows read; the stats below read the steps as taken
+            stored = batch if keys is None else batch.select(*keys, TRAJ_IDS, ("next", "done"), strict=False)
+            # the loss's own discount (a user's loss_module may have its own)
+            stored = n_step_transitions(stored, cfg.n_step, float(pipeline.loss_module.value_estimator.gamma))
+            stored = stored if keys is None else stored.select(*keys)
+        pipeline.replay_buffer.extend(stored)
         ended = self.interval_stats.add_frames(batch)
         if ended:
             self.recent_returns.extend(self.interval_stats.episode_returns[-ended:])
