@@ -102,6 +102,27 @@ def _minitaur() -> CrossQConfig:
                         initial_collect_steps=5000, eval_interval=5000, num_eval_episodes=10)
 
 
+def _minitaur_walk() -> CrossQConfig:
+    # MinitaurBulletEnv-v0 to 5 (a gait) with CrossQ: `sac-minitaur-5`'s settings (64x64 networks, rewards x100
+    # in the update, 2,000 random steps, 200k replay, 3-step returns, the greedy policy a Polyak average of the
+    # actor, the env in a collector process beside the learner, evaluations in the background) with the entropy
+    # target falling from 0 to -16 (-2 a joint) between 40,000 and 100,000 env steps, not to -8: with -8, CrossQ's
+    # sampled policy walked at 5-10 while its greedy one (the mean action, what a target is confirmed by and an
+    # export plays) gave 0.2-4.8, and it reached 5 on one seed of two within 150,000 env steps (2026-11-29,
+    # 943233d); the walk it learns leans on its sampling noise (seed 1's checkpoint at 140,000 env steps: the
+    # actor's greedy 5.2 over two episodes, sampled 8.3). With -16 the noise is ~halved before the walk is
+    # learned. 2026-11-29 one-seed tries (`rlpipe train crossq-minitaur ... target_return=5 seed=S`, two at a
+    # time): seeds 0/1 reached 5 at 65,500 / 69,450 env steps with 2 / 1 failed confirmations; with -8 and no
+    # average seed 1 needed 93,850 and 13. The measured time: BENCHMARKS.md, "CrossQ to 5 on Minitaur".
+    return CrossQConfig(num_iterations=200_000, initial_collect_steps=2000, replay_buffer_capacity=200_000,
+                        actor_fc_layer_params=[64, 64], critic_fc_layer_params=[64, 64], reward_scale_factor=100.0,
+                        target_entropy=0.0, target_entropy_final=-16.0, target_entropy_anneal=[40_000, 100_000],
+                        n_step=3, policy_average_tau=0.0005, eval_interval=10_000, num_eval_episodes=5,
+                        eval_in_background=True, initial_eval=False, baseline_episodes=0, num_threads=1,
+                        log_interval=1000, policy_save_interval=50_000, checkpoint_interval=25_000,
+                        collector=CollectorConfig(workers=1, sync=False))
+
+
 def _sized(env: str, **keys) -> CrossQConfig:
     # What the sized SAC presets share (sac._sized): the env in the learner's process, no untrained
     # evaluation or random baseline, the thread count named (no timing of the loss at start), sparse
@@ -137,13 +158,15 @@ def _halfcheetah() -> CrossQConfig:
 
 
 # "crossq-minitaur" is "crossq" under the name `rlpipe bench time-to-return` looks for (task-named presets)
-PRESETS = {"crossq": _minitaur, "crossq-minitaur": _minitaur, "crossq-pendulum": _pendulum,
+PRESETS = {"crossq": _minitaur, "crossq-minitaur": _minitaur, "crossq-minitaur-5": _minitaur_walk,
+           "crossq-pendulum": _pendulum,
            "crossq-invpendulum": _inverted_pendulum, "crossq-halfcheetah": _halfcheetah}
 
 PRESET_INFO = {
     "crossq": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "CrossQ on the main job, the sac tutorial's collection",
                          sized=False),
     "crossq-minitaur": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "crossq under its task's name"),
+    "crossq-minitaur-5": PresetInfo("MinitaurBulletEnv-v0", (5.0,), "sized for time to 5 (a gait)"),
     "crossq-pendulum": PresetInfo("Pendulum-v1", (-200.0,), "sized for time to -200"),
     "crossq-invpendulum": PresetInfo("InvertedPendulum-v5", (950.0,), "sized for time to 950"),
     "crossq-halfcheetah": PresetInfo("HalfCheetah-v5", (3000.0,), "sb3-contrib's settings, CPU-sized critics; untuned",

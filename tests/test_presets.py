@@ -55,7 +55,7 @@ def test_every_preset_has_its_task_and_the_sized_ones_are_found_by_env():
         assert preset_info(name) is not None, name
         assert preset_info(name).env == resolve_preset(name)[1].env, name
     assert sized_presets("Pendulum-v1") == ["td3-pendulum", "sac-pendulum", "crossq-pendulum"]
-    assert sized_presets("MinitaurBulletEnv-v0") == ["sac-minitaur", "sac-minitaur-5", "crossq-minitaur"]
+    assert sized_presets("MinitaurBulletEnv-v0") == ["sac-minitaur", "sac-minitaur-5", "crossq-minitaur", "crossq-minitaur-5"]
     assert sized_presets("Acrobot-v1") == []
 
 

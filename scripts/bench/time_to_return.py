@@ -91,7 +91,7 @@ TASKS: dict[str, Task] = {
     "minitaur-sac-1": Task("MinitaurBulletEnv-v0", "sac", 1.0, 300_000, "sac-minitaur", ("sac", ()),
                            crossq="crossq-minitaur", peers=("sb3", "sbx", "tfagents"), why="the SAC tutorial's task"),
     "minitaur-sac-5": Task("MinitaurBulletEnv-v0", "sac", 5.0, 1_000_000, "sac-minitaur-5", ("sac", ()),
-                           crossq="crossq-minitaur", peers=("sb3", "sbx"), why="the main job"),
+                           crossq="crossq-minitaur-5", peers=("sb3", "sbx"), why="the main job"),
 }
 
 
