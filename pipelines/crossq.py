@@ -113,7 +113,9 @@ def _minitaur_walk() -> CrossQConfig:
     # actor's greedy 5.2 over two episodes, sampled 8.3). With -16 the noise is ~halved before the walk is
     # learned. 2026-11-29 one-seed tries (`rlpipe train crossq-minitaur ... target_return=5 seed=S`, two at a
     # time): seeds 0/1 reached 5 at 65,500 / 69,450 env steps with 2 / 1 failed confirmations; with -8 and no
-    # average seed 1 needed 93,850 and 13. The measured time: BENCHMARKS.md, "CrossQ to 5 on Minitaur".
+    # average seed 1 needed 93,850 and 13. `rlpipe bench time-to-return --tasks minitaur-sac-5 --seeds 5 --peers none
+    # --cap-scale 0.1` (c8dfaff): 327.4 s median (231.1-402.8), 5 of 5, against `sac-minitaur-5`'s 1 of 5 in the
+    # same command (BENCHMARKS.md, "minitaur-sac-5: SAC against CrossQ").
     return CrossQConfig(num_iterations=200_000, initial_collect_steps=2000, replay_buffer_capacity=200_000,
                         actor_fc_layer_params=[64, 64], critic_fc_layer_params=[64, 64], reward_scale_factor=100.0,
                         target_entropy=0.0, target_entropy_final=-16.0, target_entropy_anneal=[40_000, 100_000],
