@@ -109,10 +109,10 @@ def _minitaur_walk() -> CrossQConfig:
     # target falling from 0 to -16 (-2 a joint) between 40,000 and 100,000 env steps, not to -8: with -8, CrossQ's
     # sampled policy walked at 5-10 while its greedy one (the mean action, what a target is confirmed by and an
     # export plays) gave 0.2-4.8, and it reached 5 on one seed of two within 150,000 env steps (2026-11-29,
-    # 943233d); the walk it learns leans on its sampling noise (seed 1's checkpoint at 140,000 env steps: the
-    # actor's greedy 5.2 over two episodes, sampled 8.3). With -16 the noise is ~halved before the walk is
-    # learned. 2026-11-29 one-seed tries (`rlpipe train crossq-minitaur ... target_return=5 seed=S`, two at a
-    # time): seeds 0/1 reached 5 at 65,500 / 69,450 env steps with 2 / 1 failed confirmations; with -8 and no
+    # 943233d); the walk it learns leans on its sampling noise (seed 1's checkpoint at iteration 140,000: the
+    # actor's greedy 5.2 over two episodes, sampled 8.3). With -16 the target asks for less noise while the
+    # walk is learned. 2026-11-29 one-seed tries (`rlpipe train crossq-minitaur ... target_return=5 seed=S`, two at a
+    # time): seeds 0/1/2 reached 5 at 65,500 / 69,450 / 51,750 env steps after 2 / 1 / 1 failed confirmations; with -8 and no
     # average seed 1 needed 93,850 and 13. `rlpipe bench time-to-return --tasks minitaur-sac-5 --seeds 5 --peers none
     # --cap-scale 0.1` (c8dfaff): 327.4 s median (231.1-402.8), 5 of 5, against `sac-minitaur-5`'s 1 of 5 in the
     # same command (BENCHMARKS.md, "minitaur-sac-5: SAC against CrossQ").
