@@ -460,11 +460,27 @@ def _s(x: float | None) -> str:
     return "?" if x is None else f"{x:.1f} s"
 
 
+def _cpu_model() -> str:
+    """The CPU's model name (Linux: /proc/cpuinfo). Machines of the project's one kind have come with different
+    CPUs (an AMD EPYC on 2026-11-27, an Intel Xeon on 2026-11-29), which differ in speed and in float32 rounding:
+    a figure says which it ran on."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or "unknown"
+
+
 def _machine() -> dict[str, Any]:
     import platform
 
-    return {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg_1min": os.getloadavg()[0],
-            "time_unix": time.time()}
+    return {"cpus": os.cpu_count(), "cpu": _cpu_model(), "platform": platform.platform(),
+            "load_avg_1min": os.getloadavg()[0], "time_unix": time.time()}
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -501,7 +517,7 @@ def tables(figures: dict[str, Any]) -> str:
     lines = [f"Time to return: {figures['seeds']} seeds, interleaved; a side's time runs from its launch to the "
              "moment its last 5 training episodes' mean reached the target (confirmed by a 10-episode greedy "
              "evaluation, whose time is left out). Machine: "
-             f"{figures['machine']['cpus']} CPUs, 1-minute load {figures['machine']['load_avg_1min']:.2f} at the start, "
+             f"{figures['machine']['cpus']} CPUs ({figures['machine'].get('cpu', 'model not recorded')}), 1-minute load {figures['machine']['load_avg_1min']:.2f} at the start, "
              f"{figures['machine'].get('load_avg_1min_end', float('nan')):.2f} at the end (the runs' own). "
              "Threads: " + ", ".join(f"{k} {v or 'default'}" for k, v in figures["threads"].items()) + "."]
     if figures.get("interrupted"):
