@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import platform
 import shlex
 import signal
 import statistics
@@ -471,14 +472,10 @@ def _cpu_model() -> str:
                     return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    import platform
-
     return platform.processor() or "unknown"
 
 
 def _machine() -> dict[str, Any]:
-    import platform
-
     return {"cpus": os.cpu_count(), "cpu": _cpu_model(), "platform": platform.platform(),
             "load_avg_1min": os.getloadavg()[0], "time_unix": time.time()}
 
@@ -517,7 +514,8 @@ def tables(figures: dict[str, Any]) -> str:
     lines = [f"Time to return: {figures['seeds']} seeds, interleaved; a side's time runs from its launch to the "
              "moment its last 5 training episodes' mean reached the target (confirmed by a 10-episode greedy "
              "evaluation, whose time is left out). Machine: "
-             f"{figures['machine']['cpus']} CPUs ({figures['machine'].get('cpu', 'model not recorded')}), 1-minute load {figures['machine']['load_avg_1min']:.2f} at the start, "
+             f"{figures['machine']['cpus']} CPUs ({figures['machine'].get('cpu', 'model not recorded')}), "
+             f"1-minute load {figures['machine']['load_avg_1min']:.2f} at the start, "
              f"{figures['machine'].get('load_avg_1min_end', float('nan')):.2f} at the end (the runs' own). "
              "Threads: " + ", ".join(f"{k} {v or 'default'}" for k, v in figures["threads"].items()) + "."]
     if figures.get("interrupted"):
