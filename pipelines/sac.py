@@ -209,7 +209,7 @@ def _minitaur_fast() -> SACConfig:
     # against ~110) for no more env steps to 1.0 (2026-11-27, seeds 0 and 1: 30,950 and 32,350 env steps,
     # 112 and 110 s, greedy episodes 826 and 678 steps long; 128x128: 34,450 and 42,950, 182 and 220 s;
     # 256x256: 449 and 446 s). In `rlpipe bench time-to-return --tasks minitaur-sac-1 --seeds 5 --peers sbx`
-    # (c8cecde): 79.8 s median, 5/5; 5 reached in one run of three within 10 minutes (310.5 s): BENCHMARKS.md.
+    # (a13faf7, 2026-11-29): 81.8 s median, 5/5 (SBX 2/5 within 90,000 env steps): BENCHMARKS.md.
     # The entropy target then falls from 0 to -|A| (-8) between 40,000 and 100,000 env steps: at 0 the sampled
     # policy walks at 5 while its mean action (the greedy policy the target is judged by) gives 1-2.5
     # (seed 1: training mean 5.4, greedy 2.7 and 1.9, not reached within 600 s, also with a fall to -4 over
