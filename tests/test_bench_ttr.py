@@ -66,6 +66,14 @@ def test_no_crossq_leaves_out_only_the_crossq_side():
     assert ttr.task_sides(task, ["sbx"], crossq=False) == ["rlpipe", "sbx"]
 
 
+def test_a_side_with_its_own_seed_count_runs_its_first_seeds_and_the_others_every_seed():
+    # --side-seeds tfagents=1: the Minitaur tutorial's two-hour run timed once, rlpipe and SBX on every seed
+    plan = list(ttr._plan(["minitaur-sac-1"], ["sbx", "tfagents"], False, 3, {"tfagents": 1}))
+    assert plan == [("minitaur-sac-1", 0, "rlpipe"), ("minitaur-sac-1", 0, "sbx"), ("minitaur-sac-1", 0, "tfagents"),
+                    ("minitaur-sac-1", 1, "rlpipe"), ("minitaur-sac-1", 1, "sbx"),
+                    ("minitaur-sac-1", 2, "rlpipe"), ("minitaur-sac-1", 2, "sbx")]
+
+
 def test_the_peers_rule_is_rlpipes_rule():
     spec = importlib.util.spec_from_file_location("ttr_rule", PEERS_DIR / "ttr_rule.py")
     module = importlib.util.module_from_spec(spec)

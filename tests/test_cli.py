@@ -278,6 +278,8 @@ BAD_INPUTS = {
     "ttr-unknown-peer": (["bench", "time-to-return", "--peers", "stable"], ["stable", "sb3"], None),
     "ttr-bad-threads": (["bench", "time-to-return", "--threads", "sb3=x"], ["--threads sb3=x", "SIDE=N"], None),
     "ttr-bad-cap": (["bench", "time-to-return", "--cap", "tfagent=30000"], ["--cap tfagent=30000", "SIDE=STEPS"], None),
+    "ttr-too-many-side-seeds": (["bench", "time-to-return", "--seeds", "2", "--side-seeds", "tfagents=3"],
+                                ["--side-seeds tfagents=3", "from 1 to --seeds (2)"], None),
     "ttr-bad-override": (["bench", "time-to-return", "batchsize=3", "--tasks", "pendulum-sac"],
                          ["batchsize", "batch_size"], None),
 }

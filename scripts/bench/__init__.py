@@ -10,7 +10,8 @@
     rlpipe bench collect [--envs CartPole-v1 ...] [--envs-per-worker 1 8 32] [--frames 3000]
     rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
-                                [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [--no-crossq] [key=value ...]
+                                [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--cap SIDE=STEPS ...]
+                                [--side-seeds SIDE=N ...] [--preset P] [--no-crossq] [key=value ...]
 
 ``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
 started and prints the share of each part (replay sample, update forward/backward, optimiser,
@@ -87,6 +88,9 @@ def add_parser(sub) -> None:
     bench.add_argument("--cap", nargs="+", metavar="SIDE=STEPS", help="time-to-return: one side's env-step cap, "
                        "instead of the task's (e.g. tfagents=110000: the Minitaur tutorial's whole run, its 10,000 random "
                        "steps and 100,000 iterations)")
+    bench.add_argument("--side-seeds", nargs="+", metavar="SIDE=N", help="time-to-return: one side's own count of "
+                       "seeds (its first N of --seeds), for a peer too slow to run every seed in one sitting (e.g. "
+                       "tfagents=1: the Minitaur tutorial's run, timed once per page revision as issue 21 allows)")
     bench.add_argument("--no-crossq", action="store_true", help="time-to-return: leave out the CrossQ side "
                        "(played by default on every task that has a CrossQ preset)")
     bench.set_defaults(func=run)

@@ -2,7 +2,7 @@
 
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [key=value ...]
-                                [--no-crossq] [--out DIR] [--json FILE]
+                                [--cap SIDE=STEPS ...] [--side-seeds SIDE=N ...] [--no-crossq] [--out DIR] [--json FILE]
 
 Every side is judged by one rule (rlpipe's ``target_return``, ``pipelines/training/triggers.py``
 ``TargetTrigger``; the peers' runners apply the same rule, ``peers/ttr_rule.py``): the mean return of
@@ -125,6 +125,11 @@ def check_args(args) -> None:
         if not eq or side not in SIDES or not n.isdigit() or int(n) <= 0:
             raise InputError(f"--cap {item}: expected SIDE=STEPS with SIDE one of {', '.join(SIDES)} and STEPS a "
                              "positive count of env steps")
+    for item in getattr(args, "side_seeds", None) or ():
+        side, eq, n = item.partition("=")
+        if not eq or side not in SIDES or not n.isdigit() or not 0 < int(n) <= args.seeds:
+            raise InputError(f"--side-seeds {item}: expected SIDE=N with SIDE one of {', '.join(SIDES)} and N a "
+                             f"count of seeds from 1 to --seeds ({args.seeds})")
     if args.cap_scale is not None and not args.cap_scale > 0:
         raise InputError(f"--cap-scale={args.cap_scale}: expected a positive factor")
     if args.preset is not None:
@@ -138,6 +143,11 @@ def check_args(args) -> None:
 def _side_caps(args) -> dict[str, int]:
     """``--cap SIDE=STEPS``: the sides whose env-step cap is their own, not the task's."""
     return {side: int(n) for side, _, n in (item.partition("=") for item in getattr(args, "cap", None) or ())}
+
+
+def _side_seeds(args) -> dict[str, int]:
+    """``--side-seeds SIDE=N``: the sides that run only their first N seeds."""
+    return {side: int(n) for side, _, n in (item.partition("=") for item in getattr(args, "side_seeds", None) or ())}
 
 
 def _threads(args) -> dict[str, int | None]:
@@ -374,14 +384,16 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     runs: list[dict[str, Any]] = []
     settings: dict[str, dict[str, str]] = {}
     crossq = not getattr(args, "no_crossq", False)
-    total = sum(len(task_sides(TASKS[name], peers, crossq)) for name in tasks) * args.seeds
+    side_seeds = _side_seeds(args)
+    plan = list(_plan(tasks, peers, crossq, args.seeds, side_seeds))
+    total = len(plan)
     n = 0
     interrupted: dict[str, Any] | None = None
     current = None
     try:
         # a stop signal raises at once: run_one ends the run under way, the finished runs are written below
         with DeferredInterrupt(immediate=True):
-            for name, seed, side in _plan(tasks, peers, crossq, args.seeds):
+            for name, seed, side in plan:
                 n += 1
                 current = f"{name} seed {seed} {side}"
                 task = TASKS[name]
@@ -403,7 +415,8 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                         print(f"[{n}/{total}] {name} {side}: not run ({launch})", flush=True)
                     continue
                 own_cap = f"; its own cap {cap:,} env steps" if side in side_caps else ""
-                settings[name][side] = launch.settings + f"; threads {threads[side] or 'default'}{own_cap}"
+                own_seeds = f"; its first {side_seeds[side]} of {args.seeds} seeds only" if side in side_seeds else ""
+                settings[name][side] = launch.settings + f"; threads {threads[side] or 'default'}{own_cap}{own_seeds}"
                 work.mkdir(parents=True, exist_ok=True)
                 result = run_one(launch, work / "output.log", index=n)
                 result.update(task=name, side=side, seed=seed, target=target, cap=cap)
@@ -431,12 +444,15 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     return figures
 
 
-def _plan(tasks: list[str], peers: list[str], crossq: bool, seeds: int):
-    """``(task, seed, side)`` in the order they run: per task, per seed, every side once (interleaved)."""
+def _plan(tasks: list[str], peers: list[str], crossq: bool, seeds: int, side_seeds: dict[str, int] | None = None):
+    """``(task, seed, side)`` in the order they run: per task, per seed, every side once (interleaved); a side
+    in ``side_seeds`` only in its first N seeds."""
+    side_seeds = side_seeds or {}
     for name in tasks:
         for seed in range(seeds):
             for side in task_sides(TASKS[name], peers, crossq):
-                yield name, seed, side
+                if seed < side_seeds.get(side, seeds):
+                    yield name, seed, side
 
 
 def task_sides(task: Task, peers: list[str], crossq: bool = True) -> list[str]:
