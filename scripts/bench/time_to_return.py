@@ -22,6 +22,8 @@ its own built on first use: ``cleanrl`` (CleanRL 1.2.0's scripts on their defaul
 tutorials' tasks only). Each side runs on the thread count ``--threads`` names for it; by default
 rlpipe's preset chooses its own (``num_threads``) and the peers built on torch run on 1 thread (small
 networks on a 2-core machine: a second thread only contends with the env), SBX on JAX's default.
+``--side-seeds SIDE=N`` runs a side in its first N seeds only (TF-Agents' Minitaur tutorial, ~35 minutes a
+run here, timed once per page revision as issue 21 allows, beside rlpipe's five); its median is over those.
 """
 
 from __future__ import annotations
