@@ -214,8 +214,9 @@ def _minitaur_fast() -> SACConfig:
     # policy walks at 5 while its mean action (the greedy policy the target is judged by) gives 1-2.5
     # (seed 1: training mean 5.4, greedy 2.7 and 1.9, not reached within 600 s, also with a fall to -4 over
     # 30,000-90,000); falling to -8 over 30,000-90,000, seed 1 reached 5 at 101,800 env steps, 321 s (greedy
-    # 8.6 over whole episodes at 80,000). It starts at 40,000, past every run to 1.0 measured (at most 39,150),
-    # so the preset's course to 1.0 is what it was.
+    # 8.6 over whole episodes at 80,000). It starts at 40,000, past most runs to 1.0 (28,000 env steps median at
+    # 5e02349; a run whose greedy policy lags goes past it, 68,600 at most there); starting it at 10,000 (to -8 by
+    # 70,000) was no sooner to 1.0 on seeds 0-4 (2026-11-29, BENCHMARKS.md's TF-Agents section).
     return _sized("MinitaurBulletEnv-v0", num_iterations=200_000, initial_collect_steps=2000,
                   reward_scale_factor=100.0, target_entropy=0.0, target_entropy_final=-8.0,
                   target_entropy_anneal=[40_000, 100_000],
