@@ -117,21 +117,10 @@ def check_args(args) -> None:
         for name in peers:
             if name not in PEERS:
                 raise InputError(f"--peers: unknown peer {name!r}; expected some of {', '.join(PEERS)}, or none")
-    for item in args.threads or ():
-        side, eq, n = item.partition("=")
-        if not eq or side not in SIDES or not n.isdigit() or int(n) < 0:
-            raise InputError(f"--threads {item}: expected SIDE=N with SIDE one of {', '.join(SIDES)} and N a count "
-                             "(0: the side's default)")
-    for item in getattr(args, "cap", None) or ():
-        side, eq, n = item.partition("=")
-        if not eq or side not in SIDES or not n.isdigit() or int(n) <= 0:
-            raise InputError(f"--cap {item}: expected SIDE=STEPS with SIDE one of {', '.join(SIDES)} and STEPS a "
-                             "positive count of env steps")
-    for item in getattr(args, "side_seeds", None) or ():
-        side, eq, n = item.partition("=")
-        if not eq or side not in SIDES or not n.isdigit() or not 0 < int(n) <= args.seeds:
-            raise InputError(f"--side-seeds {item}: expected SIDE=N with SIDE one of {', '.join(SIDES)} and N a "
-                             f"count of seeds from 1 to --seeds ({args.seeds})")
+    _per_side(args.threads, "--threads", "SIDE=N", "N a count (0: the side's default)", lambda n: n >= 0)
+    _per_side(getattr(args, "cap", None), "--cap", "SIDE=STEPS", "STEPS a positive count of env steps", lambda n: n > 0)
+    _per_side(getattr(args, "side_seeds", None), "--side-seeds", "SIDE=N",
+              f"N a count of seeds from 1 to --seeds ({args.seeds})", lambda n: 0 < n <= args.seeds)
     if args.cap_scale is not None and not args.cap_scale > 0:
         raise InputError(f"--cap-scale={args.cap_scale}: expected a positive factor")
     if args.preset is not None:
@@ -142,22 +131,33 @@ def check_args(args) -> None:
         rlpipe_config(TASKS[name], list(args.overrides), args.preset)
 
 
+def _per_side(items, option: str, form: str, count: str, ok) -> dict[str, int]:
+    """``SIDE=N`` items (``--threads``, ``--cap``, ``--side-seeds``) as ``{side: N}``; a malformed one, an unknown
+    side or an N that ``ok`` refuses: one line naming the option and what it expects."""
+    chosen: dict[str, int] = {}
+    for item in items or ():
+        side, eq, n = item.partition("=")
+        if not eq or side not in SIDES or not n.isdigit() or not ok(int(n)):
+            raise InputError(f"{option} {item}: expected {form} with SIDE one of {', '.join(SIDES)} and {count}")
+        chosen[side] = int(n)
+    return chosen
+
+
 def _side_caps(args) -> dict[str, int]:
-    """``--cap SIDE=STEPS``: the sides whose env-step cap is their own, not the task's."""
-    return {side: int(n) for side, _, n in (item.partition("=") for item in getattr(args, "cap", None) or ())}
+    """``--cap SIDE=STEPS``: the sides whose env-step cap is their own, not the task's (checked by check_args)."""
+    return _per_side(getattr(args, "cap", None), "--cap", "SIDE=STEPS", "", lambda n: True)
 
 
 def _side_seeds(args) -> dict[str, int]:
-    """``--side-seeds SIDE=N``: the sides that run only their first N seeds."""
-    return {side: int(n) for side, _, n in (item.partition("=") for item in getattr(args, "side_seeds", None) or ())}
+    """``--side-seeds SIDE=N``: the sides that run only their first N seeds (checked by check_args)."""
+    return _per_side(getattr(args, "side_seeds", None), "--side-seeds", "SIDE=N", "", lambda n: True)
 
 
 def _threads(args) -> dict[str, int | None]:
     chosen: dict[str, int | None] = {"rlpipe": None, "crossq": None, "cleanrl": TORCH_PEER_THREADS,
                                      "sb3": TORCH_PEER_THREADS, "sbx": None, "tfagents": None}
-    for item in args.threads or ():
-        side, _, n = item.partition("=")
-        chosen[side] = int(n) or None
+    for side, n in _per_side(args.threads, "--threads", "SIDE=N", "", lambda n: True).items():
+        chosen[side] = n or None
     return chosen
 
 
