@@ -280,6 +280,8 @@ BAD_INPUTS = {
     "ttr-bad-cap": (["bench", "time-to-return", "--cap", "tfagent=30000"], ["--cap tfagent=30000", "SIDE=STEPS"], None),
     "ttr-too-many-side-seeds": (["bench", "time-to-return", "--seeds", "2", "--side-seeds", "tfagents=3"],
                                 ["--side-seeds tfagents=3", "from 1 to --seeds (2)"], None),
+    "ttr-negative-first-seed": (["bench", "time-to-return", "--seed", "-1", "--tasks", "pendulum-sac"],
+                                ["--seed=-1", "first seed, a non-negative integer"], None),
     "ttr-bad-override": (["bench", "time-to-return", "batchsize=3", "--tasks", "pendulum-sac"],
                          ["batchsize", "batch_size"], None),
 }

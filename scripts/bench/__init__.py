@@ -11,7 +11,7 @@
     rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--cap SIDE=STEPS ...]
-                                [--side-seeds SIDE=N ...] [--preset P] [--no-crossq] [key=value ...]
+                                [--side-seeds SIDE=N ...] [--seed FIRST] [--preset P] [--no-crossq] [key=value ...]
 
 ``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
 started and prints the share of each part (replay sample, update forward/backward, optimiser,
@@ -75,7 +75,8 @@ def add_parser(sub) -> None:
                        help="gpu: which tables to measure (default: both)")
     bench.add_argument("--modes", nargs="+", choices=["step", "blocks", "cpu-copy", "process"],
                        help="gpu: the training table's loop modes (default: all; scripts/bench/gpu.py TRAIN_MODES)")
-    bench.add_argument("--seed", type=int, default=0, help="cleanrl: seed of both sides")
+    bench.add_argument("--seed", type=int, default=0, help="cleanrl, gpu: seed of both sides; time-to-return: the first "
+                       "seed (seeds SEED to SEED+--seeds-1; default 0; the sized presets were tuned on seeds from 0)")
     bench.add_argument("--tasks", nargs="+", help="time-to-return: tasks to run (default: all; see "
                        "scripts/bench/time_to_return.py TASKS)")
     bench.add_argument("--peers", nargs="+", help="time-to-return: peers beside rlpipe (cleanrl sb3 sbx tfagents; "

@@ -2,7 +2,8 @@
 
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [key=value ...]
-                                [--cap SIDE=STEPS ...] [--side-seeds SIDE=N ...] [--no-crossq] [--out DIR] [--json FILE]
+                                [--cap SIDE=STEPS ...] [--side-seeds SIDE=N ...] [--seed FIRST] [--no-crossq]
+                                [--out DIR] [--json FILE]
 
 Every side is judged by one rule (rlpipe's ``target_return``, ``pipelines/training/triggers.py``
 ``TargetTrigger``; the peers' runners apply the same rule, ``peers/ttr_rule.py``): the mean return of
@@ -24,6 +25,8 @@ rlpipe's preset chooses its own (``num_threads``) and the peers built on torch r
 networks on a 2-core machine: a second thread only contends with the env), SBX on JAX's default.
 ``--side-seeds SIDE=N`` runs a side in its first N seeds only (TF-Agents' Minitaur tutorial, ~35 minutes a
 run here, timed once per page revision as issue 21 allows, beside rlpipe's five); its median is over those.
+``--seed FIRST`` runs seeds FIRST to FIRST + ``--seeds`` - 1 instead of 0 to ``--seeds`` - 1: seeds the sized presets
+were not tuned on (they were tuned on seeds from 0), for figures that test the settings rather than repeat the tries.
 """
 
 from __future__ import annotations
@@ -121,6 +124,8 @@ def check_args(args) -> None:
     _per_side(getattr(args, "cap", None), "--cap", "SIDE=STEPS", "STEPS a positive count of env steps", lambda n: n > 0)
     _per_side(getattr(args, "side_seeds", None), "--side-seeds", "SIDE=N",
               f"N a count of seeds from 1 to --seeds ({args.seeds})", lambda n: 0 < n <= args.seeds)
+    if getattr(args, "seed", 0) < 0:
+        raise InputError(f"--seed={args.seed}: expected the first seed, a non-negative integer")
     if args.cap_scale is not None and not args.cap_scale > 0:
         raise InputError(f"--cap-scale={args.cap_scale}: expected a positive factor")
     if args.preset is not None:
@@ -387,7 +392,8 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     settings: dict[str, dict[str, str]] = {}
     crossq = not getattr(args, "no_crossq", False)
     side_seeds = _side_seeds(args)
-    plan = list(_plan(tasks, peers, crossq, args.seeds, side_seeds))
+    first = getattr(args, "seed", 0)
+    plan = list(_plan(tasks, peers, crossq, args.seeds, side_seeds, first))
     total = len(plan)
     n = 0
     interrupted: dict[str, Any] | None = None
@@ -413,7 +419,7 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                     launch = f"could not be set up: {exc}"
                 if isinstance(launch, str):
                     settings[name].setdefault(side, f"not run: {launch}")
-                    if seed == 0:
+                    if seed == first:
                         print(f"[{n}/{total}] {name} {side}: not run ({launch})", flush=True)
                     continue
                 own_cap = f"; its own cap {cap:,} env steps" if side in side_caps else ""
@@ -435,7 +441,7 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                                 "target": TASKS[name].target if args.target_return is None else float(args.target_return),
                                 "cap": max(1, int(TASKS[name].cap * scale)), "settings": settings[name]}
                          for name in tasks},
-               "runs": runs, "seeds": args.seeds, "threads": threads,
+               "runs": runs, "seeds": args.seeds, "first_seed": first, "threads": threads,
                "machine": {**machine, "load_avg_1min_end": os.getloadavg()[0]}}
     if interrupted is not None:
         figures["interrupted"] = interrupted
@@ -446,14 +452,15 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     return figures
 
 
-def _plan(tasks: list[str], peers: list[str], crossq: bool, seeds: int, side_seeds: dict[str, int] | None = None):
-    """``(task, seed, side)`` in the order they run: per task, per seed, every side once (interleaved); a side
-    in ``side_seeds`` only in its first N seeds."""
+def _plan(tasks: list[str], peers: list[str], crossq: bool, seeds: int, side_seeds: dict[str, int] | None = None,
+          first: int = 0):
+    """``(task, seed, side)`` in the order they run: per task, per seed (``first`` to ``first + seeds - 1``), every
+    side once (interleaved); a side in ``side_seeds`` only in its first N seeds."""
     side_seeds = side_seeds or {}
     for name in tasks:
-        for seed in range(seeds):
+        for seed in range(first, first + seeds):
             for side in task_sides(TASKS[name], peers, crossq):
-                if seed < side_seeds.get(side, seeds):
+                if seed - first < side_seeds.get(side, seeds):
                     yield name, seed, side
 
 
@@ -529,7 +536,8 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 
 def tables(figures: dict[str, Any]) -> str:
-    lines = [f"Time to return: {figures['seeds']} seeds, interleaved; a side's time runs from its launch to the "
+    first = figures.get("first_seed", 0)
+    lines = [f"Time to return: {figures['seeds']} seeds ({first}-{first + figures['seeds'] - 1}), interleaved; a side's time runs from its launch to the "
              "moment its last 5 training episodes' mean reached the target (confirmed by a 10-episode greedy "
              "evaluation, whose time is left out). Machine: "
              f"{figures['machine']['cpus']} CPUs ({figures['machine'].get('cpu', 'model not recorded')}), "
