@@ -73,7 +73,7 @@ def test_a_run_stores_n_step_transitions_that_the_update_bootstraps_from(tmp_pat
     # Pendulum through sac-pendulum's in-process collector: each stored row's next observation is the
     # observation stored three rows on (one env, blocks stored in order), but at a block's end or an episode's.
     cfg = apply_overrides(resolve_preset("sac-pendulum")[1], [
-        "n_step=3", "num_iterations=150", "initial_collect_steps=250", "eval_interval=0", "num_eval_episodes=1",
+        "n_step=3", "collect_steps_per_iteration=1", "num_iterations=150", "initial_collect_steps=250", "eval_interval=0", "num_eval_episodes=1",
         "batch_size=32", "actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]"])
     pipeline = sac.SAC(cfg)
     pipeline.train(str(tmp_path / "run"))
