@@ -176,7 +176,8 @@ def _pendulum() -> SACConfig:
 
 def _inverted_pendulum() -> SACConfig:
     # InvertedPendulum-v5 to 950 (1,000 is the most an episode gives): sac-pendulum's settings (64x64,
-    # tau 0.02, learning rates 2e-3). 2026-11-27, `rlpipe train sac-invpendulum target_return=950 seed=S`,
+    # tau 0.02, learning rates 2e-3) as they were before its delayed actor and 2 env steps per update
+    # (not tried here: 4.0x SBX on seeds 100-104 as it is, BENCHMARKS.md). 2026-11-27, `rlpipe train sac-invpendulum target_return=950 seed=S`,
     # seeds 0 and 1: env steps to the target 9,450 and 9,000 (30 and 29 s), against 15,350 and 21,450
     # (53 and 69 s) with tau 0.005 and learning rates 1e-3 (the preset before).
     return _sized("InvertedPendulum-v5", num_iterations=50_000, initial_collect_steps=1000,

@@ -281,7 +281,7 @@ BAD_INPUTS = {
     "ttr-too-many-side-seeds": (["bench", "time-to-return", "--seeds", "2", "--side-seeds", "tfagents=3"],
                                 ["--side-seeds tfagents=3", "from 1 to --seeds (2)"], None),
     "ttr-negative-first-seed": (["bench", "time-to-return", "--seed", "-1", "--tasks", "pendulum-sac"],
-                                ["--seed=-1", "first seed, a non-negative integer"], None),
+                                ["--seed=-1", "the first seed, an integer from 0 to"], None),
     "ttr-bad-override": (["bench", "time-to-return", "batchsize=3", "--tasks", "pendulum-sac"],
                          ["batchsize", "batch_size"], None),
 }

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rlpipe.pipelines.config import MAX_SEED
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import DeferredInterrupt, fault_point
 
@@ -124,8 +125,10 @@ def check_args(args) -> None:
     _per_side(getattr(args, "cap", None), "--cap", "SIDE=STEPS", "STEPS a positive count of env steps", lambda n: n > 0)
     _per_side(getattr(args, "side_seeds", None), "--side-seeds", "SIDE=N",
               f"N a count of seeds from 1 to --seeds ({args.seeds})", lambda n: 0 < n <= args.seeds)
-    if getattr(args, "seed", 0) < 0:
-        raise InputError(f"--seed={args.seed}: expected the first seed, a non-negative integer")
+    first = getattr(args, "seed", 0)
+    if not 0 <= first <= MAX_SEED - args.seeds + 1:  # every run's seed= must be one a run accepts
+        raise InputError(f"--seed={first}: expected the first seed, an integer from 0 to {MAX_SEED - args.seeds + 1} "
+                         f"(the last of --seeds {args.seeds} seeds at most {MAX_SEED})")
     if args.cap_scale is not None and not args.cap_scale > 0:
         raise InputError(f"--cap-scale={args.cap_scale}: expected a positive factor")
     if args.preset is not None:
