@@ -121,10 +121,10 @@ def check_args(args) -> None:
         for name in peers:
             if name not in PEERS:
                 raise InputError(f"--peers: unknown peer {name!r}; expected some of {', '.join(PEERS)}, or none")
-    _per_side(args.threads, "--threads", "SIDE=N", "N a count (0: the side's default)", lambda n: n >= 0)
+    _per_side(args.threads, "--threads", count="N a count (0: the side's default)", ok=lambda n: n >= 0)
     _per_side(getattr(args, "cap", None), "--cap", "SIDE=STEPS", "STEPS a positive count of env steps", lambda n: n > 0)
-    _per_side(getattr(args, "side_seeds", None), "--side-seeds", "SIDE=N",
-              f"N a count of seeds from 1 to --seeds ({args.seeds})", lambda n: 0 < n <= args.seeds)
+    _per_side(getattr(args, "side_seeds", None), "--side-seeds",
+              count=f"N a count of seeds from 1 to --seeds ({args.seeds})", ok=lambda n: 0 < n <= args.seeds)
     first = getattr(args, "seed", 0)
     if not 0 <= first <= MAX_SEED - args.seeds + 1:  # every run's seed= must be one a run accepts
         raise InputError(f"--seed={first}: expected the first seed, an integer from 0 to {MAX_SEED - args.seeds + 1} "
@@ -139,9 +139,10 @@ def check_args(args) -> None:
         rlpipe_config(TASKS[name], list(args.overrides), args.preset)
 
 
-def _per_side(items, option: str, form: str, count: str, ok) -> dict[str, int]:
+def _per_side(items, option: str, form: str = "SIDE=N", count: str = "", ok=lambda n: True) -> dict[str, int]:
     """``SIDE=N`` items (``--threads``, ``--cap``, ``--side-seeds``) as ``{side: N}``; a malformed one, an unknown
-    side or an N that ``ok`` refuses: one line naming the option and what it expects."""
+    side or an N that ``ok`` refuses: one line naming the option and what it expects (check_args passes the
+    rules; the readers after it take the defaults, their items already checked)."""
     chosen: dict[str, int] = {}
     for item in items or ():
         side, eq, n = item.partition("=")
@@ -153,18 +154,18 @@ def _per_side(items, option: str, form: str, count: str, ok) -> dict[str, int]:
 
 def _side_caps(args) -> dict[str, int]:
     """``--cap SIDE=STEPS``: the sides whose env-step cap is their own, not the task's (checked by check_args)."""
-    return _per_side(getattr(args, "cap", None), "--cap", "SIDE=STEPS", "", lambda n: True)
+    return _per_side(getattr(args, "cap", None), "--cap")
 
 
 def _side_seeds(args) -> dict[str, int]:
     """``--side-seeds SIDE=N``: the sides that run only their first N seeds (checked by check_args)."""
-    return _per_side(getattr(args, "side_seeds", None), "--side-seeds", "SIDE=N", "", lambda n: True)
+    return _per_side(getattr(args, "side_seeds", None), "--side-seeds")
 
 
 def _threads(args) -> dict[str, int | None]:
     chosen: dict[str, int | None] = {"rlpipe": None, "crossq": None, "cleanrl": TORCH_PEER_THREADS,
                                      "sb3": TORCH_PEER_THREADS, "sbx": None, "tfagents": None}
-    for side, n in _per_side(args.threads, "--threads", "SIDE=N", "", lambda n: True).items():
+    for side, n in _per_side(args.threads, "--threads").items():
         chosen[side] = n or None
     return chosen
 
