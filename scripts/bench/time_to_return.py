@@ -355,6 +355,12 @@ def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S, index: 
                 os.killpg(proc.pid, signal.SIGKILL)
             raise
         end = time.time()
+    return timed_result(launch, log, rc, start, end)
+
+
+def timed_result(launch: Launch, log: Path, rc: int, start: float, end: float) -> dict[str, Any]:
+    """A finished run's figures under the rule: seconds from ``start`` (just before its launch) to the target, less
+    its unconfirmed evaluations, and its fixed costs; ``end``: when it exited (``rlpipe tune`` times its trials so)."""
     result: dict[str, Any] = {"rc": rc, "wall_s": end - start, "log": str(log)}
     try:
         target = launch.read(log)
