@@ -21,17 +21,18 @@ The map of this package (each room's ``__init__`` maps its own modules):
     compat/      each workaround for a library version, one module per library
     analysis/    reading finished runs: tables, statistics, plots, report pages
 
-Presets are named after the tutorials they reproduce (``sac``, ``td3``, ``dqn``) or the task they are sized
-for (``sac-pendulum``, ``dqn-cartpole-v0``, ...); ``presets()`` lists them, ``preset_info(name)`` says
-what each is for (env, target returns), ``size_hint`` what to use instead when a preset meets another env.
+Presets are YAML files (the top-level ``presets/`` folder, installed as ``rlpipe.presets``), named after the
+tutorials they reproduce (``sac``, ``td3``, ``dqn``) or the task they are sized for (``sac-pendulum``,
+``dqn-cartpole-v0``, ...); ``presets`` reads and writes them (``presets.names()`` lists them, ``presets.load``,
+``presets.save``), ``preset_info(name)`` says what each is for (env, target returns), ``size_hint`` what to use
+instead when a preset meets another env.
 """
 
 from __future__ import annotations
 
-import difflib
 import importlib
 
-from rlpipe.pipelines import _moved
+from rlpipe.pipelines import _moved, presets
 from rlpipe.pipelines.config import PresetInfo, layer_sizes
 from rlpipe.pipelines.errors import InputError
 
@@ -57,48 +58,38 @@ def pipeline_class(algo: str):
     return getattr(importlib.import_module(module), name)
 
 
-def presets() -> dict[str, str]:
-    """Every preset name -> its algorithm."""
-    return {name: algo for algo in ALGOS for name in pipeline_class(algo).presets}
-
-
 def resolve_preset(name: str):
-    """(algo, config) for a preset name such as 'dqn' or 'td3-hopper'."""
-    known = presets()
-    if name not in known:
-        close = difflib.get_close_matches(name, list(known), n=3, cutoff=0.4)
-        hint = f"did you mean {', '.join(close)}?" if close else f"expected one of {', '.join(known)}"
-        raise InputError(f"unknown preset {name!r}; {hint}")
-    algo = known[name]
-    return algo, pipeline_class(algo).preset(name)
+    """(algo, config) for a preset's name such as 'dqn' or 'td3-hopper', or a preset file's path (``presets.load``)."""
+    return presets.load(name)
 
 
 def preset_info(name: str) -> PresetInfo | None:
-    """The task preset ``name`` is for (env, target returns, whether it is sized for time to them); None
-    for a preset that declares none."""
-    algo = presets().get(name)
-    return None if algo is None else pipeline_class(algo).preset_info.get(name)
+    """The task preset ``name`` (a name or a file) is for (env, target returns, whether it is sized for time to
+    them); None for an unknown name or a preset that declares none."""
+    if not presets.is_file(name) and name not in presets.names():
+        return None
+    return presets.info(name)
 
 
 def sized_presets(env: str) -> list[str]:
-    """The presets sized for time to a target on ``env``, in registry order."""
-    return [name for name, algo in presets().items()
-            if (info := pipeline_class(algo).preset_info.get(name)) is not None and info.sized and info.env == env]
+    """The presets sized for time to a target on ``env``, in ``presets.names()`` order."""
+    return [name for name in presets.names()
+            if (info := presets.info(name)) is not None and info.sized and info.env == env]
 
 
 def size_hint(name: str, cfg) -> str | None:
-    """One line for a preset pointed at an env other than its own (``rlpipe train sac env=Pendulum-v1``):
-    the preset sized for that env, or, for an env no preset knows, the keys that size a run. None when
-    ``cfg`` trains on the preset's own env."""
-    algo = presets()[name]
-    own = pipeline_class(algo).preset(name).env
+    """One line for a preset (a name or a file) pointed at an env other than its own (``rlpipe train sac
+    env=Pendulum-v1``): the preset sized for that env, or, for an env no preset knows, the keys that size a run.
+    None when ``cfg`` trains on the preset's own env."""
+    preset = presets.read(name)
+    own = preset.config.env
     if cfg.env == own:
         return None
     fits = sized_presets(cfg.env)
-    info = preset_info(name)
+    info = preset.info
     what = f"preset {name!r} ({info.task}) is sized for {own}" if info and info.task else f"preset {name!r} is sized for {own}"
     if fits:
-        best = next((p for p in fits if presets()[p] == algo), fits[0])
+        best = next((p for p in fits if presets.names()[p] == preset.algo), fits[0])
         target = preset_info(best).target
         to = f" (to {target:g})" if target is not None else ""
         return f"{what}; the one sized for {cfg.env}{to} is {best!r}: rlpipe train {best}"

@@ -50,6 +50,7 @@ __all__ = [
     "CollectorConfig",
     "RayConfig",
     "TrainConfig",
+    "apply_mapping",
     "apply_overrides",
     "available_devices",
     "check_machine",
@@ -465,9 +466,7 @@ def apply_overrides(cfg, overrides: list[str]):
         if not sep or not key:
             raise InputError(f"override {item!r} is not of the form key=value (e.g. batch_size=128)")
         if key not in keys:
-            close = difflib.get_close_matches(key, keys, n=3, cutoff=0.5)
-            hint = f"; closest valid keys: {', '.join(close)}" if close else f"; valid keys: {', '.join(keys)}"
-            raise InputError(f"unknown config key {key!r}{hint}")
+            raise _unknown_key(key, keys)
         if not value.strip() and _describe_type(cfg, key) == "a string":
             value = "''"  # `ray.address=`: the empty string (OmegaConf reads an empty value as null)
         try:
@@ -478,6 +477,48 @@ def apply_overrides(cfg, overrides: list[str]):
     result = OmegaConf.to_object(conf)
     validate(result)
     return result
+
+
+def apply_mapping(cfg, data: dict[str, Any]):
+    """Return a copy of ``cfg`` with a mapping's keys applied (a preset file's ``config``: nested groups as
+    mappings, ``collector: {workers: 1}``), each key checked as ``apply_overrides`` checks a ``key=value``, with
+    the same errors. Validated without this machine's checks: a file may come from another machine, and the
+    overrides given with it fix that (``apply_overrides`` checks the machine)."""
+    keys = flat_keys(type(cfg))
+    conf = OmegaConf.structured(cfg)
+    for key, value in _leaves(data, keys):
+        if key not in keys:
+            raise _unknown_key(key, keys)
+        nested: Any = value
+        for part in reversed(key.split(".")):
+            nested = {part: nested}
+        try:
+            conf = OmegaConf.merge(conf, OmegaConf.create(nested))
+        except OmegaConfBaseException as exc:
+            raise InputError(f"{key}={value!r}: expected {_describe_type(cfg, key)}") from exc
+    result = OmegaConf.to_object(conf)
+    validate(result, machine=False)
+    return result
+
+
+def _leaves(data, keys: list[str], prefix: str = ""):
+    """(dotted key, value) for each leaf of a nested mapping; a group's keys come from its mapping."""
+    if not isinstance(data, dict):
+        example = next(k for k in keys if k.startswith(prefix))[len(prefix):]
+        raise InputError(f"{prefix.rstrip('.') or 'config'}={data!r}: expected a mapping of keys to values such as "
+                         f"{{{example}: ...}}")
+    for name, value in data.items():
+        key = f"{prefix}{name}"
+        if key not in keys and any(k.startswith(key + ".") for k in keys):
+            yield from _leaves(value, keys, key + ".")
+        else:
+            yield key, value
+
+
+def _unknown_key(key: str, keys: list[str]) -> InputError:
+    close = difflib.get_close_matches(key, keys, n=3, cutoff=0.5)
+    hint = f"; closest valid keys: {', '.join(close)}" if close else f"; valid keys: {', '.join(keys)}"
+    return InputError(f"unknown config key {key!r}{hint}")
 
 
 def _describe_type(cfg, key: str) -> str:

@@ -364,7 +364,7 @@ def cmd_presets(args) -> int:
 
     times = preset_times()
     rows = [("preset", "algo", "env", "iterations", "target", "time to target", "what it is")]
-    for name, algo in presets().items():
+    for name, algo in presets.names().items():
         info, cfg = preset_info(name), resolve_preset(name)[1]
         targets = " then ".join(f"{t:g}" for t in info.targets) if info and info.targets else "-"
         rows.append((name, algo, cfg.env, str(cfg.num_iterations), targets,

@@ -75,8 +75,8 @@ def test_dqn_cartpole_v1_preset_is_valid_and_on_cartpole_v1():
     assert isinstance(cfg, DQNConfig)
     assert cfg.env == "CartPole-v1"
     validate(cfg)
-    assert {"dqn", "dqn-cartpole-v1"} <= set(presets())
-    assert presets()["dqn"] == presets()["dqn-cartpole-v1"] == "dqn"
+    assert {"dqn", "dqn-cartpole-v1"} <= set(presets.names())
+    assert presets.names()["dqn"] == presets.names()["dqn-cartpole-v1"] == "dqn"
 
 
 def test_presets_are_fresh_copies():

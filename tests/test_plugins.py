@@ -431,6 +431,6 @@ def test_building_and_training_leave_threads_and_the_callers_random_state_alone(
 
 
 def test_a_broken_pipeline_module_is_an_import_error_not_an_unknown_preset(monkeypatch):
-    monkeypatch.setitem(pipelines.ALGOS, "broken", "rlpipe.pipelines.no_such_module:Broken")
+    monkeypatch.setitem(pipelines.ALGOS, "dqn", "rlpipe.pipelines.no_such_module:Broken")
     with pytest.raises(ModuleNotFoundError):
-        pipelines.presets()
+        pipelines.resolve_preset("dqn")

@@ -51,7 +51,7 @@ def test_the_tutorial_presets_keep_their_start_up():
 
 
 def test_every_preset_has_its_task_and_the_sized_ones_are_found_by_env():
-    for name in presets():
+    for name in presets.names():
         assert preset_info(name) is not None, name
         assert preset_info(name).env == resolve_preset(name)[1].env, name
     assert sized_presets("Pendulum-v1") == ["td3-pendulum", "sac-pendulum", "crossq-pendulum"]
@@ -68,7 +68,7 @@ def test_rlpipe_presets_lists_each_with_its_task_and_measured_time(tmp_path, mon
     monkeypatch.setattr(cli, "PRESET_TIMES", times)
     assert cli.main(["presets"]) == 0
     lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
-    assert set(lines) == set(presets())
+    assert set(lines) == set(presets.names())
     for name, (env, targets) in SIZED.items():
         assert env in lines[name] and f"{targets[0]:g}" in lines[name], lines[name]
     assert "12.3 s (2026-11-25, abc1234)" in lines["sac-pendulum"]
@@ -104,7 +104,7 @@ def test_an_env_no_preset_knows_gets_the_keys_that_size_a_run(capfd):
 
 
 def test_no_hint_on_the_presets_own_env():
-    for name in presets():
+    for name in presets.names():
         assert size_hint(name, resolve_preset(name)[1]) is None, name
     cfg = apply_overrides(resolve_preset("dqn")[1], ["env=CartPole-v1"])
     assert "rlpipe train dqn-cartpole-v1-fast" in size_hint("dqn", cfg)

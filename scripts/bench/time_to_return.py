@@ -214,7 +214,7 @@ def rlpipe_config(task: Task, overrides: list[str], preset: str | None = None):
     if preset is not None:
         name = preset
         extra = () if resolve_preset(preset)[1].env == task.env else (f"env={task.env}",)
-    elif task.preset in presets():
+    elif task.preset in presets.names():
         name = task.preset
     else:
         name, extra = task.fallback
@@ -231,7 +231,7 @@ def rlpipe_launch(task: Task, side: str, seed: int, target: float, cap: int, run
     if side == "crossq":
         if task.crossq is None:
             return "no CrossQ preset for this task"
-        if task.crossq not in presets():
+        if task.crossq not in presets.names():
             return f"preset missing ({task.crossq})"
         name, extra, note = task.crossq, (), ""
         cfg = apply_overrides(resolve_preset(name)[1], list(overrides))
