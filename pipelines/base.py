@@ -2,8 +2,8 @@
 
 A pipeline (``dqn.DQN``, ``td3.TD3``, ``sac.SAC``) subclasses ``OffPolicyPipeline`` and declares:
 
-* ``algo``, ``Config`` (its typed config), ``action_space`` (``"discrete"`` or ``"continuous"``),
-  ``presets`` (name -> function making a config) and ``loss_names`` (the losses ``update`` returns);
+* ``algo``, ``Config`` (its typed config), ``action_space`` (``"discrete"`` or ``"continuous"``) and
+  ``loss_names`` (the losses ``update`` returns); its presets are files (``presets/``, whose ``algo`` names it);
 * ``__init__``: ``super().__init__(...)`` (config, envs, device, observation key), then
   ``self.assemble(lambda: self.build(...))`` with the user's modules, if any (the base
   constructor never calls ``build``: a subclass has its whole state before it runs);
@@ -37,6 +37,7 @@ from torchrl.record.loggers import Logger
 from rlpipe.envs import EnvError, env_id_of, env_label, is_discrete, make_env, observation_rescaling, resolve_env_id
 from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
 from rlpipe.modules.plain_policy import OnRescaledObservations, TensorDictPolicy
+from rlpipe.pipelines import presets as preset_files
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, PresetInfo, TrainConfig, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
@@ -99,15 +100,30 @@ class Agent:
     loss_module: LossModule
 
 
+class _PresetFiles:
+    """``Pipeline.presets`` (name -> its file) or ``Pipeline.preset_info`` (name -> the task it is for, where its
+    file says): the shipped preset files whose ``algo`` is the pipeline's, in ``presets.names()`` order."""
+
+    def __init__(self, info: bool):
+        self.info = info
+
+    def __get__(self, obj, owner) -> dict:
+        names = [name for name, algo in preset_files.names().items() if algo == owner.algo]
+        if self.info:
+            return {name: info for name in names if (info := preset_files.info(name)) is not None}
+        return {name: preset_files.source(name) for name in names}
+
+
 class OffPolicyPipeline:
     """Base of every pipeline: a TorchRL env, modules and loss, trained by the shared ``Loop``."""
 
     algo: ClassVar[str]
     Config: ClassVar[type[TrainConfig]]
     action_space: ClassVar[str]  # "discrete" or "continuous"
-    presets: ClassVar[dict[str, Callable[[], TrainConfig]]]
-    preset_info: ClassVar[dict[str, PresetInfo]] = {}
-    """preset name -> the task it is for (env, targets); a preset without an entry has none"""
+    presets: ClassVar[dict[str, str]] = _PresetFiles(info=False)
+    """this algorithm's preset names -> their files (``presets/NAME.yaml``)"""
+    preset_info: ClassVar[dict[str, PresetInfo]] = _PresetFiles(info=True)
+    """this algorithm's preset names -> the task each is for (env, targets); a preset without one has none"""
     loss_names: ClassVar[tuple[str, ...]] = ("loss",)
 
     policy: nn.Module
@@ -117,11 +133,12 @@ class OffPolicyPipeline:
 
     @classmethod
     def preset(cls, name: str | None = None) -> TrainConfig:
-        """A fresh config of the named preset (default: the first, the tutorial's)."""
-        name = name or next(iter(cls.presets))
-        if name not in cls.presets:
-            raise InputError(f"unknown {cls.algo.upper()} preset {name!r}; expected one of {', '.join(cls.presets)}")
-        return cls.presets[name]()
+        """A fresh config of the named preset or preset file (default: the preset named for the algorithm, its
+        tutorial's)."""
+        algo, cfg = preset_files.load(name or cls.algo)
+        if algo != cls.algo:
+            raise InputError(f"preset {name!r} is a {algo} preset; expected one of {cls.algo}'s: {', '.join(cls.presets)}")
+        return cfg
 
     def __init__(self, config: TrainConfig | None = None, *, env: EnvArg = None, eval_env: EnvArg = None,
                  observation_key: str | None = None):

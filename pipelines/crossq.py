@@ -32,14 +32,12 @@ from rlpipe.pipelines.config import (
     NON_NEGATIVE,
     POSITIVE,
     Check,
-    CollectorConfig,
-    PresetInfo,
     TrainConfig,
     check_learning_rate_schedule,
     checked,
 )
 
-__all__ = ["CrossQConfig", "CrossQ", "PRESETS", "PRESET_INFO", "preset"]
+__all__ = ["CrossQConfig", "CrossQ", "preset"]
 
 
 @dataclass
@@ -95,88 +93,6 @@ class CrossQConfig(TrainConfig):
         check_learning_rate_schedule(self)
 
 
-def _minitaur() -> CrossQConfig:
-    # The sac preset's collection path (an async collector process, evaluation in the background)
-    # with CrossQ's update: what issue 22's "Gait in Eight" case is on our quadruped.
-    return CrossQConfig(collector=CollectorConfig(workers=1, sync=False), eval_in_background=True,
-                        initial_collect_steps=5000, eval_interval=5000, num_eval_episodes=10)
-
-
-def _minitaur_walk() -> CrossQConfig:
-    # MinitaurBulletEnv-v0 to 5 (a gait) with CrossQ: `sac-minitaur-5`'s settings (64x64 networks, rewards x100
-    # in the update, 2,000 random steps, 200k replay, 3-step returns, the greedy policy a Polyak average of the
-    # actor, the env in a collector process beside the learner, evaluations in the background) with the entropy
-    # target falling from 0 to -16 (-2 a joint) between 40,000 and 100,000 env steps, not to -8: with -8, CrossQ's
-    # sampled policy walked at 5-10 while its greedy one (the mean action, what a target is confirmed by and an
-    # export plays) gave 0.2-4.8, and it reached 5 on one seed of two within 150,000 env steps (2026-11-29,
-    # 943233d); the walk it learns leans on its sampling noise (seed 1's checkpoint at iteration 140,000: the
-    # actor's greedy 5.2 over two episodes, sampled 8.3). With -16 the target asks for less noise while the
-    # walk is learned. 2026-11-29 one-seed tries (`rlpipe train crossq-minitaur ... target_return=5 seed=S`, two at a
-    # time): seeds 0/1/2 reached 5 at 65,500 / 69,450 / 51,750 env steps after 2 / 1 / 1 failed confirmations; with -8 and no
-    # average seed 1 needed 93,850 and 13. `rlpipe bench time-to-return --tasks minitaur-sac-5 --seeds 5 --peers none
-    # --cap-scale 0.1` (c8dfaff): 327.4 s median (231.1-402.8), 5 of 5, against `sac-minitaur-5`'s 1 of 5 in the
-    # same command (BENCHMARKS.md, "minitaur-sac-5: SAC against CrossQ").
-    return CrossQConfig(num_iterations=200_000, initial_collect_steps=2000, replay_buffer_capacity=200_000,
-                        actor_fc_layer_params=[64, 64], critic_fc_layer_params=[64, 64], reward_scale_factor=100.0,
-                        target_entropy=0.0, target_entropy_final=-16.0, target_entropy_anneal=[40_000, 100_000],
-                        n_step=3, policy_average_tau=0.0005, eval_interval=10_000, num_eval_episodes=5,
-                        eval_in_background=True, initial_eval=False, baseline_episodes=0, num_threads=1,
-                        log_interval=1000, policy_save_interval=50_000, checkpoint_interval=25_000,
-                        collector=CollectorConfig(workers=1, sync=False))
-
-
-def _sized(env: str, **keys) -> CrossQConfig:
-    # What the sized SAC presets share (sac._sized): the env in the learner's process, no untrained
-    # evaluation or random baseline, the thread count named (no timing of the loss at start), sparse
-    # evaluations, exports only at the end.
-    defaults = dict(initial_eval=False, baseline_episodes=0, live_report=False, num_eval_episodes=10, num_threads=1,
-                    collector=CollectorConfig(workers=1, sync=True))
-    return CrossQConfig(env=env, **{**defaults, **keys})
-
-
-def _pendulum() -> CrossQConfig:
-    # Pendulum-v1 to -200 with 64x64 networks (SAC's sac-pendulum sizes): the same env steps to -200 as
-    # 256x256 (seeds 0-2: 4,400, 5,600, 5,200 against 5,000-6,400), each update ~5x cheaper (11.3 ms at
-    # 256 wide, one thread, under load); 2026-11-25, `rlpipe train crossq-pendulum target_return=-200`.
-    return _sized("Pendulum-v1", num_iterations=20_000, initial_collect_steps=1000, eval_interval=5000,
-                  actor_fc_layer_params=[64, 64], critic_fc_layer_params=[64, 64],
-                  log_interval=500, checkpoint_interval=20_000, policy_save_interval=20_000)
-
-
-def _inverted_pendulum() -> CrossQConfig:
-    # InvertedPendulum-v5 to 950 with 64x64 networks (as crossq-pendulum): 2026-11-27, `rlpipe train
-    # crossq-invpendulum target_return=950 seed=S` (the time-to-return rule), seeds 0 and 1: 43 and 102 s
-    # (8,100 and 18,050 env steps), against 144 and 156 s (9,950 and 11,050) at 256x256 (the preset before).
-    return _sized("InvertedPendulum-v5", num_iterations=50_000, initial_collect_steps=1000, eval_interval=5000,
-                  actor_fc_layer_params=[64, 64], critic_fc_layer_params=[64, 64], replay_buffer_capacity=100_000,
-                  log_interval=500, checkpoint_interval=25_000, policy_save_interval=50_000)
-
-
-def _halfcheetah() -> CrossQConfig:
-    # sb3-contrib's defaults on a MuJoCo task (the paper's), with the CPU-sized critics; untuned here.
-    return CrossQConfig(env="HalfCheetah-v5", num_iterations=1_000_000, initial_collect_steps=5000,
-                        eval_interval=10_000, num_eval_episodes=10, checkpoint_interval=50_000,
-                        policy_save_interval=50_000)
-
-
-# "crossq-minitaur" is "crossq" under the name `rlpipe bench time-to-return` looks for (task-named presets)
-PRESETS = {"crossq": _minitaur, "crossq-minitaur": _minitaur, "crossq-minitaur-5": _minitaur_walk,
-           "crossq-pendulum": _pendulum,
-           "crossq-invpendulum": _inverted_pendulum, "crossq-halfcheetah": _halfcheetah}
-
-PRESET_INFO = {
-    "crossq": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "CrossQ on the main job, the sac tutorial's collection",
-                         sized=False),
-    "crossq-minitaur": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "crossq under its task's name"),
-    "crossq-minitaur-5": PresetInfo("MinitaurBulletEnv-v0", (5.0,), "sized for time to 5 (a gait)"),
-    "crossq-pendulum": PresetInfo("Pendulum-v1", (-200.0,), "sized for time to -200"),
-    "crossq-invpendulum": PresetInfo("InvertedPendulum-v5", (950.0,), "sized for time to 950"),
-    "crossq-halfcheetah": PresetInfo("HalfCheetah-v5", (3000.0,), "sb3-contrib's settings, CPU-sized critics; untuned",
-                                     sized=False),
-}
-"""each preset's task (env, targets); ``rlpipe presets`` and the time-to-return bench read it"""
-
-
 class CrossQ(TanhNormalPipeline):
     """CrossQ: TorchRL's ``CrossQLoss`` (TanhNormal actor, twin batch-renormalised critics, learned
     temperature, no target networks), the actor and temperature updated every ``policy_delay`` updates.
@@ -199,8 +115,6 @@ class CrossQ(TanhNormalPipeline):
     algo = "crossq"
     Config = CrossQConfig
     action_space = "continuous"
-    presets = PRESETS
-    preset_info = PRESET_INFO
     loss_names = ("qvalue", "actor", "alpha", "alpha_value", "entropy")
 
     def __init__(self, config: CrossQConfig | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,

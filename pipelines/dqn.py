@@ -36,15 +36,13 @@ from rlpipe.pipelines.config import (
     LEARNING_RATE,
     POSITIVE,
     PROBABILITY,
-    CollectorConfig,
-    PresetInfo,
     TrainConfig,
     checked,
     one_of,
 )
 from rlpipe.pipelines.errors import InputError
 
-__all__ = ["DQNConfig", "DQN", "PRESETS", "PRESET_INFO", "preset"]
+__all__ = ["DQNConfig", "DQN", "preset"]
 
 
 @dataclass
@@ -81,99 +79,6 @@ class DQNConfig(TrainConfig):
     """clip each gradient tensor's norm to this value before the optimiser steps, as DqnAgent's gradient_clipping does (TF-Agents' clip_gradient_norms, per variable; not one norm over all gradients); null: no clipping"""
 
 
-def _tutorial() -> DQNConfig:
-    # The tutorial: CartPole-v0, QNetwork(100), Adam 1e-3, batch 64, 100k replay, 1000 random steps,
-    # 1 collect step per iteration, 20k iterations, eval every 1000 over 10 episodes.
-    return DQNConfig()
-
-
-def _cartpole_v1() -> DQNConfig:
-    # CartPole-v1 (500 steps per episode), after RL-Zoo's tuned DQN: [256, 256], lr 2.3e-3,
-    # epsilon 1.0 -> 0.04 over the first 16% of 50k steps, one update per two env steps, gamma 0.99;
-    # 50k env steps in all. Hard target update every 20 updates: the preset was tuned with
-    # target_update_period=10 under TorchRL's HardUpdate, which copied every second call (see
-    # make_target_updater), so 20 keeps the schedule it learns with.
-    return DQNConfig(
-        env="CartPole-v1",
-        num_iterations=24_500,
-        initial_collect_steps=1000,
-        collect_steps_per_iteration=2,
-        gamma=0.99,
-        learning_rate=2.3e-3,
-        fc_layer_params=[256, 256],
-        epsilon_greedy=1.0,
-        epsilon_greedy_end=0.04,
-        epsilon_decay_steps=8000,
-        target_update_period=20,
-        eval_interval=1000,
-        log_interval=500,
-        policy_save_interval=5000,
-        checkpoint_interval=5000,
-    )
-
-
-def _cleanrl() -> DQNConfig:
-    # CleanRL's dqn.py defaults (v1.2.0), the single-file script rlpipe is benchmarked against:
-    # CartPole-v1, 500k env steps, network 120-84, Adam 2.5e-4, replay 10k, batch 128, one update
-    # per 10 env steps after 10k, epsilon 1.0 -> 0.05 over the first 250k steps, target network
-    # copied every 500 env steps (= 50 updates), gamma 0.99, squared TD error. Collection: 16 env
-    # copies stepped as one batch in a process beside the learner, fresh weights sent once per
-    # block (CleanRL steps 1 env in-line): TorchRL's ~1.5 ms per collector step is paid once per
-    # 16 env steps instead of once per env step (BENCHMARKS.md, "DQN against CleanRL").
-    return DQNConfig(
-        env="CartPole-v1",
-        num_iterations=49_000,
-        initial_collect_steps=10_000,
-        collect_steps_per_iteration=10,
-        replay_buffer_capacity=10_000,
-        batch_size=128,
-        gamma=0.99,
-        learning_rate=2.5e-4,
-        fc_layer_params=[120, 84],
-        epsilon_greedy=1.0,
-        epsilon_greedy_end=0.05,
-        epsilon_decay_steps=250_000,
-        target_update_period=50,
-        eval_interval=5000,
-        num_eval_episodes=10,
-        log_interval=1000,
-        policy_save_interval=10_000,
-        checkpoint_interval=10_000,
-        collector=CollectorConfig(workers=1, sync=False, envs_per_worker=16, frames_per_batch=160, weight_sync_interval=16),
-    )
-
-
-def _cartpole_fast(env: str) -> DQNConfig:
-    # CartPole sized for time to its target: RL-Zoo's lr 2.3e-3, gamma 0.99 and epsilon 1.0 ->
-    # 0.04 on 64x64 networks (not 256x256), one update per env step (not per two), epsilon down in
-    # 5,000 steps (not 8,000); no untrained evaluation or random baseline, exports at the end only.
-    # In the tries, CartPole-v1 passed 475 at ~7,000 env steps where `dqn-cartpole-v1` (kept as
-    # RL-Zoo's, which `rlpipe bench collect` measures) was at 334 after 17,000 (BENCHMARKS.md).
-    return DQNConfig(
-        env=env, num_iterations=25_000, initial_collect_steps=1000, gamma=0.99, learning_rate=2.3e-3,
-        fc_layer_params=[64, 64], epsilon_greedy=1.0, epsilon_greedy_end=0.04, epsilon_decay_steps=5000,
-        target_update_period=20, initial_eval=False, baseline_episodes=0, live_report=False, num_threads=1,
-        eval_interval=5000, log_interval=250, policy_save_interval=25_000, checkpoint_interval=25_000,
-        collector=CollectorConfig(workers=1, sync=True),
-    )
-
-
-PRESETS = {
-    "dqn": _tutorial, "dqn-cartpole-v1": _cartpole_v1, "dqn-cleanrl": _cleanrl,
-    "dqn-cartpole-v0": lambda: _cartpole_fast("CartPole-v0"),
-    "dqn-cartpole-v1-fast": lambda: _cartpole_fast("CartPole-v1"),
-}
-
-PRESET_INFO = {
-    "dqn": PresetInfo("CartPole-v0", (195.0,), "TF-Agents' DQN tutorial", sized=False),
-    "dqn-cartpole-v1": PresetInfo("CartPole-v1", (475.0,), "RL-Zoo's tuned DQN, 50k steps", sized=False),
-    "dqn-cleanrl": PresetInfo("CartPole-v1", (475.0,), "CleanRL's dqn.py defaults, 500k steps", sized=False),
-    "dqn-cartpole-v0": PresetInfo("CartPole-v0", (195.0,), "sized for time to 195"),
-    "dqn-cartpole-v1-fast": PresetInfo("CartPole-v1", (475.0,), "sized for time to 475"),
-}
-"""each preset's task (env, targets); ``rlpipe presets`` and the time-to-return bench read it"""
-
-
 class _GreedyPolicy(nn.Module):
     """The exported policy: observations -> index of the highest Q-value."""
 
@@ -206,8 +111,6 @@ class DQN(OffPolicyPipeline):
     algo = "dqn"
     Config = DQNConfig
     action_space = "discrete"
-    presets = PRESETS
-    preset_info = PRESET_INFO
     loss_names = ("loss",)
 
     def __init__(self, config: DQNConfig | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,

@@ -162,7 +162,12 @@ def load(name_or_path: str | os.PathLike) -> tuple[str, TrainConfig]:
 
 def info(name_or_path: str | os.PathLike) -> PresetInfo | None:
     """The task a preset is for (env, targets, whether it is sized for time to them); None where its file says none."""
-    return read(name_or_path).info
+    return read(name_or_path).info if is_file(name_or_path) else _shipped_info(name_or_path)
+
+
+@functools.cache
+def _shipped_info(name: str) -> PresetInfo | None:
+    return read(name).info
 
 
 def save(path: str | os.PathLike, algo: str, config: TrainConfig, info: PresetInfo | None = None,

@@ -12,7 +12,6 @@ with a soft target update; its Learner and triggers are the shared loop.
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from dataclasses import dataclass
 
@@ -35,15 +34,13 @@ from rlpipe.pipelines.config import (
     LEARNING_RATE,
     POSITIVE,
     Check,
-    CollectorConfig,
-    PresetInfo,
     TrainConfig,
     check_learning_rate_schedule,
     checked,
     one_of,
 )
 
-__all__ = ["SACConfig", "SAC", "PRESETS", "PRESET_INFO", "preset"]
+__all__ = ["SACConfig", "SAC", "preset"]
 
 
 @dataclass
@@ -99,172 +96,6 @@ class SACConfig(TrainConfig):
         check_learning_rate_schedule(self)
 
 
-def _minitaur() -> SACConfig:
-    # The actor-learner tutorial: MinitaurBulletEnv-v0, 100k iterations, 10k random steps,
-    # replay 10k, batch 256, lr 3e-4 x3, tau 0.005, gamma 0.99, eval every 10k over 20 episodes,
-    # policy saved every 5k. On CPU the update (~15 ms) is the bottleneck, so the env steps in a
-    # collector process beside it (async), and evaluation runs in another process on a snapshot.
-    return SACConfig(collector=CollectorConfig(workers=1, sync=False), eval_in_background=True)
-
-
-def _halfcheetah() -> SACConfig:
-    # SAC paper (Haarnoja et al. 2018, v2 table): 1M replay, batch 256, lr 3e-4, tau 0.005,
-    # (256, 256) networks, target entropy -|A|, 10k random steps; 1M steps in the paper.
-    return SACConfig(
-        env="HalfCheetah-v5", num_iterations=1_000_000, initial_collect_steps=10_000,
-        replay_buffer_capacity=1_000_000, target_entropy=-6.0, eval_interval=10_000,
-        num_eval_episodes=10, checkpoint_interval=50_000, policy_save_interval=50_000,
-    )
-
-
-def _hopper() -> SACConfig:
-    return SACConfig(
-        env="Hopper-v5", num_iterations=1_000_000, initial_collect_steps=10_000,
-        replay_buffer_capacity=1_000_000, target_entropy=-3.0, eval_interval=10_000,
-        num_eval_episodes=10, checkpoint_interval=50_000, policy_save_interval=50_000,
-    )
-
-
-def _minitaur_002() -> SACConfig:
-    # The older SAC-on-Minitaur tutorial (drivers, TFUniformReplayBuffer), whose printed log the
-    # live log can be compared with: the same agent as the actor-learner one, but the initial 10k
-    # steps come from the collect policy (a DynamicStepDriver with tf_agent.collect_policy), a
-    # 1M-transition replay, a loss line every 5,000 steps, 30 evaluation episodes every 10,000,
-    # gradient_clipping=None; its CriticNetwork keeps TF-Agents' default initialisers (not Glorot).
-    # Collection in the learner's process, as its single driver did.
-    return SACConfig(
-        initial_collect_policy="collect", replay_buffer_capacity=1_000_000, log_interval=5000,
-        num_eval_episodes=30, eval_interval=10_000, gradient_clipping=None,
-    )
-
-
-def _sized(env: str, **keys) -> SACConfig:
-    """A preset sized for time to a target on a small CPU machine: what every such preset shares.
-
-    No untrained evaluation, no random baseline, exports only at the end, the thread count named
-    (no timing of the loss at start), learning rates 1e-3, the report page written at evaluations and
-    at the end, not from log rows (its first write is 1-2 s of a 10-s Pendulum run; runs of many
-    minutes keep ``live_report``); each preset adds what its task needs.
-    Evaluations are sparse: 10 greedy Pendulum episodes in the learner's process are 2,000 env
-    steps, the cost of ~1,000 iterations when the target comes at ~3,000-4,000.
-    """
-    defaults = dict(actor_learning_rate=1e-3, critic_learning_rate=1e-3, alpha_learning_rate=1e-3,
-                    initial_eval=False, baseline_episodes=0, live_report=False, num_eval_episodes=10, num_threads=1,
-                    collector=CollectorConfig(workers=1, sync=True))
-    return SACConfig(env=env, **{**defaults, **keys})
-
-
-def _pendulum() -> SACConfig:
-    # Pendulum-v1 to -200: 64x64 networks, 1,000 random steps, the env in the learner's process (a
-    # collector process takes seconds to start, and Pendulum's cheap step leaves nothing to overlap),
-    # target networks 4x faster (tau 0.02) and learning rates 2e-3. Tries of 2026-11-27 (seeds 0-4,
-    # `rlpipe train sac-pendulum target_return=-200 seed=S KEY=VALUE`, BENCHMARKS.md): env steps to the
-    # target, median, tau 0.005 / lr 1e-3 (the preset before) 4,600 (13.5 s); tau 0.01 3,600 (10.9 s);
-    # tau 0.02 + lr 2e-3 3,200 (9.3 s); tau 0.05 + lr 2e-3 3,200 (9.6 s); gamma 0.98, initial alpha 0.5,
-    # batch 128, lr 2e-3 alone, 500 random steps, tau 0.05 alone: no fewer than tau 0.01.
-    # Then the update made cheaper, as the env step is ~50x cheaper than it: the actor and temperature
-    # step on every second update (policy_delay=2) and one update per 2 env steps. Tries of 2026-11-29
-    # (seeds 10-17, one run at a time, BENCHMARKS.md): median seconds from launch to the target 10.15
-    # (the settings above), 8.05 with the delay (every seed sooner), 7.6 with a delay of 3, 8.15 with 2
-    # env steps per update alone, 7.15 with both (4,200 env steps and 1,600 updates against 3,400 and 2,400).
-    return _sized("Pendulum-v1", num_iterations=7_500, initial_collect_steps=1000, replay_buffer_capacity=100_000,
-                  collect_steps_per_iteration=2, policy_delay=2,
-                  actor_fc_layer_params=[64, 64], critic_joint_fc_layer_params=[64, 64], target_update_tau=0.02,
-                  actor_learning_rate=2e-3, critic_learning_rate=2e-3, alpha_learning_rate=2e-3,
-                  eval_interval=2500, log_interval=250, policy_save_interval=7_500, checkpoint_interval=7_500)
-
-
-def _inverted_pendulum() -> SACConfig:
-    # InvertedPendulum-v5 to 950 (1,000 is the most an episode gives): sac-pendulum's settings (64x64,
-    # tau 0.02, learning rates 2e-3) as they were before its delayed actor and 2 env steps per update
-    # (not tried here: 4.0x SBX on seeds 100-104 as it is, BENCHMARKS.md). 2026-11-27, `rlpipe train sac-invpendulum target_return=950 seed=S`,
-    # seeds 0 and 1: env steps to the target 9,450 and 9,000 (30 and 29 s), against 15,350 and 21,450
-    # (53 and 69 s) with tau 0.005 and learning rates 1e-3 (the preset before).
-    return _sized("InvertedPendulum-v5", num_iterations=50_000, initial_collect_steps=1000,
-                  replay_buffer_capacity=100_000, actor_fc_layer_params=[64, 64],
-                  critic_joint_fc_layer_params=[64, 64], target_update_tau=0.02, actor_learning_rate=2e-3,
-                  critic_learning_rate=2e-3, alpha_learning_rate=2e-3, eval_interval=5000, log_interval=1000,
-                  policy_save_interval=50_000, checkpoint_interval=25_000)
-
-
-def _halfcheetah_100k() -> SACConfig:
-    # HalfCheetah-v5 to 3,000 within 100k env steps: 5,000 random steps instead of 10,000, lr 1e-3, target
-    # entropy -|A|, 64x64 networks; the update is the bound, so MuJoCo steps in a collector process beside
-    # it and the learner keeps one core. 2026-11-27, `rlpipe train sac-halfcheetah-100k target_return=3000
-    # seed=S` (the time-to-return rule): 256x256 (the paper's) 313.8 s, 33,000 env steps (in `rlpipe bench
-    # time-to-return`, b90efc6); 128x128 175.7 s (36,000); 64x64 82.3 and 85.1 s (27,000 and 29,000, seeds
-    # 0 and 1), each update ~4x cheaper per halving and no more env steps; 2,000 random steps: 81.1 s.
-    # Not checked past 3,000 (the paper's 256x256 may plateau higher over 1M steps: `sac-halfcheetah`).
-    return _sized("HalfCheetah-v5", num_iterations=95_000, initial_collect_steps=5000,
-                  actor_fc_layer_params=[64, 64], critic_joint_fc_layer_params=[64, 64],
-                  replay_buffer_capacity=100_000, target_entropy=-6.0, eval_interval=10_000,
-                  log_interval=1000, policy_save_interval=95_000, checkpoint_interval=25_000, live_report=True,
-                  collector=CollectorConfig(workers=1, sync=False))
-
-
-def _minitaur_fast() -> SACConfig:
-    # MinitaurBulletEnv-v0 to 1.0, then 5, beside the tutorial's `sac`: the tutorial's 10k replay
-    # evicts what the walk is learned from after 10 s of collection, so 200k here; 2,000 random
-    # steps (two episodes) instead of 10,000; lr 1e-3; evaluation in its own process as in `sac`.
-    # Rewards x100 in the update and target entropy 0: Minitaur pays the metres moved in each 10 ms
-    # (~1e-3 a step), so the temperature term (-alpha * log_prob, ~-4 alpha a step at the default target
-    # of -|A|/2) outweighs the reward until alpha has fallen ~100x, and staying up costs. 2026-11-27,
-    # `rlpipe train sac-minitaur target_return=1.0 seed=0` (the time-to-return rule, 900 s cap): without
-    # them not reached by 90,000 env steps (two runs); x100 alone 48,700 env steps (481 s, but by a
-    # ~100-step lunge); x100 + target entropy 0 51,150 (488 s; greedy episodes 366 steps, 1.66).
-    # 64x64 networks: the update is the bound, and it is ~3x cheaper than at 256x256 (~315 env steps/s
-    # against ~110) for no more env steps to 1.0 (2026-11-27, seeds 0 and 1: 30,950 and 32,350 env steps,
-    # 112 and 110 s, greedy episodes 826 and 678 steps long; 128x128: 34,450 and 42,950, 182 and 220 s;
-    # 256x256: 449 and 446 s). In `rlpipe bench time-to-return --tasks minitaur-sac-1 --seeds 5 --peers sbx`
-    # (a13faf7, 2026-11-29): 81.8 s median, 5/5 (SBX 2/5 within 90,000 env steps): BENCHMARKS.md.
-    # The entropy target then falls from 0 to -|A| (-8) between 40,000 and 100,000 env steps: at 0 the sampled
-    # policy walks at 5 while its mean action (the greedy policy the target is judged by) gives 1-2.5
-    # (seed 1: training mean 5.4, greedy 2.7 and 1.9, not reached within 600 s, also with a fall to -4 over
-    # 30,000-90,000); falling to -8 over 30,000-90,000, seed 1 reached 5 at 101,800 env steps, 321 s (greedy
-    # 8.6 over whole episodes at 80,000). It starts at 40,000, past most runs to 1.0 (28,000 env steps median at
-    # 5e02349; a run whose greedy policy lags goes past it, 68,600 at most there); starting it at 10,000 (to -8 by
-    # 70,000) was no sooner to 1.0 on seeds 0-4 (2026-11-29, BENCHMARKS.md's TF-Agents section).
-    return _sized("MinitaurBulletEnv-v0", num_iterations=200_000, initial_collect_steps=2000,
-                  reward_scale_factor=100.0, target_entropy=0.0, target_entropy_final=-8.0,
-                  target_entropy_anneal=[40_000, 100_000],
-                  actor_fc_layer_params=[64, 64], critic_joint_fc_layer_params=[64, 64],
-                  replay_buffer_capacity=200_000, eval_interval=10_000, num_eval_episodes=5,
-                  eval_in_background=True, log_interval=1000, policy_save_interval=50_000, live_report=True,
-                  checkpoint_interval=25_000, collector=CollectorConfig(workers=1, sync=False))
-
-
-def _minitaur_walk() -> SACConfig:
-    # MinitaurBulletEnv-v0 to 5 (a gait, the main job's second target): `sac-minitaur` with 3-step returns
-    # (`n_step=3`: the metres of three 10 ms steps reach the critics in one update instead of three) and the
-    # greedy policy (evaluations, export, a target's confirmation) a Polyak average of the actor
-    # (`policy_average_tau=0.0005`, a window of ~2,000 updates: the actor's greedy action swings between a walk
-    # and a fall from one evaluation to the next). `rlpipe bench time-to-return --tasks minitaur-sac-5 --seeds 5
-    # --peers none --cap-scale 0.15 n_step=3 policy_average_tau=0.0005` (2026-11-29 at 94bd6eb): 333.4 s median
-    # (201.7-614.8), 5 of 5, 4 within 10 minutes, 81,200 env steps median; `sac-minitaur` itself reached 5 on 2
-    # seeds of 5 within 190,000 env steps (db76cc4), the averaged greedy policy alone on 2 of 3 (2ff1f9c).
-    return dataclasses.replace(_minitaur_fast(), n_step=3, policy_average_tau=0.0005)
-
-
-PRESETS = {
-    "sac": _minitaur, "sac-002": _minitaur_002, "sac-halfcheetah": _halfcheetah, "sac-hopper": _hopper,
-    "sac-pendulum": _pendulum, "sac-invpendulum": _inverted_pendulum, "sac-halfcheetah-100k": _halfcheetah_100k,
-    "sac-minitaur": _minitaur_fast, "sac-minitaur-5": _minitaur_walk,
-}
-
-PRESET_INFO = {
-    "sac": PresetInfo("MinitaurBulletEnv-v0", (1.0, 5.0), "TF-Agents' SAC actor-learner tutorial", sized=False),
-    "sac-002": PresetInfo("MinitaurBulletEnv-v0", (), "TF-Agents' older SAC Minitaur tutorial (drivers)", sized=False),
-    "sac-halfcheetah": PresetInfo("HalfCheetah-v5", (), "the SAC paper's settings, 1M steps", sized=False),
-    "sac-hopper": PresetInfo("Hopper-v5", (), "the SAC paper's settings, 1M steps", sized=False),
-    "sac-pendulum": PresetInfo("Pendulum-v1", (-200.0,), "sized for time to -200"),
-    "sac-invpendulum": PresetInfo("InvertedPendulum-v5", (950.0,), "sized for time to 950"),
-    "sac-halfcheetah-100k": PresetInfo("HalfCheetah-v5", (3000.0,), "sized for a return of 3,000 within 100k steps"),
-    "sac-minitaur": PresetInfo("MinitaurBulletEnv-v0", (1.0,), "sized for time to 1.0"),
-    "sac-minitaur-5": PresetInfo("MinitaurBulletEnv-v0", (5.0,), "sized for time to 5 (a gait)"),
-}
-"""each preset's task (env, targets); ``rlpipe presets`` and the time-to-return bench read it"""
-
-
 class SAC(TanhNormalPipeline):
     """Soft actor-critic with learned temperature: TorchRL's ``SACLoss`` + ``SoftUpdate``.
 
@@ -284,8 +115,6 @@ class SAC(TanhNormalPipeline):
     algo = "sac"
     Config = SACConfig
     action_space = "continuous"
-    presets = PRESETS
-    preset_info = PRESET_INFO
     loss_names = ("actor", "qvalue", "alpha", "alpha_value", "entropy")
 
     def __init__(self, config: SACConfig | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,

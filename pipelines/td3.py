@@ -54,14 +54,12 @@ from rlpipe.pipelines.config import (
     LEARNING_RATE,
     NON_NEGATIVE,
     POSITIVE,
-    CollectorConfig,
-    PresetInfo,
     TrainConfig,
     checked,
 )
 from rlpipe.pipelines.errors import InputError
 
-__all__ = ["TD3Config", "TD3", "INGREDIENTS", "PRESETS", "PRESET_INFO", "preset"]
+__all__ = ["TD3Config", "TD3", "INGREDIENTS", "preset"]
 
 INGREDIENTS = (
     "deterministic_policy",
@@ -119,79 +117,6 @@ class TD3Config(TrainConfig):
     """ingredient 6; off: the target uses the first critic alone (both critics still trained)"""
 
 
-def _collect_beside_learning() -> CollectorConfig:
-    # One collector process stepping the env while the learner updates (MultiAsyncCollector): on
-    # Pendulum ~1.5x the updates per second of in-process collection, same returns (BENCHMARKS.md).
-    return CollectorConfig(sync=False)
-
-
-def _pendulum() -> TD3Config:
-    # The tutorial: Pendulum-v1, 1x256 actor/critics, discount 0.99, expl_noise 0.1, lr 3e-4,
-    # 10,000 start-up steps, tau 0.005, policy noise 0.2 clipped at 0.5, policy_freq 2,
-    # buffer 100,000, batch 256, 100,000 steps, models saved every 5,000.
-    return TD3Config(collector=_collect_beside_learning())
-
-
-def _mujoco(env: str) -> TD3Config:
-    # The TD3 paper (Fujimoto et al. 2018): (400, 300) actor/critics, lr 1e-3, batch 100,
-    # 1M replay, expl noise 0.1, 10k (HalfCheetah) / 1k (others) start-up steps, 1M steps,
-    # evaluation every 5k steps over 10 episodes.
-    return TD3Config(
-        env=env,
-        num_iterations=1_000_000 - (10_000 if env.startswith("HalfCheetah") else 1000),
-        initial_collect_steps=10_000 if env.startswith("HalfCheetah") else 1000,
-        learning_starts=10_000 if env.startswith("HalfCheetah") else 1000,
-        replay_buffer_capacity=1_000_000,
-        batch_size=100,
-        learning_rate=1e-3,
-        actor_fc_layer_params=[400, 300],
-        critic_fc_layer_params=[400, 300],
-        checkpoint_interval=50_000,
-        policy_save_interval=50_000,
-        collector=_collect_beside_learning(),
-    )
-
-
-def _sized(env: str, **keys) -> TD3Config:
-    """A preset sized for time to a target on a small CPU machine (as sac's ``_sized``): 64x64
-    networks, lr 1e-3, 1,000 random steps, the env in the learner's process, no untrained
-    evaluation or random baseline, exports only at the end, one learner thread named."""
-    keys.setdefault("collector", CollectorConfig(workers=1, sync=True))
-    keys.setdefault("num_iterations", 20_000)
-    defaults = dict(initial_collect_steps=1000, learning_starts=1000, replay_buffer_capacity=100_000,
-                    learning_rate=1e-3, actor_fc_layer_params=[64, 64], critic_fc_layer_params=[64, 64],
-                    initial_eval=False, baseline_episodes=0, live_report=False, num_threads=1, eval_interval=5000, log_interval=500,
-                    policy_save_interval=keys["num_iterations"], checkpoint_interval=keys["num_iterations"])
-    return TD3Config(env=env, **{**defaults, **keys})
-
-
-PRESETS = {
-    "td3": _pendulum,
-    "td3-halfcheetah": lambda: _mujoco("HalfCheetah-v5"),
-    "td3-hopper": lambda: _mujoco("Hopper-v5"),
-    # RL-Zoo's Pendulum-v1 TD3 (gamma 0.98, lr 1e-3, noise 0.1) on small networks and 1,000 random steps
-    # tau 0.05 and lr 2e-3 (2026-11-27 tries, seeds 0-4, `rlpipe train td3-pendulum target_return=-200 seed=S
-    # KEY=VALUE`): median env steps to -200 7,400 (tau 0.005, lr 1e-3: the preset before), 4,400 (tau 0.02),
-    # 3,600 (tau 0.02, lr 2e-3), 2,800 (tau 0.05, lr 2e-3; 5.8 s against 14.3 s); lr 3e-3 no better.
-    "td3-pendulum": lambda: _sized("Pendulum-v1", num_iterations=15_000, gamma=0.98, target_update_tau=0.05,
-                                   learning_rate=2e-3),
-    # td3-pendulum's settings (tau 0.05, lr 2e-3) on InvertedPendulum-v5; 2026-11-27, `rlpipe train
-    # td3-invpendulum target_return=950 seed=S`, seeds 0 and 1: env steps to the target 9,000 and 13,650
-    # (18 and 26 s), against 26,850 and 21,150 (52 and 40 s) with tau 0.005 and lr 1e-3 (the preset before).
-    "td3-invpendulum": lambda: _sized("InvertedPendulum-v5", num_iterations=50_000, eval_interval=5000,
-                                      log_interval=1000, target_update_tau=0.05, learning_rate=2e-3),
-}
-
-PRESET_INFO = {
-    "td3": PresetInfo("Pendulum-v1", (-200.0,), "the TD3 ablation tutorial", sized=False),
-    "td3-halfcheetah": PresetInfo("HalfCheetah-v5", (), "the TD3 paper's settings, 1M steps", sized=False),
-    "td3-hopper": PresetInfo("Hopper-v5", (), "the TD3 paper's settings, 1M steps", sized=False),
-    "td3-pendulum": PresetInfo("Pendulum-v1", (-200.0,), "sized for time to -200"),
-    "td3-invpendulum": PresetInfo("InvertedPendulum-v5", (950.0,), "sized for time to 950"),
-}
-"""each preset's task (env, targets); ``rlpipe presets`` and the time-to-return bench read it"""
-
-
 class TD3(OffPolicyPipeline):
     """Twin delayed DDPG: TorchRL's ``TD3Loss`` (as ``TD3AblationLoss``) + ``SoftUpdate``.
 
@@ -212,8 +137,6 @@ class TD3(OffPolicyPipeline):
     algo = "td3"
     Config = TD3Config
     action_space = "continuous"
-    presets = PRESETS
-    preset_info = PRESET_INFO
     loss_names = ("qvalue", "actor")
 
     def __init__(self, config: TD3Config | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,
