@@ -1,12 +1,12 @@
 """The ``rlpipe`` command line.
 
-    rlpipe train PRESET [key=value ...] [--out DIR] [--resume DIR]
+    rlpipe train PRESET|FILE.yaml [key=value ...] [--out DIR] [--resume DIR]
     rlpipe eval RUN_DIR [--step N] [--trust] [--episodes N] [--json] [--ecdf]
     rlpipe eval RUN_DIR --random | rlpipe eval --env ID --random
     rlpipe video RUN_DIR [--step N] [--trust] [--episodes N] [--random] [--out FILE]
     rlpipe plot RUN_DIR [RUN_DIR ...] [--out FILE]
     rlpipe report RUN_DIR [RUN_DIR ...] [--out FILE]
-    rlpipe presets
+    rlpipe presets [--show NAME|FILE.yaml]
     rlpipe ablate td3 --envs A,B --seeds N --steps S [--workers W] [--out DIR]
     rlpipe bench {dqn,td3,sac,minitaur,floor,cleanrl,gpu,profile,collect,ray,time-to-return} [...]   (scripts/bench/)
 
@@ -53,7 +53,8 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     train = sub.add_parser("train", help="train a preset (dqn, dqn-cartpole-v1, td3, sac, ...)")
-    train.add_argument("preset", help="preset name; `rlpipe presets` lists them")
+    train.add_argument("preset", help="preset name (`rlpipe presets` lists them) or preset file (PATH.yaml: a file "
+                       "`rlpipe presets --show NAME` prints, or `rlpipe tune` writes)")
     train.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, dotted for groups (collector.workers=2)")
     train.add_argument("--out", type=Path, help="run directory (default runs/<algo>-<env>-<time>)")
     train.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
@@ -92,7 +93,9 @@ def _parser() -> argparse.ArgumentParser:
     report.add_argument("--out", type=Path,
                         help="HTML file (default: RUN_DIR/report.html for one run, compare.html for several)")
 
-    sub.add_parser("presets", help="list the presets: algorithm, the task each is for, its measured time to target")
+    presets = sub.add_parser("presets", help="list the presets: algorithm, the task each is for, its measured time to target")
+    presets.add_argument("--show", metavar="NAME", help="print preset NAME's file (or a preset file PATH.yaml) instead: "
+                                                         "a start for a file of your own (`rlpipe train my.yaml`)")
 
     from rlpipe.scripts import ablate, bench
 
@@ -362,6 +365,10 @@ def _measured(entry: dict | None) -> str:
 def cmd_presets(args) -> int:
     from rlpipe.pipelines import preset_info, presets, resolve_preset
 
+    if args.show is not None:
+        resolve_preset(args.show)  # a file that does not load: its one line, not its text
+        print(presets.text(args.show), end="")
+        return 0
     times = preset_times()
     rows = [("preset", "algo", "env", "iterations", "target", "time to target", "what it is")]
     for name, algo in presets.names().items():
