@@ -151,7 +151,7 @@ class OffPolicyPipeline:
         self.env_fn, self.env = factory_and_env(env, cfg)
         # Evaluation plays one env copy: the collection env may be a vector of them.
         self.eval_env_fn = self.env_fn if cfg.collector.envs_per_worker == 1 else functools.partial(
-            make_env, cfg.env, device="cpu", rescale_observations=cfg.rescale_observations)
+            make_env, cfg.env, device="cpu", rescale_observations=cfg.rescale_observations, **cfg.env_kwargs)
         self.eval_env = eval_env_of(eval_env, self.eval_env_fn)
         self.env.set_seed(cfg.seed)
         self.eval_env.set_seed(cfg.seed + EVAL_SEED_OFFSET)
@@ -247,7 +247,8 @@ class OffPolicyPipeline:
 
     def export_info(self) -> dict[str, Any]:
         spec = self.action_spec
-        info = {"algo": self.algo, "env": self.config.env, "observation_key": str(self.observation_key)}
+        info = {"algo": self.algo, "env": self.config.env, "env_kwargs": dict(self.config.env_kwargs),
+                "observation_key": str(self.observation_key)}
         if is_discrete(spec):
             return {**info, "action": "discrete", "num_actions": int(spec.space.n)}
         return {**info, "action": "continuous", "low": spec.space.low.flatten().tolist(),
@@ -338,7 +339,7 @@ class OffPolicyPipeline:
 
     def choose_threads(self) -> int:
         """The learner's torch threads for this machine and collector layout: ``training.threads.choose_threads``."""
-        return choose_threads(self)
+        return choose_threads(self.config)
 
     def summary(self, state: RunState, evaluations: list[dict], clock: Clock) -> dict[str, Any]:
         """Deprecated: ``training.run.Run(pipeline).summary``."""

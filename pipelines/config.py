@@ -136,6 +136,13 @@ LAYER_SIZES = Check(lambda v: bool(v) and all(n > 0 for n in v),
 """hidden layer sizes of a network (the memory check counts the parameters of every such key)"""
 
 
+ENV_KWARGS_RESERVED = ("seed", "device", "num_envs", "rescale_observations", "render_mode")
+"""what ``rlpipe.envs.make_env`` takes itself: an env keyword of the same name could not reach the env"""
+ENV_KWARGS = Check(lambda v: not set(v) & set(ENV_KWARGS_RESERVED),
+                   lambda v: f"keywords other than {', '.join(ENV_KWARGS_RESERVED)} (rlpipe sets those itself: the "
+                             f"`seed` key seeds the env, videos choose the render mode)")
+
+
 def check_learning_rate_schedule(cfg) -> None:
     """``learning_rate_final_fraction`` moves the optimisers' learning rates, which a compiled or graphed
     update would keep at the values it was traced with: refused there, in one line."""
@@ -253,7 +260,9 @@ class TrainConfig:
     (``DQN.Config``, ``TD3.Config``, ``SAC.Config``) sets its tutorial's. Intervals count iterations (train steps)."""
 
     env: str = ""
-    """gymnasium env id (the tutorials' ids work too, e.g. MinitaurBulletEnv-v0)"""
+    """gymnasium env id (the tutorials' ids work too, e.g. MinitaurBulletEnv-v0), or your own: `my_package.envs:MyArm` (a gymnasium.Env subclass, or a function annotated `-> gymnasium.Env`) or `my_package:MyArm-v0` (an id the module registers), the module installed or on PYTHONPATH"""
+    env_kwargs: dict[str, Any] = checked(check=ENV_KWARGS, factory=dict)
+    """keywords for the env's constructor (`gymnasium.make`'s), one a key on the command line: env_kwargs.size=3"""
     rescale_observations: bool = False
     """map each observation linearly from the observation space's bounds to [-1, 1] (gymnasium's RescaleObservation) in the envs made from `env`, so that no input dwarfs the others (Minitaur's motor velocities are bounded by 168, its motor angles by 3.15); the exported policy takes the env's own observations and rescales them itself. Needs finite bounds"""
     seed: int = checked(0, Check(lambda v: 0 <= v <= MAX_SEED, f"an integer from 0 to {MAX_SEED}"))
@@ -311,7 +320,7 @@ class TrainConfig:
     cudagraph: bool | None = None
     """on device=cuda, replay the update as CUDA graphs (tensordict's CudaGraphModule: one launch instead of hundreds of small kernels); null: when `compile` is true"""
     num_threads: int = checked(-1, Check(lambda v: v >= -1, "-1 (chosen at start), 0 (torch's default) or a positive count"))
-    """torch threads of the learner; -1: chosen at the start of training (the cores collector processes leave free, at most OMP_NUM_THREADS where that is set, then the fastest count there by a short timing of the loss), recorded in config.json; 0: torch's default"""
+    """torch threads of the learner; -1: chosen at the start of training by a rule over this machine's cores (half of those the collector processes leave free, at most 4, at most OMP_NUM_THREADS where that is set; never a timing), recorded in config.json and reused by --resume; 0: torch's default"""
     device: str = "cpu"
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
     initial_collect_policy: str = checked("random", one_of("random", "collect"))
@@ -465,9 +474,10 @@ def apply_overrides(cfg, overrides: list[str]):
         key = key.strip()
         if not sep or not key:
             raise InputError(f"override {item!r} is not of the form key=value (e.g. batch_size=128)")
-        if key not in keys:
+        entry = _mapping_entry(cfg, key, keys)
+        if key not in keys and not entry:
             raise _unknown_key(key, keys)
-        if not value.strip() and _describe_type(cfg, key) == "a string":
+        if not entry and not value.strip() and _describe_type(cfg, key) == "a string":
             value = "''"  # `ray.address=`: the empty string (OmegaConf reads an empty value as null)
         try:
             conf = OmegaConf.merge(conf, OmegaConf.from_dotlist([f"{key}={value}"]))
@@ -519,6 +529,12 @@ def _unknown_key(key: str, keys: list[str]) -> InputError:
     close = difflib.get_close_matches(key, keys, n=3, cutoff=0.5)
     hint = f"; closest valid keys: {', '.join(close)}" if close else f"; valid keys: {', '.join(keys)}"
     return InputError(f"unknown config key {key!r}{hint}")
+
+
+def _mapping_entry(cfg, key: str, keys: list[str]) -> bool:
+    """Whether ``key`` is an entry of a mapping key (``env_kwargs.size``): its name is the user's own."""
+    parent, _, name = key.rpartition(".")
+    return bool(name) and parent in keys and isinstance(_get(cfg, parent), dict)
 
 
 def _describe_type(cfg, key: str) -> str:

@@ -65,7 +65,6 @@ def main(argv: list[str]) -> int:
 
     _wrap(pipelines, "resolve_preset", after=lambda s, r: "imports (preset resolved)")
     _wrap(base.OffPolicyPipeline, "__init__", after=lambda s, r: "pipeline built")
-    _wrap(run, "choose_threads", after=lambda s, n: f"thread count timed ({n})")
     _wrap(evaluations.Evaluations, "measure_random_baseline", after=lambda s, r: f"random baseline ({s:.2f} s)")
     _wrap(loop.Loop, "start", after=lambda s, r: "triggers started (checkpoint 0, evaluator process)")
     _wrap(triggers.EvalTrigger, "__call__", after=lambda s, r: f"evaluation asked ({s:.2f} s)")

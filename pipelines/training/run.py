@@ -23,6 +23,7 @@ from rlpipe.pipelines.artifacts.files import STORAGE_ERRNOS, FileWriteError, wri
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_dir, notice
 from rlpipe.pipelines.config import config_to_dict
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.training.arithmetic import NOT_ARITHMETIC, arithmetic_record, changed_arithmetic
 from rlpipe.pipelines.training.loop import Loop, TrainResult
 from rlpipe.pipelines.training.meters import Clock
 from rlpipe.pipelines.training.state import EVAL, RunState
@@ -60,7 +61,7 @@ class Run:
         if len(set(names)) != len(names):
             raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")
         if pipeline.config.num_threads == -1:  # chosen once, before the run directory records the config
-            pipeline.config = dataclasses.replace(pipeline.config, num_threads=choose_threads(pipeline))
+            pipeline.config = dataclasses.replace(pipeline.config, num_threads=choose_threads(pipeline.config))
         backend_class(pipeline.config).preflight(pipeline.config)  # e.g. no Ray at ray.address: one line, nothing written
         run, metrics, evaluations, fresh = self._resume(out) if resume else self._start(out)
         self.run_dir = pipeline.run_dir = run
@@ -126,6 +127,7 @@ class Run:
         """A run from its first iteration: (its empty metrics table, no evaluations, fresh)."""
         pipeline = self.pipeline
         seed_everything(pipeline.config.seed)  # replay sampling, exploration: the same seed gives the same run
+        pipeline.state.arithmetic = arithmetic_record(pipeline.config)
         pipeline.state.owed = [EVAL] if pipeline.config.initial_eval else []  # the tutorials evaluate once before training
         return MetricsCSV(run.metrics_path, list(pipeline.loss_names), extra_columns=pipeline.metrics_columns()), [], True
 
@@ -159,11 +161,31 @@ class Run:
             return None, [], False  # nothing to write: not the config, the metrics, a checkpoint, a page
         metrics = MetricsCSV(run.metrics_path, list(pipeline.loss_names), resume_after_step=pipeline.state.iteration,
                              extra_columns=pipeline.metrics_columns())
+        self._compare_arithmetic(run.read_config()[1])
         run.write_config(pipeline.algo, config_to_dict(pipeline.config))  # keys changed on resume are recorded
         rows = metrics.rows()
         pipeline.state.forget_done(rows)
         evaluations = [evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
         return metrics, evaluations, False
+
+    def _compare_arithmetic(self, saved_config: dict) -> None:
+        """At a resume: record the config keys it changed, and where a changed key or the arithmetic record
+        (threads, device, CPU float paths, library versions) differs from the checkpoint's, say so in one line
+        and mark the run not exact. Changing only how long the run goes and how it is recorded keeps it exact."""
+        state, now = self.pipeline.state, config_to_dict(self.pipeline.config)
+        changed = {key: [_value_at(saved_config, key), _value_at(now, key)] for key in changed_keys(saved_config, now)}
+        if changed:
+            state.config_changes.append({"iteration": state.iteration, "changed": changed})
+        record = arithmetic_record(self.pipeline.config)
+        differences = [f"{key}={after} (was {before})" for key, (before, after) in changed.items()
+                       if key not in NOT_ARITHMETIC and key != "num_threads"]  # the record says threads
+        differences += changed_arithmetic(state.arithmetic, record)
+        state.arithmetic = record
+        if differences:
+            why = f"resumed at iteration {state.iteration:,} with {', '.join(differences)}"
+            notice(f"{why}: the run is no longer exact (it cannot equal an uninterrupted run of its seed)")
+            if state.inexact is None:
+                state.inexact = why
 
     def _nothing_owed(self, run: RunDir) -> bool:
         """Whether the run as loaded is finished (its summary is of this checkpoint's iteration) and owes
@@ -214,6 +236,8 @@ class Run:
             # whether the run equals an uninterrupted one of its seed, and if not, why (README: resuming)
             "exact": state.inexact is None,
             **({"why": state.inexact} if state.inexact is not None else {}),
+            "arithmetic": state.arithmetic,
+            **({"config_changes": state.config_changes} if state.config_changes else {}),
         }
 
 
@@ -227,14 +251,22 @@ def _opened(run: RunDir, then: Callable[[RunDir], tuple]) -> tuple:
 
 
 def changed_keys(saved: dict, current: dict, prefix: str = "") -> list[str]:
-    """The dotted config keys whose value in ``current`` differs from ``saved``."""
+    """The dotted config keys whose value in ``current`` differs from ``saved`` (a key ``saved`` lacks, one an
+    older rlpipe did not have, counts as its default)."""
     changed = []
     for key, value in current.items():
         if isinstance(value, dict) and isinstance(saved.get(key), dict):
             changed += changed_keys(saved[key], value, prefix + key + ".")
-        elif saved.get(key) != value:
+        elif key in saved and saved[key] != value:
             changed.append(prefix + key)
     return changed
+
+
+def _value_at(config: dict, dotted: str) -> Any:
+    """The value of a dotted key in a nested config dict (None where it is missing)."""
+    for part in dotted.split("."):
+        config = config.get(part) if isinstance(config, dict) else None
+    return config
 
 
 def evaluation_of(row: dict[str, str]) -> dict[str, Any]:

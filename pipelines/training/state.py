@@ -66,6 +66,11 @@ class RunState:
     traj_next: int = 0
     """one above the largest trajectory id the replay buffer was given (offset included): the next fresh
     collector's offset"""
+    arithmetic: dict[str, Any] | None = None
+    """what besides the config decides the run's floats (``arithmetic.arithmetic_record``), as the stretch that
+    saved this state computed them; a resume compares its own with it"""
+    config_changes: list[dict[str, Any]] = field(default_factory=list)
+    """the config keys a resume changed: ``{"iteration": N, "changed": {key: [before, after]}}``, oldest first"""
 
     @classmethod
     def fresh(cls, cfg: TrainConfig) -> RunState:
@@ -112,6 +117,8 @@ class RunState:
                                  for at, w in self.pending_evals],
             **({"envs": self.envs} if self.envs is not None else {}),
             **({"inexact": self.inexact} if self.inexact is not None else {}),
+            **({"arithmetic": self.arithmetic} if self.arithmetic is not None else {}),
+            **({"config_changes": self.config_changes} if self.config_changes else {}),
             **({"interval": self.interval} if self.interval is not None else {}),
             **({"workers": self.workers} if self.workers is not None else {}),
             **({"backend_metrics": self.backend_metrics} if self.backend_metrics is not None else {}),
@@ -130,6 +137,8 @@ class RunState:
                                    for e in state.get("background_evals", []))
         self.envs = state.get("envs")  # a checkpoint from before envs were kept: None, new episodes
         self.inexact = state.get("inexact")
+        self.arithmetic = state.get("arithmetic")  # a checkpoint from before it was kept: None
+        self.config_changes = list(state.get("config_changes", []))
         self.interval = state.get("interval")
         self.workers = state.get("workers")
         self.backend_metrics = state.get("backend_metrics")

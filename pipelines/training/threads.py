@@ -1,5 +1,10 @@
-"""The learner's torch threads: how many this machine and collector layout should give it
-(``num_threads=-1``), and setting them for the length of a run."""
+"""The learner's torch threads: how many this machine and collector layout give it (``num_threads=-1``),
+and setting them for the length of a run.
+
+The count decides the float summation order of every matrix product, so it is part of a run's arithmetic:
+it comes from a rule over facts that do not move while a machine is busy (its cores, the collector layout,
+``OMP_NUM_THREADS``), is written in ``config.json`` and is reused by ``--resume``. No timing decides it.
+"""
 
 from __future__ import annotations
 
@@ -7,68 +12,54 @@ import contextlib
 import math
 import os
 import time
-from typing import TYPE_CHECKING
 
 import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import LossModule
 
-from rlpipe.pipelines.config import steps_in_learner
+from rlpipe.pipelines.config import TrainConfig, steps_in_learner
 
-if TYPE_CHECKING:
-    from rlpipe.pipelines.base import OffPolicyPipeline
+__all__ = ["MAX_LEARNER_THREADS", "choose_threads", "cores", "loss_pass_seconds", "omp_threads", "threads_rule",
+           "torch_threads"]
 
-__all__ = ["choose_threads", "loss_pass_seconds", "omp_threads", "torch_threads"]
+MAX_LEARNER_THREADS = 4
+"""the most threads the rule gives a learner: the networks rlpipe trains (two or three layers of 64-256 units,
+batches of 256) gain little past that on a CPU"""
 
 
-def choose_threads(pipeline: OffPolicyPipeline) -> int:
-    """The learner's torch threads for this machine and ``pipeline``'s collector layout (``num_threads=-1``).
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity, else the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
-    Collector processes each keep a core busy stepping envs, so the learner gets the cores
-    they leave (at least one); within those, the thread count whose forward and backward pass
-    of the loss on a replay-sized batch measured fastest (by 10% or more over fewer threads).
-    The env steps in the learner's own process (``collector.workers=1``, ``sync=true``) take
-    turns with the updates, so there every core is the learner's. ``OMP_NUM_THREADS``, where it is
-    set, caps the count: a user (or a test suite, or a study running several runs at once) who gave
-    torch that many threads keeps them. (The timing sees the machine for a moment only: a td3 learning
-    check that takes ~40 s took 371 s in this project's CI on 2026-11-28, most likely on two threads of a
-    2-core machine shared with another test worker.) Parameters, optimisers and
-    the run's random state (and the loss's buffers) are left as they were; a loss that cannot run on the env's fake
-    batch (a plug-in's own keys) gets one thread.
+
+def choose_threads(cfg: TrainConfig) -> int:
+    """The learner's torch threads for ``cfg`` on this machine (``num_threads=-1``): see ``threads_rule``."""
+    return threads_rule(cfg)[0]
+
+
+def threads_rule(cfg: TrainConfig) -> tuple[int, str]:
+    """(the learner's torch threads, one line saying how they were counted) for ``cfg`` on this machine.
+
+    Collector processes each keep a core busy stepping envs, so the learner may use the cores they leave (at
+    least one; every core where the env steps in the learner's own process, taking turns with the updates).
+    It takes half of those, at most ``MAX_LEARNER_THREADS``: a learner holding every core stalls whenever
+    anything else wants one (torch's threads wait on each other at every operation), and on a shared or
+    desktop machine something always does. On 2 cores that is one thread: a SAC update on 256x256 networks
+    took 9.1 ms on 1 thread and 6.6 ms at best on 2 on a quiet moment, but with one busy process beside it
+    2 threads' passes ranged up to 47-59 ms (BENCHMARKS.md, "The learner's threads on a busy machine").
+    ``OMP_NUM_THREADS``, where it is set, caps the count: a user (or a test suite, or a study running several
+    runs at once) who gave torch that many threads keeps them.
     """
-    c = pipeline.config.collector
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    budget = max(1, cores - (0 if steps_in_learner(c) else c.workers))
+    c = cfg.collector
+    have = cores()
+    free = max(1, have - (0 if steps_in_learner(c) else c.workers))
+    n = max(1, min(MAX_LEARNER_THREADS, free // 2))
+    why = f"half the {free} of {have} cores the collectors leave" if free != have else f"half of {have} cores"
+    why += f", at most {MAX_LEARNER_THREADS}" if free // 2 > MAX_LEARNER_THREADS else ""
     cap = omp_threads()
-    if cap is not None:
-        budget = min(budget, cap)
-    if budget == 1:
-        return 1
-    candidates = sorted({*(2**k for k in range(budget.bit_length()) if 2**k <= budget), budget})
-    batch = pipeline.env.fake_tensordict().reshape(-1)[:1].expand(pipeline.config.batch_size).clone()
-    before = torch.get_num_threads()
-    timings = {}
-    # A forward pass in training mode moves batch-norm statistics (CrossQ's critics): put them back.
-    buffers = [(b, b.clone()) for b in pipeline.loss_module.buffers()]
-    with torch.random.fork_rng(devices=[]):
-        try:
-            for n in candidates:
-                torch.set_num_threads(n)
-                timings[n] = loss_pass_seconds(pipeline.loss_module, batch.to(pipeline.device))
-        except Exception:  # the probe only picks a speed; it never stops a run
-            return 1
-        finally:
-            torch.set_num_threads(before)
-            pipeline.loss_module.zero_grad(set_to_none=True)
-            with torch.no_grad():
-                for b, saved in buffers:
-                    b.copy_(saved)
-    # More threads only for a clear gain (10%): on noise, the count (and its arithmetic) stays put.
-    chosen = candidates[0]
-    for n in candidates[1:]:
-        if timings[n] < 0.9 * timings[chosen]:
-            chosen = n
-    return chosen
+    if cap is not None and cap < n:
+        n, why = cap, f"OMP_NUM_THREADS={cap}"
+    return n, why
 
 
 def omp_threads() -> int | None:
