@@ -9,9 +9,11 @@
     rlpipe bench profile PRESET [key=value ...] [--steps N] [--duration 20] [--rate 100]
     rlpipe bench collect [--envs CartPole-v1 ...] [--envs-per-worker 1 8 32] [--frames 3000]
     rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
-    rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
+    rlpipe bench threads [--preset td3] [--steps N] [--seeds 3] [key=value ...]
+    rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents torchrl | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--cap SIDE=STEPS ...]
-                                [--side-seeds SIDE=N ...] [--seed FIRST] [--preset P] [--no-crossq] [key=value ...]
+                                [--side-seeds SIDE=N ...] [--seed FIRST] [--preset P] [--no-crossq]
+                                [--torchrl-sota DIR] [key=value ...]
 
 ``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
 started and prints the share of each part (replay sample, update forward/backward, optimiser,
@@ -21,8 +23,10 @@ collection policy, ``collector.envs_per_worker`` envs as one batch), in-process 
 collector process, against the raw gymnasium env (issue 9's target: at least half of it).
 ``ray``: Ray actors against local collector processes, collect-only and training the ``sac``
 preset, with the arithmetic of how many actors the learner can use (issue 10).
+``threads``: a run's speed on each learner thread count, alone and beside a busy process of its own, with the
+count ``num_threads=-1`` chooses marked (``scripts/bench/threads.py``).
 ``time-to-return``: seconds from launching a command to a trained agent (a target return, judged
-the same way for every side), rlpipe's presets against CleanRL, SB3 and SBX, interleaved over seeds
+the same way for every side), rlpipe's presets against CleanRL, SB3, SBX and TorchRL's own recipes, interleaved over seeds
 (``scripts/bench/time_to_return.py``; issue 21).
 
 Each prints a Markdown table (paste it into BENCHMARKS.md with the command) and, with ``--json``,
@@ -49,7 +53,7 @@ from pathlib import Path
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
     bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu", "profile",
-                                          "collect", "ray", "time-to-return"])
+                                          "collect", "ray", "time-to-return", "threads"])
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs (profile: PRESET first)")
     bench.add_argument("--seeds", type=int, help="seeds per side (default 3; time-to-return: 5)")
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
@@ -79,8 +83,10 @@ def add_parser(sub) -> None:
                        "seed (seeds SEED to SEED+--seeds-1; default 0; the sized presets were tuned on seeds from 0)")
     bench.add_argument("--tasks", nargs="+", help="time-to-return: tasks to run (default: all; see "
                        "scripts/bench/time_to_return.py TASKS)")
-    bench.add_argument("--peers", nargs="+", help="time-to-return: peers beside rlpipe (cleanrl sb3 sbx tfagents; "
-                       "default: cleanrl sb3 sbx; none: rlpipe only)")
+    bench.add_argument("--peers", nargs="+", help="time-to-return: peers beside rlpipe (cleanrl sb3 sbx tfagents torchrl; "
+                       "default: cleanrl sb3 sbx, and torchrl with --torchrl-sota; none: rlpipe only)")
+    bench.add_argument("--torchrl-sota", type=Path, metavar="DIR", help="time-to-return: a checkout of pytorch/rl at "
+                       "the installed torchrl's tag, whose sota-implementations scripts and configs the torchrl peer runs")
     bench.add_argument("--threads", nargs="+", metavar="SIDE=N", help="time-to-return: a side's thread count "
                        "(default: rlpipe the preset's, cleanrl and sb3 1, sbx JAX's)")
     bench.add_argument("--target-return", type=float, help="time-to-return: one target return for every task chosen "

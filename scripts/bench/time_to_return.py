@@ -1,9 +1,9 @@
 """``rlpipe bench time-to-return``: seconds from launching a command to a trained agent, rlpipe and its peers.
 
-    rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents | none]
+    rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents torchrl | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [key=value ...]
                                 [--cap SIDE=STEPS ...] [--side-seeds SIDE=N ...] [--seed FIRST] [--no-crossq]
-                                [--out DIR] [--json FILE]
+                                [--torchrl-sota DIR] [--out DIR] [--json FILE]
 
 Every side is judged by one rule (rlpipe's ``target_return``, ``pipelines/training/triggers.py``
 ``TargetTrigger``; the peers' runners apply the same rule, ``peers/ttr_rule.py``): the mean return of
@@ -20,7 +20,10 @@ for the task; the tutorial preset with the env set where that preset does not ex
 (the task's CrossQ preset, where the task has one and it exists; ``--no-crossq`` leaves it out), and the peers, each in a venv of
 its own built on first use: ``cleanrl`` (CleanRL 1.2.0's scripts on their defaults, ``peers/cleanrl.py``),
 ``sb3`` and ``sbx`` (RL-Zoo's hyperparameters for the env, ``peers/sb3.py``), ``tfagents`` (its
-tutorials' tasks only). Each side runs on the thread count ``--threads`` names for it; by default
+tutorials' tasks only), and ``torchrl`` (TorchRL's own sota-implementations scripts for SAC, TD3 and DQN with
+their published configs, from the user's checkout of pytorch/rl at the installed version's tag,
+``--torchrl-sota DIR``, run in rlpipe's own venv: ``peers/torchrl_sota.py``; played by default when that
+option is given). Each side runs on the thread count ``--threads`` names for it; by default
 rlpipe's preset chooses its own (``num_threads``) and the peers built on torch run on 1 thread (small
 networks on a 2-core machine: a second thread only contends with the env), SBX on JAX's default.
 ``--side-seeds SIDE=N`` runs a side in its first N seeds only (TF-Agents' Minitaur tutorial, ~35 minutes a
@@ -49,7 +52,7 @@ from rlpipe.pipelines.config import MAX_SEED
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import DeferredInterrupt, fault_point
 
-PEERS = ("cleanrl", "sb3", "sbx", "tfagents")
+PEERS = ("cleanrl", "sb3", "sbx", "tfagents", "torchrl")
 SIDES = ("rlpipe", "crossq", *PEERS)
 DEFAULT_PEERS = ("cleanrl", "sb3", "sbx")
 TORCH_PEER_THREADS = 1
@@ -68,7 +71,7 @@ class Task:
     fallback: tuple[str, tuple[str, ...]]
     """while ``preset`` does not exist: a tutorial preset and the overrides that point it at the task"""
     crossq: str | None = None
-    peers: tuple[str, ...] = ("cleanrl", "sb3", "sbx")
+    peers: tuple[str, ...] = ("cleanrl", "sb3", "sbx", "torchrl")
     """the peers that play the task"""
     why: str = ""
 
@@ -81,7 +84,7 @@ TASKS: dict[str, Task] = {
     "pendulum-td3": Task("Pendulum-v1", "td3", -200.0, 30_000, "td3-pendulum", ("td3", ()), crossq="crossq-pendulum"),
     "cartpole-v1-dqn": Task("CartPole-v1", "dqn", 475.0, 100_000, "dqn-cartpole-v1-fast", ("dqn", ("env=CartPole-v1",))),
     "cartpole-v0-dqn": Task("CartPole-v0", "dqn", 195.0, 50_000, "dqn-cartpole-v0", ("dqn", ()),
-                            peers=("cleanrl", "sb3", "sbx", "tfagents"), why="the DQN tutorial's task"),
+                            peers=("cleanrl", "sb3", "sbx", "tfagents", "torchrl"), why="the DQN tutorial's task"),
     "invpendulum-sac": Task("InvertedPendulum-v5", "sac", 950.0, 50_000, "sac-invpendulum",
                             ("sac", ("env=InvertedPendulum-v5",)), crossq="crossq-invpendulum"),
     "invpendulum-td3": Task("InvertedPendulum-v5", "td3", 950.0, 50_000, "td3-invpendulum",
@@ -116,11 +119,15 @@ def check_args(args) -> None:
             if "=" in name:
                 hint = "key=value overrides go before the options; "
             raise InputError(f"--tasks: unknown task {name!r}; {hint}expected some of {', '.join(TASKS)}")
-    peers = args.peers or list(DEFAULT_PEERS)
-    if peers != ["none"]:
-        for name in peers:
+    if args.peers != ["none"]:
+        for name in args.peers or ():
             if name not in PEERS:
                 raise InputError(f"--peers: unknown peer {name!r}; expected some of {', '.join(PEERS)}, or none")
+    if "torchrl" in chosen_peers(args):  # its checkout, with the recipes of the chosen tasks it plays
+        from rlpipe.scripts.bench.peers import torchrl_sota
+
+        torchrl_sota.check_checkout(getattr(args, "torchrl_sota", None),
+                                    sorted({TASKS[n].algo for n in args.tasks or TASKS if "torchrl" in TASKS[n].peers}))
     _per_side(args.threads, "--threads", count="N a count (0: the side's default)", ok=lambda n: n >= 0)
     _per_side(getattr(args, "cap", None), "--cap", "SIDE=STEPS", "STEPS a positive count of env steps", lambda n: n > 0)
     _per_side(getattr(args, "side_seeds", None), "--side-seeds",
@@ -137,6 +144,13 @@ def check_args(args) -> None:
         resolve_preset(args.preset)  # an unknown one: its own line
     for name in args.tasks or list(TASKS):  # the rlpipe side's overrides: a bad key is refused before any run
         rlpipe_config(TASKS[name], list(args.overrides), args.preset)
+
+
+def chosen_peers(args) -> list[str]:
+    """``--peers`` (none: []), or by default cleanrl, sb3, sbx, and torchrl where ``--torchrl-sota`` is given."""
+    if args.peers == ["none"]:
+        return []
+    return list(args.peers or (*DEFAULT_PEERS, *(["torchrl"] if getattr(args, "torchrl_sota", None) else [])))
 
 
 def _per_side(items, option: str, form: str = "SIDE=N", count: str = "", ok=lambda n: True) -> dict[str, int]:
@@ -164,7 +178,8 @@ def _side_seeds(args) -> dict[str, int]:
 
 def _threads(args) -> dict[str, int | None]:
     chosen: dict[str, int | None] = {"rlpipe": None, "crossq": None, "cleanrl": TORCH_PEER_THREADS,
-                                     "sb3": TORCH_PEER_THREADS, "sbx": None, "tfagents": None}
+                                     "sb3": TORCH_PEER_THREADS, "sbx": None, "tfagents": None,
+                                     "torchrl": TORCH_PEER_THREADS}
     for side, n in _per_side(args.threads, "--threads").items():
         chosen[side] = n or None
     return chosen
@@ -271,8 +286,10 @@ def _minitaur_module() -> str:
     return importlib.util.find_spec("rlpipe.envs.minitaur").origin
 
 
-def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work: Path, threads: int | None) -> Launch | str:
-    """A peer's command, building its venv on first use, or why it is not run."""
+def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work: Path, threads: int | None,
+                torchrl_checkout: Path | None = None) -> Launch | str:
+    """A peer's command, building its venv on first use, or why it is not run (``torchrl_checkout``: the checkout
+    of pytorch/rl whose recipes the torchrl peer runs, ``--torchrl-sota``)."""
     if side not in task.peers:
         return "does not play this task"
     rule = {"target": target, "cap": cap, "seed": seed, "window": 5, "eval_episodes": 10, "recheck": 5,
@@ -325,6 +342,16 @@ def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work:
             env["TF_NUM_INTRAOP_THREADS"] = env["TF_NUM_INTEROP_THREADS"] = str(threads)
         return Launch([str(python), str(peers / "ttr_tfagents.py"), json.dumps(spec)], env, work, settings,
                       _read_ttr_line)
+    if side == "torchrl":
+        from rlpipe.scripts.bench.peers import torchrl_sota
+
+        checkout = torchrl_sota.check_checkout(torchrl_checkout, [task.algo])
+        spec = {**rule, "algo": task.algo, "env": task.env, "script": str(torchrl_sota.script(checkout, task.algo)),
+                "overrides": torchrl_sota.overrides(task.algo, task.env, seed, cap)}
+        env = _base_env(threads)
+        env["PYTHONPATH"] = str(torchrl_sota.ensure_hydra())  # Hydra and its OmegaConf before rlpipe's
+        return Launch([sys.executable, str(torchrl_sota.RUNNER), json.dumps(spec)], env, work,
+                      torchrl_sota.settings(checkout, task.algo), _read_ttr_line)
     raise ValueError(f"unknown peer {side!r}")
 
 
@@ -393,7 +420,7 @@ def timed_result(launch: Launch, log: Path, rc: int, start: float, end: float) -
 def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     check_args(args)
     tasks = args.tasks or list(TASKS)
-    peers = [] if args.peers == ["none"] else list(args.peers or DEFAULT_PEERS)
+    peers = chosen_peers(args)
     threads = _threads(args)
     machine = _machine()  # the load before the first run (the runs' own load shows in it at the end)
     side_caps = _side_caps(args)
@@ -424,7 +451,8 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                         launch = rlpipe_launch(task, side, seed, target, cap, work / "run", threads[side],
                                                list(args.overrides), args.preset if side == "rlpipe" else None)
                     else:
-                        launch = peer_launch(task, side, seed, target, cap, work, threads[side])
+                        launch = peer_launch(task, side, seed, target, cap, work, threads[side],
+                                             getattr(args, "torchrl_sota", None))
                 except (RuntimeError, OSError, InputError) as exc:  # a peer venv that will not build: said, not fatal
                     launch = f"could not be set up: {exc}"
                 if isinstance(launch, str):

@@ -3,7 +3,9 @@ peers share (where it lives, which Python builds it, one locked build, a stamp o
 
 The peers cannot share rlpipe's environment (old ``gym``, ``numpy<2``, TensorFlow), so each lives
 in ``$RLPIPE_PEERS_DIR/<name>`` (default ``~/.cache/rlpipe/peers/<name>``), rebuilt when its pins
-change; a file lock makes two benchmarks started together build it once.
+change; a file lock makes two benchmarks started together build it once. A peer that runs on rlpipe's
+own packages but for a few of its own (TorchRL's recipes: Hydra, which pins an older OmegaConf) gets
+only those, in a folder put first on its ``PYTHONPATH`` (``ensure_target``).
 """
 
 from __future__ import annotations
@@ -62,23 +64,50 @@ def ensure(name: str, label: str, why_311: str, installs: Sequence[tuple[Sequenc
     root = venv_dir(name)
     python = root / "bin" / "python"
     wanted = "\n".join(arg for args, _ in installs for arg in args if not arg.startswith("--")) + "\n"
+
+    def build(log: Path) -> None:
+        run_step([base_python(why_311), "-m", "venv", str(root)], log, "creating the venv")
+        for args, what in installs:
+            run_step([str(python), *PIP, *args], log, what)
+
+    _built_once(name, label, "venv", wanted, lambda: python.exists(), build, quiet,
+                None if then is None else lambda log: then(root, python, log))
+    return python
+
+
+def ensure_target(name: str, label: str, pins: Sequence[str], quiet: bool = False) -> Path:
+    """The folder holding ``pins`` (exact versions, installed without their dependencies by this python's pip),
+    built first if it is missing or holds other pins: put it first on ``PYTHONPATH`` to run this python on
+    rlpipe's packages with those in front."""
+    root = venv_dir(name)
+
+    def build(log: Path) -> None:
+        run_step([sys.executable, *PIP, "--no-deps", "--target", str(root), *pins], log, "installing " + " ".join(pins))
+
+    _built_once(name, label, "packages", "\n".join(pins) + "\n", root.is_dir, build, quiet)
+    return root
+
+
+def _built_once(name: str, label: str, kind: str, wanted: str, present: Callable[[], bool],
+                build: Callable[[Path], None], quiet: bool, then: Callable[[Path], None] | None = None) -> None:
+    """Under the peer's lock: ``build(log)`` into a fresh ``venv_dir(name)`` unless it is ``present()`` with the stamp
+    of ``wanted`` (the pins); ``then(log)`` after, every call."""
+    root = venv_dir(name)
     root.parent.mkdir(parents=True, exist_ok=True)
     log = root.parent / f"{name}-install.log"
     with (root.parent / f"{name}.lock").open("w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # two benchmarks started together build it once
         stamp = root / _STAMP
-        if not (python.exists() and stamp.exists() and stamp.read_text() == wanted):
+        if not (present() and stamp.exists() and stamp.read_text() == wanted):
             if not quiet:
-                print(f"building the {label} peer venv in {root} (once; a minute or more)", file=sys.stderr)
+                print(f"building the {label} peer {kind} in {root} (once{'; a minute or more' if kind == 'venv' else ''})",
+                      file=sys.stderr)
             start = time.perf_counter()
             shutil.rmtree(root, ignore_errors=True)
             log.write_text("")
-            run_step([base_python(why_311), "-m", "venv", str(root)], log, "creating the venv")
-            for args, what in installs:
-                run_step([str(python), *PIP, *args], log, what)
+            build(log)
             stamp.write_text(wanted)
             if not quiet:
-                print(f"{label} peer venv ready in {time.perf_counter() - start:.0f} s", file=sys.stderr)
+                print(f"{label} peer {kind} ready in {time.perf_counter() - start:.0f} s", file=sys.stderr)
         if then is not None:
-            then(root, python, log)
-    return python
+            then(log)
