@@ -1,8 +1,9 @@
 """Environments: gymnasium ids -> TorchRL envs with the standard transforms.
 
 ``make_env`` is the one door: it resolves the tutorials' ids (``MinitaurBulletEnv-v0`` names our
-gymnasium-native Minitaur), rejects unknown ids with the closest valid ones, and returns a plain
-TorchRL ``TransformedEnv`` that a user can hand to any TorchRL collector.
+gymnasium-native Minitaur) and a user's own env named ``module:Target`` or ``module:Id-v0``
+(``user.py``), rejects unknown ids with the closest valid ones, and returns a plain TorchRL
+``TransformedEnv`` that a user can hand to any TorchRL collector.
 
 Importing this package registers ``rlpipe/MinitaurBullet-v0`` with gymnasium.
 """
@@ -31,6 +32,8 @@ from torchrl.envs import (
     TransformedEnv,
 )
 from torchrl.envs.batched_envs import BatchedEnvBase
+
+from rlpipe.envs import user
 
 __all__ = [
     "EnvError", "MINITAUR_ID", "describe_action_space", "env_id_of", "env_label", "is_discrete", "make_env", "resolve_env_id",
@@ -70,7 +73,11 @@ class EnvError(ValueError):
 
 
 def resolve_env_id(env_id: str) -> str:
-    """Return the gymnasium id that ``env_id`` names, or raise ``EnvError`` with close matches."""
+    """Return the gymnasium id that ``env_id`` names, or raise ``EnvError`` with close matches.
+
+    ``module:Target`` and ``module:Id-v0`` import the module (``user.resolve``)."""
+    if user.is_user_env(env_id):
+        return user.resolve(env_id, EnvError)
     env_id = _ALIASES.get(env_id, env_id)
     if env_id in gymnasium.registry:
         return env_id
@@ -100,7 +107,8 @@ def make_env(
 
     Discrete actions are integer indices (``categorical_action_encoding``), as in gymnasium, so an
     exported policy's action goes straight into ``gymnasium.Env.step``. Extra keywords go to
-    ``gymnasium.make`` (for example Minitaur's ``env_randomizer=None``).
+    ``gymnasium.make``, i.e. the env's constructor (for example Minitaur's ``env_randomizer=None``),
+    checked against its signature first.
 
     ``rescale_observations`` maps a Box observation from its bounds to [-1, 1] with gymnasium's
     ``RescaleObservation`` (``rescaling_bounds`` says from what), before TorchRL sees it.
@@ -114,19 +122,26 @@ def make_env(
     costs more than it saves.
     """
     gym_id = resolve_env_id(env_id)
+    own = user.is_user_env(env_id)
+    label = env_id if own else gym_id  # what error messages call it
     if render_mode is not None:
         gym_kwargs["render_mode"] = render_mode
-    with _extra_named(gym_id):
+    if gym_kwargs:
+        user.check_kwargs(gym_id, gym_kwargs, label, EnvError)
+    with _extra_named(gym_id, env_id):
         if num_envs > 1:
             vector = gymnasium.vector.SyncVectorEnv(
-                [lambda: _rescaled(_flat_observations(gymnasium.make(gym_id, **gym_kwargs), gym_id), gym_id,
+                [lambda: _rescaled(_flat_observations(gymnasium.make(gym_id, **gym_kwargs), label), label,
                                    rescale_observations)] * num_envs,
                 autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
             )
             base = GymWrapper(vector, device=device, categorical_action_encoding=True)
         else:
-            base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
-            flat = _rescaled(_flat_observations(base._env, gym_id), gym_id, rescale_observations)
+            if own:  # TorchRL's GymEnv would hand its own keywords (frameskip) to the user's constructor
+                base = GymWrapper(gymnasium.make(gym_id, **gym_kwargs), device=device, categorical_action_encoding=True)
+            else:
+                base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
+            flat = _rescaled(_flat_observations(base._env, label), label, rescale_observations)
             if flat is not base._env:
                 base = GymWrapper(flat, device=device, categorical_action_encoding=True)
     transforms = [StepCounter(), RewardSum(), InitTracker()]
@@ -150,8 +165,8 @@ def _has_float64(env: EnvBase) -> bool:
 class _extra_named:
     """gymnasium's "X is not installed" (with its own install advice) as one line naming the pip extra."""
 
-    def __init__(self, gym_id: str):
-        self.gym_id = gym_id
+    def __init__(self, gym_id: str, env_id: str):
+        self.gym_id, self.env_id = gym_id, env_id
 
     def __enter__(self):
         return self
@@ -159,14 +174,14 @@ class _extra_named:
     def __exit__(self, kind, exc, tb):
         if kind is None or not issubclass(kind, (DependencyNotInstalled, ImportError)):
             return False
-        entry = gymnasium.spec(self.gym_id).entry_point
+        entry = self.env_id if user.is_user_env(self.env_id) else gymnasium.spec(self.gym_id).entry_point
         entry = entry if isinstance(entry, str) else getattr(entry, "__module__", "")
         extra = next((e for prefix, e in _EXTRAS.items() if entry.startswith(prefix)), None)
         what = f"the {extra} extra" if extra else f"a package that {entry.split(':')[0]} imports"
         missing = str(exc).split(" is not installed")[0].split(".")[0] if " is not installed" in str(exc) else (
             getattr(exc, "name", None) or "a dependency")
         install = f' (pip install "{extra}")' if extra else ""
-        raise EnvError(f"env id {self.gym_id!r} needs {what}, which is not installed ({missing} is missing); "
+        raise EnvError(f"env {self.env_id!r} needs {what}, which is not installed ({missing} is missing); "
                        f"expected it installed{install} or another env id") from exc
 
 

@@ -35,7 +35,7 @@ def factory_and_env(env: EnvArg, cfg: TrainConfig) -> tuple[Callable[[], EnvBase
                          "rescale_observations=false (rescale in your own env, e.g. gymnasium's RescaleObservation)")
     if env is None:
         factory = functools.partial(make_env, cfg.env, device="cpu", num_envs=cfg.collector.envs_per_worker,
-                                    rescale_observations=cfg.rescale_observations)
+                                    rescale_observations=cfg.rescale_observations, **cfg.env_kwargs)
     elif isinstance(env, EnvBase):
         if cfg.collector.workers > 1 or not cfg.collector.sync:
             raise InputError("collector.workers>1 or collector.sync=false: pass env as a function that makes the env")

@@ -207,13 +207,14 @@ def _run_env(run, cfg) -> str:
     """A run's ``env`` (checked to name a gymnasium id), or one line saying why `rlpipe eval`/`video` cannot make its env:
     a run on a user's own env (``env=`` from Python) is labelled with a name no id answers to."""
     from rlpipe.envs import EnvError, resolve_env_id
+    from rlpipe.envs.user import is_user_env
     from rlpipe.pipelines.errors import InputError
 
     try:
         resolve_env_id(cfg.env)
         return cfg.env
     except EnvError as exc:
-        if "extra" in str(exc):  # a known namespace whose package is missing: that line says what to install
+        if "extra" in str(exc) or is_user_env(cfg.env):  # a package missing here: that line says which
             raise
         raise InputError(
             f"{run.path} was trained on env {cfg.env!r}, which is no gymnasium id rlpipe can make (an env given from "
@@ -239,16 +240,16 @@ def cmd_eval(args) -> int:
     if args.env is not None and args.run_dir is not None:
         raise InputError(f"both {args.run_dir} and --env {args.env}: expected one of them (a run names its own env)")
     _check_random_without_step(args)
-    run, env_id = None, args.env
+    run, env_id, env_kwargs = None, args.env, {}
     if args.run_dir is not None:
         run, cfg = _run_config(args.run_dir)
-        env_id = _run_env(run, cfg)
+        env_id, env_kwargs = _run_env(run, cfg), cfg.env_kwargs
     if args.random:
         module, source = None, "random"
     else:
         module, _ = load_policy(run.policy_dir, step=args.step, trust=args.trust)
         source = str(module.path)
-    env = make_env(env_id, seed=args.seed)
+    env = make_env(env_id, seed=args.seed, **env_kwargs)
     if module is None:
         import torch
         from torchrl.envs.utils import RandomPolicy
@@ -298,7 +299,8 @@ def cmd_video(args) -> int:
     env_id = _run_env(run, cfg)
     policy = None if args.random else load_policy(run.policy_dir, step=args.step, trust=args.trust)[0]
     name = "random-agent.mp4" if args.random else "trained-agent.mp4" if args.step is None else f"trained-agent-step_{args.step}.mp4"
-    path = record_video(env_id, policy, args.out or run.path / name, episodes=args.episodes, seed=args.seed)
+    path = record_video(env_id, policy, args.out or run.path / name, episodes=args.episodes, seed=args.seed,
+                        env_kwargs=cfg.env_kwargs)
     print(f"video: {path}")
     if not args.random and path == run.path / VIDEO_FILE:  # the page shows the trained agent's video
         print(f"report: {write_run_report(run.path)}")

@@ -116,15 +116,17 @@ def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: d
     steps = available_steps(folder)
     write_json_atomic(folder / "policy.json", {
         "observation_dim": observation_dim, **info, "step": step, "steps": steps,
-        "env_recipe": _env_recipe(info.get("env")),
+        "env_recipe": _env_recipe(info.get("env"), info.get("env_kwargs") or {}),
         "files": {name: text for name, text in FILES.items() if (folder / name).exists() or name.startswith("step_") and steps},
     })
     return folder / ("policy.pt2" if onnx_model is None else "policy.onnx")
 
 
-def _env_recipe(env: str | None) -> dict[str, Any]:
-    """How a person makes the env the policy acts in, with gymnasium alone (and rlpipe for Minitaur)."""
+def _env_recipe(env: str | None, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """How a person makes the env the policy acts in, with gymnasium alone (and rlpipe for Minitaur), or with
+    the trainer's own module for an env named ``module:Target``."""
     from rlpipe.envs import EnvError, resolve_env_id
+    from rlpipe.envs.user import NAMESPACE, is_user_env
 
     try:
         gym_id = resolve_env_id(env) if env else None
@@ -133,10 +135,17 @@ def _env_recipe(env: str | None) -> dict[str, Any]:
     if gym_id is None:
         return {"gymnasium_id": None, "imports": [], "make": None,
                 "note": f"{env!r} is not a gymnasium id: the env came from the trainer's own code"}
+    args = ", ".join(f"{k}={v!r}" for k, v in kwargs.items())
+    observations = "the env's own, as float32 (no normalisation)"
+    if is_user_env(env):
+        module, _, name = env.partition(":")
+        if gym_id.startswith(f"{NAMESPACE}/"):  # a class or function of the trainer's module: called as rlpipe did
+            return {"gymnasium_id": None, "imports": [module], "make": f"from {module} import {name}; env = {name}({args})",
+                    "observations": observations}
+        gym_id = env  # gymnasium's own module:id form imports the module itself
     imports = ["rlpipe.envs"] if gym_id.startswith("rlpipe/") else []  # registers rlpipe's envs with gymnasium
-    make = "".join(f"import {m}; " for m in imports) + f"import gymnasium; env = gymnasium.make({gym_id!r})"
-    return {"gymnasium_id": gym_id, "imports": imports, "make": make,
-            "observations": "the env's own, as float32 (no normalisation)"}
+    make = "".join(f"import {m}; " for m in imports) + f"import gymnasium; env = gymnasium.make({gym_id!r}{', ' + args if args else ''})"
+    return {"gymnasium_id": gym_id, "imports": imports, "make": make, "observations": observations}
 
 
 def _onnx_model(module: nn.Module, observation_dim: int) -> bytes | None:

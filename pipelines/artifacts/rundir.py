@@ -48,7 +48,7 @@ WORKER_COLUMNS = ["workers_alive", "collector_restarts", "evaluator_restarts"]
 
 def default_run_dir(algo: str, env_id: str) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("runs") / f"{algo}-{env_id.replace('/', '_')}-{stamp}"
+    return Path("runs") / f"{algo}-{env_id.replace('/', '_').replace(':', '_')}-{stamp}"
 
 
 def notice(message: str) -> None:

@@ -6,7 +6,7 @@ same float32 observations the policy was trained on.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import gymnasium
@@ -14,7 +14,8 @@ import imageio.v2 as imageio
 import numpy as np
 import torch
 
-from rlpipe.envs import MINITAUR_ID, resolve_env_id
+from rlpipe.envs import MINITAUR_ID, EnvError, resolve_env_id
+from rlpipe.envs.user import check_kwargs
 from rlpipe.pipelines.artifacts.files import atomic_path
 
 __all__ = ["record_video"]
@@ -31,10 +32,23 @@ def record_video(
     seed: int = 0,
     max_steps: int = 1000,
     frame_skip: int = 1,
+    env_kwargs: Mapping | None = None,
 ) -> Path:
-    """Write an mp4 of ``episodes`` episodes of ``policy`` (random actions if ``None``) to ``path``."""
+    """Write an mp4 of ``episodes`` episodes of ``policy`` (random actions if ``None``) to ``path``, the env made
+    with ``env_kwargs`` (a run's own)."""
     gym_id = resolve_env_id(env_id)
-    env = gymnasium.make(gym_id, render_mode="rgb_array", **_RENDER_KWARGS.get(gym_id, {}))
+    kwargs = {**_RENDER_KWARGS.get(gym_id, {}), **(env_kwargs or {})}
+    check_kwargs(gym_id, kwargs, env_id, EnvError)
+    no_frames = (f"env {env_id!r} does not render frames: expected an env that takes render_mode='rgb_array' and "
+                 "returns frames from render()")
+    try:
+        check_kwargs(gym_id, {**kwargs, "render_mode": "rgb_array"}, env_id, EnvError)
+    except EnvError:
+        raise EnvError(f"{no_frames} (its constructor takes no render_mode)") from None
+    env = gymnasium.make(gym_id, render_mode="rgb_array", **kwargs)
+    if env.render_mode != "rgb_array":
+        env.close()
+        raise EnvError(f"{no_frames} (its render_mode is {env.render_mode!r} when asked for 'rgb_array')")
     env.action_space.seed(seed)
     fps = max(1, int(env.metadata.get("render_fps", 30)) // frame_skip)
     path = Path(path)

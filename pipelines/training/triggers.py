@@ -262,7 +262,7 @@ class VideoTrigger(Trigger):
         # the policy this run exported a moment ago: its own file, so a .pt2-only export (a plug-in
         # actor ONNX cannot express) is trusted here, as it would not be from someone else's run
         policy = load_policy(loop.run_dir.policy_dir, trust=True)[0]
-        path = record_video(loop.config.env, policy, loop.run_dir.path / VIDEO_FILE)
+        path = record_video(loop.config.env, policy, loop.run_dir.path / VIDEO_FILE, env_kwargs=loop.config.env_kwargs)
         loop.echo(f"video: {path}")
 
     def final(self, loop: Loop) -> None:
