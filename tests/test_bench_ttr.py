@@ -10,11 +10,13 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from rlpipe.pipelines import presets, resolve_preset
 from rlpipe.pipelines.config import apply_overrides
+from rlpipe.pipelines.errors import InputError
 from rlpipe.scripts.bench import time_to_return as ttr
 
 PEERS_DIR = Path(ttr.__file__).with_name("peers")
@@ -176,3 +178,95 @@ def _cmdline(pid: str) -> str:
         return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
     except OSError:  # gone meanwhile
         return ""
+
+
+# --- the torchrl peer: TorchRL's sota-implementations scripts from a checkout of pytorch/rl -------------------------
+
+# Stands in for the checkout's dqn/config_cartpole.yaml (not in TorchRL's wheel, nor copied here): every key the
+# script reads, sized for a test.
+TINY_DQN_CONFIG = """\
+device: null
+env: {env_name: CartPole-v1}
+collector: {total_frames: 500_100, frames_per_batch: 100, eps_start: 1.0, eps_end: 0.05, annealing_frames: 1000,
+            init_random_frames: 100}
+buffer: {buffer_size: 1000, batch_size: 32}
+logger: {backend: wandb, project_name: p, group_name: null, exp_name: DQN, test_interval: 50_000,
+         num_test_episodes: 1, video: False}
+checkpoint: {path: null, interval: 0, format: archive, strict: error, resume: false, include_replay_buffer: true}
+optim: {lr: 2.5e-4, max_grad_norm: 10}
+loss: {gamma: 0.99, hard_update_freq: 50, num_updates: 3}
+compile: {compile: False, compile_mode: null, cudagraphs: False}
+hydra: {job: {chdir: true}}
+"""
+
+
+@pytest.fixture
+def dqn_checkout(tmp_path):
+    """A pytorch/rl checkout holding TorchRL's DQN CartPole recipe: the scripts the installed wheel ships, its version."""
+    from importlib.metadata import files, version
+
+    shipped = {str(f): f for f in files("torchrl") or () if str(f).startswith("sota-implementations/dqn/")}
+    if "sota-implementations/dqn/dqn_cartpole.py" not in shipped:
+        pytest.skip("this torchrl wheel ships no sota-implementations scripts to build a checkout from")
+    folder = tmp_path / "rl" / "sota-implementations" / "dqn"
+    folder.mkdir(parents=True)
+    for name in ("dqn_cartpole.py", "utils_cartpole.py"):
+        (folder / name).write_bytes(shipped[f"sota-implementations/dqn/{name}"].locate().read_bytes())
+    (folder / "config_cartpole.yaml").write_text(TINY_DQN_CONFIG)
+    (tmp_path / "rl" / "version.txt").write_text(version("torchrl") + "\n")
+    return tmp_path / "rl"
+
+
+def test_the_torchrl_peer_needs_a_checkout_of_the_installed_release(dqn_checkout, tmp_path, capsys):
+    from importlib.metadata import version
+
+    from rlpipe.scripts.cli import main
+
+    def error(*extra):
+        code = main(["bench", "time-to-return", "--tasks", "cartpole-v0-dqn", "--peers", "torchrl", *extra,
+                     "--out", str(tmp_path / "out")])
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, lines
+        return lines[0]
+
+    release = f"a checkout of pytorch/rl at tag v{version('torchrl')}"
+    line = error()
+    assert "--peers torchrl: needs --torchrl-sota DIR" in line and release in line
+    assert "no sota-implementations folder" in error("--torchrl-sota", str(tmp_path))
+    (dqn_checkout / "version.txt").write_text("0.13.3\n")
+    assert "version.txt says 0.13.3" in error("--torchrl-sota", str(dqn_checkout))
+    (dqn_checkout / "version.txt").write_text(version("torchrl") + "\n")
+    script = dqn_checkout / "sota-implementations" / "dqn" / "dqn_cartpole.py"
+    script.write_text(script.read_text() + "# changed\n")
+    line = error("--torchrl-sota", str(dqn_checkout))
+    assert f"sota-implementations/dqn/dqn_cartpole.py is not the one torchrl {version('torchrl')} ships" in line
+    assert not (tmp_path / "out").exists()  # refused before anything is written
+    # the recipes of the tasks chosen: a checkout without SAC's is enough for a DQN task, not for a SAC one
+    script.write_text(script.read_text().removesuffix("# changed\n"))
+    args = SimpleNamespace(tasks=["cartpole-v0-dqn"], peers=["torchrl"], torchrl_sota=dqn_checkout, threads=None,
+                           cap=None, side_seeds=None, seeds=1, seed=0, cap_scale=None, preset=None, overrides=[])
+    ttr.check_args(args)
+    assert ttr.chosen_peers(SimpleNamespace(peers=None, torchrl_sota=dqn_checkout)) == ["cleanrl", "sb3", "sbx",
+                                                                                       "torchrl"]
+    with pytest.raises(InputError, match="sota-implementations/sac/sac.py missing"):
+        ttr.check_args(SimpleNamespace(**{**vars(args), "tasks": ["pendulum-sac"]}))
+
+
+def test_the_torchrl_peer_runs_torchrls_script_and_is_timed_by_the_rule(dqn_checkout, tmp_path):
+    from importlib.metadata import version
+
+    # the script unchanged, on its config, to a target any CartPole episode passes (no episode ends before 5 steps)
+    work = tmp_path / "torchrl-seed0"
+    launch = ttr.peer_launch(ttr.TASKS["cartpole-v0-dqn"], "torchrl", 0, 5.0, 3000, work, 1, dqn_checkout)
+    assert "dqn_cartpole.py" in launch.settings and "num_updates=3" in launch.settings
+    result = ttr.run_one(launch, work / "output.log")
+    assert result["rc"] == 0 and result["reached"] and not result["failed"], result
+    assert 0 < result["start_s"] < result["seconds"] < result["wall_s"]  # launch -> first step -> target -> exit
+    # checked as each batch of 100 frames arrives, before its updates; 3 updates a batch from the first one
+    assert 5 * 5 <= result["env_steps"] <= 3000
+    assert result["updates"] == 3 * (math.ceil(result["env_steps"] / 100) - 1)
+    assert result["eval_return"] >= 5 and result["eval_episode_length"] == result["eval_return"]
+    assert result["versions"]["torchrl"] == version("torchrl") and result["versions"]["hydra-core"] == "1.3.8"
+    assert not (work / ".hydra").exists()  # Hydra's run folder is the run's own, its config copy not written
+    row = {**result, "task": "cartpole-v0-dqn", "side": "torchrl", "seed": 0}
+    assert ttr.summarise([row])["cartpole-v0-dqn"]["torchrl"]["reached"] == 1
