@@ -1,0 +1,82 @@
+"""``rlpipe tune``'s page: ``OUT/tune.html`` with Optuna's plots (as PNGs beside it) and the trials' table."""
+
+from __future__ import annotations
+
+import html
+import warnings
+from pathlib import Path
+from typing import Any
+
+PLOTS = {
+    "history.png": ("plot_optimization_history", "Time to target per trial (optimization history)"),
+    "importances.png": ("plot_param_importances", "Which settings mattered (parameter importances, fANOVA)"),
+    "curves.png": ("plot_intermediate_values", "Training return over elapsed seconds (the curves pruning compares)"),
+}
+
+
+def write_plots(study, out: Path) -> dict[str, str]:
+    """Optuna's matplotlib plots as PNGs in ``out``: file name -> caption, or why a plot could not be drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import optuna.visualization.matplotlib as ovm
+
+    shown: dict[str, str] = {}
+    for name, (function, caption) in PLOTS.items():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # Optuna marks its matplotlib plots experimental
+                ax = getattr(ovm, function)(study)
+            fig = (ax.flat[0] if hasattr(ax, "flat") else ax).figure
+            fig.set_size_inches(7, 4)
+            fig.tight_layout()
+            fig.savefig(out / name, dpi=100)
+            plt.close(fig)
+            shown[name] = caption
+        except (ValueError, RuntimeError) as exc:  # importances need two finished trials that differ
+            shown[name] = f"{caption}: not drawn ({exc})"
+    return shown
+
+
+def write_page(study, plan, confirmation: dict[str, Any] | None, preset: Path) -> Path:
+    from optuna.trial import TrialState
+
+    plots = write_plots(study, plan.out)
+    best = study.best_trial
+    rows = []
+    for t in study.trials:
+        value = f"{t.value:.1f}" if t.value is not None else "—"
+        seeds = ", ".join(f"{s:.1f}" for s in t.user_attrs.get("seconds", []))
+        params = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in t.params.items())
+        mark = " class=best" if t.number == best.number else ""
+        rows.append(f"<tr{mark}><td>{t.number}</td><td>{t.state.name.lower()}</td><td>{value}</td>"
+                    f"<td>{html.escape(seeds)}</td><td>{html.escape(params)}</td></tr>")
+    if confirmation:
+        seen = (f"On fresh seeds {', '.join(map(str, confirmation['seeds']))} (never searched on): "
+                f"<b>{confirmation['value']:.1f} s</b> (seeds: "
+                + ", ".join(f"{s:.1f}" + ("" if r else " missed") for s, r in zip(confirmation["seconds"],
+                                                                                     confirmation["reached"])) + ").")
+    else:
+        seen = "Not confirmed on fresh seeds (--confirm-seeds 0)."
+    figures = "".join(f"<figure><img src='{name}' alt='{html.escape(c)}'><figcaption>{html.escape(c)}</figcaption></figure>"
+                      if (plan.out / name).exists() and "not drawn" not in c else f"<p>{html.escape(c)}</p>"
+                      for name, c in plots.items())
+    complete = len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
+    pruned = len(study.get_trials(deepcopy=False, states=(TrialState.PRUNED,)))
+    body = f"""<!doctype html><html><head><meta charset=utf-8><title>rlpipe tune: {html.escape(plan.env)}</title>
+<style>body{{font-family:sans-serif;max-width:60em;margin:auto}} td,th{{padding:2px 8px;text-align:left}}
+tr.best{{background:#e8f4e8}} img{{max-width:100%}}</style></head><body>
+<h1>{html.escape(', '.join(plan.algos))} on {html.escape(plan.env)} to {plan.target:g}</h1>
+<p>Objective: seconds from launch to the target under <code>rlpipe bench time-to-return</code>'s rule, the mean of
+{plan.seeds} seeds (0-{plan.seeds - 1}) run side by side; a seed that missed counts {plan.cap_s:g} s (its cap) +
+{plan.penalty_s:g} s. {complete} trials finished, {pruned} pruned.</p>
+<p>Best: trial {best.number}, <b>{best.value:.1f} s</b>. {seen}</p>
+<p>Preset: <code>{html.escape(str(preset))}</code> (<code>rlpipe train {html.escape(str(preset))}</code>)</p>
+{figures}
+<h2>Trials</h2><table><tr><th>trial</th><th>state</th><th>seconds</th><th>seeds</th><th>settings</th></tr>
+{''.join(rows)}</table></body></html>
+"""
+    path = plan.out / "tune.html"
+    path.write_text(body)
+    return path

@@ -1,0 +1,210 @@
+"""A trial of ``rlpipe tune``: its seeds as ``rlpipe train`` processes side by side, watched and timed.
+
+Each seed's run is the bench's rlpipe side (``bench/time_to_return.py`` ``rlpipe_launch``: the same
+command, ``target_return`` and step cap) timed by the bench's rule (``timed_result``: seconds from its
+launch to the target, less unconfirmed evaluations). While the runs go, the trial's curve (the mean
+over its seeds of each run's latest training return, at each elapsed second) is reported to Optuna,
+and ``BehindBestPruner`` stops a trial whose curve falls behind the best finished trial's.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import optuna
+
+from rlpipe.scripts.bench.time_to_return import Launch, timed_result
+
+STOP_TIMEOUT_S = 30.0
+
+
+class SeedRun:
+    """One seed's ``rlpipe train`` process: launched in a session of its own (a Ctrl-C to the tuner's
+    terminal is the tuner's to pass on), its return read from its metrics.csv, ended at ``cap_s``."""
+
+    def __init__(self, launch: Launch, run_dir: Path, log: Path, cap_s: float):
+        self.launch, self.run_dir, self.log, self.cap_s = launch, run_dir, log, cap_s
+        self.proc: subprocess.Popen | None = None
+        self.start = self.end = 0.0
+        self.capped = False
+
+    def begin(self) -> None:
+        self.log.parent.mkdir(parents=True, exist_ok=True)
+        with self.log.open("w") as out:
+            out.write(" ".join(self.launch.cmd) + "\n")
+            out.flush()
+            self.start = time.time()
+            self.proc = subprocess.Popen(self.launch.cmd, stdout=out, stderr=subprocess.STDOUT, env=self.launch.env,
+                                         cwd=self.launch.cwd, start_new_session=True)
+
+    def done(self) -> bool:
+        """Whether the run has ended; one past its cap is stopped here (as Ctrl-C stops it: a run that met the
+        target before the cap and is writing its files finishes them, and counts; one still training misses)."""
+        if self.end:
+            return True
+        if self.proc.poll() is None:
+            if time.time() - self.start < self.cap_s:
+                return False
+            self.capped = True
+            self.stop()
+        self.end = time.time()
+        return True
+
+    def latest_return(self) -> float | None:
+        """The run's latest logged training return (metrics.csv ``train_episode_return``), None before its first."""
+        try:
+            with (self.run_dir / "metrics.csv").open(newline="") as fh:
+                rows = [r.get("train_episode_return") for r in csv.DictReader(fh)]
+        except OSError:
+            return None
+        values = [float(v) for v in rows if v not in (None, "")]
+        return values[-1] if values else None
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        """End the run with its collector processes (its process group); SIGKILL if it outlives STOP_TIMEOUT_S."""
+        if self.proc is None or self.proc.poll() is not None:
+            return
+        try:
+            os.killpg(self.proc.pid, sig)
+            self.proc.wait(timeout=STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        except ProcessLookupError:
+            pass
+
+    def result(self) -> dict[str, Any]:
+        """The bench's figures of the ended run (``seconds`` to the target, None where not reached)."""
+        result = timed_result(self.launch, self.log, self.proc.returncode, self.start, self.end)
+        return {**result, "capped": self.capped, "node": _ray_node()}
+
+
+def _ray_node() -> str | None:
+    """The Ray node this process is on (a ``RemoteRun``'s actor), None outside Ray."""
+    ray = sys.modules.get("ray")
+    return ray.get_runtime_context().get_node_id() if ray is not None and ray.is_initialized() else None
+
+
+class RemoteRun:
+    """A ``SeedRun`` on a Ray actor (``ray.address=``): the same calls, on the node Ray places it on (one CPU).
+    The run's command, paths and timing are the node's: a cluster's nodes share rlpipe's install path."""
+
+    def __init__(self, launch: Launch, run_dir: Path, log: Path, cap_s: float):
+        import ray
+
+        self.actor = ray.remote(num_cpus=1)(SeedRun).remote(launch, run_dir, log, cap_s)
+
+    def _call(self, method: str, *args):
+        import ray
+
+        return ray.get(getattr(self.actor, method).remote(*args))
+
+    def begin(self) -> None:
+        self._call("begin")
+
+    def done(self) -> bool:
+        return self._call("done")
+
+    def latest_return(self) -> float | None:
+        return self._call("latest_return")
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        self._call("stop", sig)
+
+    def result(self) -> dict[str, Any]:
+        return self._call("result")
+
+    def close(self) -> None:
+        import ray
+
+        ray.kill(self.actor)
+
+
+def seconds(result: dict[str, Any], cap_s: float, penalty_s: float) -> float:
+    """A run's time to the target; a run that missed it (its cap, its steps, or a failure) counts as cap + penalty."""
+    return result["seconds"] if result.get("reached") else cap_s + penalty_s
+
+
+def trial_value(results: list[dict[str, Any]], cap_s: float, penalty_s: float) -> float:
+    """The trial's objective: the mean over its seeds of their times (misses counted as cap + penalty)."""
+    return statistics.fmean(seconds(r, cap_s, penalty_s) for r in results)
+
+
+class TrialRuns:
+    """A trial's seeds, run side by side on one clock; ``poll`` reports their curve to Optuna."""
+
+    def __init__(self, trial: optuna.trial.Trial, algo: str, overrides: list[str], runs: list[SeedRun]):
+        self.trial, self.algo, self.overrides, self.runs = trial, algo, overrides, runs
+        self.start = 0.0
+        self.reported = -1
+        self.pruned = False
+
+    def begin(self) -> None:
+        self.start = time.time()
+        for run in self.runs:
+            run.begin()
+
+    def poll(self) -> bool:
+        """Report the curve's new point; True once every run has ended or the trial is pruned (its runs ended)."""
+        finished = [run.done() for run in self.runs]
+        step = int(time.time() - self.start)
+        latest = [run.latest_return() for run in self.runs]
+        if step > self.reported and all(v is not None for v in latest):
+            self.trial.report(statistics.fmean(latest), step)
+            self.reported = step
+            if not all(finished) and self.trial.should_prune():
+                self.pruned = True
+                self.stop()
+                return True
+        return all(finished)
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        for run in self.runs:
+            run.stop(sig)
+        for run in self.runs:
+            run.done()
+
+    def results(self) -> list[dict[str, Any]]:
+        return [run.result() for run in self.runs]
+
+    def close(self) -> None:
+        """Let go of the runs' Ray actors (none for runs on this machine)."""
+        for run in self.runs:
+            getattr(run, "close", lambda: None)()
+
+
+class BehindBestPruner(optuna.pruners.BasePruner):
+    """Prunes a trial whose curve (return at each elapsed second) is below the best finished trial's at the
+    same second, once it has run ``warmup`` of the best trial's time (the first seconds are imports and
+    random steps, where a curve says little)."""
+
+    def __init__(self, warmup: float = 0.5):
+        self.warmup = warmup
+
+    def prune(self, study: optuna.study.Study, trial: optuna.trial.FrozenTrial) -> bool:
+        step = trial.last_step
+        if step is None:
+            return False
+        try:
+            best = study.best_trial
+        except ValueError:  # no finished trial yet
+            return False
+        curve = best.intermediate_values
+        if best.number == trial.number or not curve or step < self.warmup * best.value:
+            return False
+        reference = _at(curve, step)
+        return reference is not None and trial.intermediate_values[step] < reference
+
+
+def _at(curve: dict[int, float], step: int) -> float | None:
+    """The curve's value at ``step``: its latest point at or before it (after its end: its last point)."""
+    before = [s for s in curve if s <= step]
+    return curve[max(before)] if before else None

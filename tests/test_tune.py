@@ -1,0 +1,194 @@
+"""`rlpipe tune` as a user runs it: a tiny study (DQN on CartPole-v1 to a return of 8, which the rule's
+greedy check passes within the first episodes, so a trial is mostly its runs' start-up), stopped by Ctrl-C
+while its second trial runs and rerun to the end: the stored study goes on without running its finished
+trial again, and ends with the preset file, the page and the best setting timed on fresh seeds. The
+pruner on Optuna's own studies; bad input refused in one line before anything is written; the trials on
+a two-node Ray cluster.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+optuna = pytest.importorskip("optuna", reason="Optuna is not installed: `pip install -e '.[tune]'` (scripts/setup.sh does)")
+
+from rlpipe.scripts.cli import main  # noqa: E402
+from rlpipe.scripts.tune_trials import BehindBestPruner, trial_value  # noqa: E402
+
+CLI = [sys.executable, "-m", "rlpipe.scripts.cli"]
+# every trial's runs: no evaluations but the target's (2 greedy episodes), a log row every 50 iterations
+TINY = ["eval_interval=0", "baseline_episodes=0", "target_eval_episodes=2", "log_interval=50"]
+STUDY = ["tune", "dqn", "env=CartPole-v1", "--target", "8", "--budget", "20m", "--trials", "2", "--cap", "90", *TINY]
+QUIET = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_DEDUP_LOGS": "0"}
+
+
+def tune(args: list[str], cwd: Path, env: dict | None = None, timeout: float = 900) -> subprocess.CompletedProcess:
+    """``rlpipe tune`` in a session of its own (a fault's SIGINT goes to its group, as a terminal's Ctrl-C does)."""
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen([*CLI, *args], cwd=cwd, stdout=out, stderr=err, text=True, start_new_session=True,
+                                env={**os.environ, **QUIET, **(env or {})})
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        out.seek(0)
+        err.seek(0)
+        return subprocess.CompletedProcess(proc.args, proc.returncode, out.read(), err.read())
+
+
+def load(out: Path):
+    return optuna.load_study(storage=f"sqlite:///{out / 'study.db'}", study_name="tune")
+
+
+def processes_under(path: Path) -> list[str]:
+    found = []
+    for pid in os.listdir("/proc"):
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if pid.isdigit() and str(path) in cmd:
+            found.append(cmd)
+    return found
+
+
+@pytest.mark.slow
+def test_a_study_stopped_by_ctrl_c_continues_on_rerun_and_writes_the_preset_page_and_fresh_seed_time(tmp_path):
+    out = tmp_path / "study"
+    first = tune([*STUDY, "--out", str(out)], tmp_path, env={"RLPIPE_FAULT": "tune_trial@1"})
+    assert first.returncode == 130, first.stderr[-3000:]
+    last = first.stderr.strip().splitlines()[-1]
+    assert last.startswith("rlpipe: interrupted; 1 finished trials kept in") and "rerun the same command" in last, last
+    study = load(out)
+    states = [t.state.name for t in study.trials]
+    assert states == ["COMPLETE", "FAIL"]
+    cut = study.trials[1]
+    # the cut-short trial's runs were launched and ended with the tuner: none is left
+    assert (out / "trials" / "0001" / "seed0" / "output.log").exists()
+    assert processes_under(out / "trials") == []
+    trial0_log = out / "trials" / "0000" / "seed0" / "output.log"
+    stamp = trial0_log.stat().st_mtime_ns
+
+    second = tune([*STUDY, "--out", str(out)], tmp_path)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "running again the trials cut short: 1" in second.stdout
+    assert "trial 0:" not in second.stdout  # the finished trial is not run again
+    assert trial0_log.stat().st_mtime_ns == stamp
+    study = load(out)
+    assert [t.state.name for t in study.trials] == ["COMPLETE", "FAIL", "COMPLETE"]
+    assert study.trials[2].params == cut.params  # the cut-short trial, asked again
+    for t in (study.trials[0], study.trials[2]):  # two seeds each; a miss counts cap + penalty (90 + 90)
+        assert len(t.user_attrs["seconds"]) == 2
+        assert t.value == pytest.approx(sum(t.user_attrs["seconds"]) / 2)
+        assert all(s == 180 or s < 90 for s in t.user_attrs["seconds"])
+
+    results = json.loads((out / "results.json").read_text())
+    assert results["best_trial"] == study.best_trial.number
+    confirmation = results["confirmation"]
+    assert confirmation["trial"] == study.best_trial.number and confirmation["seeds"] == [100, 101]
+    assert (out / "confirm" / f"{study.best_trial.number:04d}" / "seed100" / "output.log").exists()
+    assert f"on fresh seeds [100, 101]: {confirmation['value']:.1f} s" in second.stdout
+
+    preset = Path(results["preset"])
+    assert preset == out / "dqn-cartpole-v1-tuned.yaml" and preset.exists()
+    keys = subprocess.run([*CLI, "train", str(preset), "--keys"], capture_output=True, text=True, timeout=120)
+    assert keys.returncode == 0, keys.stderr
+    best = study.best_trial.params
+    assert f"initial_collect_steps={best['initial_collect_steps']}\n" in keys.stdout
+    assert f"fc_layer_params=[{best['width']}, {best['width']}]\n" in keys.stdout
+    assert "env=\"CartPole-v1\"\n" in keys.stdout
+
+    page = (out / "tune.html").read_text()
+    assert "history.png" in page and (out / "history.png").stat().st_size > 0
+    assert "fresh seeds 100, 101" in page and str(preset) in page
+
+
+def _finished(value: float, curve: dict[int, float]):
+    return optuna.trial.create_trial(value=value, intermediate_values=curve, params={"x": 0.0},
+                                     distributions={"x": optuna.distributions.FloatDistribution(0, 1)})
+
+
+@pytest.mark.parametrize("reports, pruned", [
+    ({10: 5.0, 20: 50.0}, True),     # at 20 s below the best's 100 there
+    ({10: 5.0, 20: 150.0}, False),   # ahead of it
+    ({10: -50.0}, False),            # before half the best's time (40 s): too early to say
+    ({10: 5.0, 60: 150.0}, True),    # after the best had reached its target (its last point, 200, holds on)
+])
+def test_a_trial_behind_the_best_trials_curve_at_the_same_second_is_pruned(reports, pruned):
+    study = optuna.create_study(direction="minimize", pruner=BehindBestPruner())
+    study.add_trial(_finished(300.0, {0: -100.0, 10: 0.0, 30: 40.0}))  # a worse trial: not the reference
+    study.add_trial(_finished(40.0, {0: 0.0, 10: 20.0, 20: 100.0, 40: 200.0}))
+    trial = study.ask()
+    for step, value in reports.items():
+        trial.report(value, step)
+    assert trial.should_prune() is pruned
+
+
+def test_a_miss_counts_as_the_cap_plus_the_penalty_and_a_trial_is_the_mean_of_its_seeds():
+    results = [{"reached": True, "seconds": 20.0}, {"reached": False, "seconds": None}]
+    assert trial_value(results, 60.0, 30.0) == (20.0 + 90.0) / 2
+
+
+@pytest.mark.parametrize("args, line", [
+    (["tune", "foo", "env=Pendulum-v1", "--target", "-200"], "unknown algorithm 'foo'; expected one of"),
+    (["tune", "td3", "--target", "-200"], "no env: expected env=ID"),
+    (["tune", "td3", "env=Pendulum-v1", "--target", "-200", "--budget", "30x"],
+     "--budget 30x: expected a positive duration such as 90s, 30m or 2h"),
+    (["tune", "td3", "env=NoSuchEnv-v0", "--target", "1"], "unknown env id 'NoSuchEnv-v0'"),
+    (["tune", "td3", "env=Pendulum-v1", "--target", "1", "--seeds", "1"], "--seeds=1: expected an integer of at least 2"),
+    (["tune", "td3", "env=Pendulum-v1", "--target", "1", "bogus=3"], "unknown config key 'bogus'"),
+])
+def test_bad_input_is_one_line_and_exit_2_with_nothing_written(tmp_path, capsys, args, line):
+    out = tmp_path / "study"
+    assert main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("rlpipe: error: ") and line in err[0], err
+    assert not out.exists()
+
+
+def test_no_target_is_one_line_and_exit_2(capsys):
+    with pytest.raises(SystemExit) as stopped:
+        main(["tune", "td3", "env=Pendulum-v1"])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["rlpipe: error: the following arguments are required: --target (see `rlpipe tune --help`)"]
+
+
+@pytest.fixture
+def cluster():
+    """A Ray cluster of two nodes on this machine, a CPU each: one seed's run per node."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'`")
+    from ray.cluster_utils import Cluster
+
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    try:
+        c.add_node(num_cpus=1)
+        c.wait_for_nodes()
+        yield c
+    finally:
+        c.shutdown()
+        ray.shutdown()
+
+
+@pytest.mark.slow
+def test_trials_run_on_a_ray_cluster_one_seed_per_node(tmp_path, cluster):
+    out = tmp_path / "study"
+    done = tune(["tune", "dqn", "env=CartPole-v1", "--target", "8", "--budget", "10m", "--trials", "1",
+                 "--cap", "90", "--confirm-seeds", "0", f"ray.address={cluster.address}", *TINY, "--out", str(out)],
+                tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    (trial,) = load(out).trials
+    assert trial.state.name == "COMPLETE" and len(trial.user_attrs["seconds"]) == 2
+    nodes = trial.user_attrs["nodes"]
+    assert None not in nodes and len(set(nodes)) == 2  # each seed's run on a node of its own
+    assert (out / "dqn-cartpole-v1-tuned.yaml").exists()
