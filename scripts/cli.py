@@ -8,6 +8,7 @@
     rlpipe report RUN_DIR [RUN_DIR ...] [--out FILE]
     rlpipe presets [--show NAME|FILE.yaml]
     rlpipe ablate td3 --envs A,B --seeds N --steps S [--workers W] [--out DIR]
+    rlpipe tune ALGO[,ALGO] env=ID --target R [--budget 30m] [--workers N] [--seeds 2] [--out DIR]   (scripts/tune.py)
     rlpipe bench {dqn,td3,sac,minitaur,floor,cleanrl,gpu,profile,collect,ray,time-to-return} [...]   (scripts/bench/)
 
 Bad input ends with one line on stderr naming what is wrong and what is expected, and exit status 2.
@@ -97,10 +98,11 @@ def _parser() -> argparse.ArgumentParser:
     presets.add_argument("--show", metavar="NAME", help="print preset NAME's file (or a preset file PATH.yaml) instead: "
                                                          "a start for a file of your own (`rlpipe train my.yaml`)")
 
-    from rlpipe.scripts import ablate, bench
+    from rlpipe.scripts import ablate, bench, tune
 
     ablate.add_parser(sub)
     bench.add_parser(sub)
+    tune.add_parser(sub)
     return parser
 
 
