@@ -28,6 +28,7 @@ import time
 import traceback
 from pathlib import Path
 
+from rlpipe.pipelines.system.runtime import open_closed_descriptors, output_dropped_when_gone
 from rlpipe.scripts.output_paths import check_output_dir, check_output_file
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -411,7 +412,20 @@ def _error_log(args, argv: list[str], exc: BaseException) -> Path:
 def main(argv: list[str] | None = None, *, fork_server: bool | None = None) -> int:
     """``rlpipe ARGV`` (None: the command line). ``fork_server``: whether ``train`` may start its worker processes
     from a fork server (``--start-method``), which sets this process's multiprocessing start method; default: only
-    when run as the program (``argv`` None), not when called from a program of its own with ``argv``."""
+    when run as the program (``argv`` None), not when called from a program of its own with ``argv``.
+
+    What cannot be shown is dropped (the reader of a pipe gone, the terminal closed, the descriptors closed): the
+    command goes on and ends with its own status."""
+    open_closed_descriptors()
+    with output_dropped_when_gone():
+        try:
+            return _command(argv, fork_server)
+        except KeyboardInterrupt:  # while the command starts (its imports take seconds), or before or after a run
+            print("rlpipe: interrupted", file=sys.stderr)  # (a run's own Ctrl-C is answered in cmd_train)
+            return 130
+
+
+def _command(argv: list[str] | None, fork_server: bool | None) -> int:
     from rlpipe.envs import EnvError
     from rlpipe.pipelines.errors import InputError, TrainingDiverged
 
@@ -435,9 +449,6 @@ def main(argv: list[str] | None = None, *, fork_server: bool | None = None) -> i
     except TrainingDiverged as exc:
         print(f"rlpipe: error: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:  # before or after a run (a run's own Ctrl-C is answered in cmd_train)
-        print("rlpipe: interrupted", file=sys.stderr)
-        return 130
     except Exception as exc:
         log = _error_log(args, sys.argv[1:] if argv is None else argv, exc)
         first = (str(exc).strip().splitlines() or [""])[0][:300]

@@ -121,9 +121,9 @@ def save_checkpoint(folder: Path, step: int, state: dict[str, Any], keep: int = 
         with FileWriteError.on_failure(folder):
             folder.mkdir(parents=True, exist_ok=True)
             tmp.mkdir()
-        with FileWriteError.on_failure(tmp / "state.pt"):
-            # A Python file object: torch then reports a full disk as the OSError it is (writing
-            # to a path, it raises a RuntimeError from its zip writer).
+        with FileWriteError.on_failure(final / "state.pt"):  # the file a reader knows, not its temporary name
+            # A Python file object: a full disk is an OSError under torch's own error ("unexpected pos", from
+            # its zip writer), which on_failure takes for that OSError.
             with open(tmp / "state.pt", "wb") as fh:
                 torch.save({"format": FORMAT, "step": step, **state}, fh)
                 fault_point("checkpoint.write", step)

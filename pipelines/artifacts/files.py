@@ -57,6 +57,24 @@ class FileWriteError(InputError):
             if errnos is not None and exc.errno not in errnos:
                 raise
             raise cls(path, exc) from exc
+        except Exception as exc:
+            # A writer library's own error over the OSError it met: torch's zip writer, on a full disk, raises
+            # "RuntimeError: [enforce fail at inline_container.cc:672] . unexpected pos 209984 vs 209872".
+            cause = _storage_error_under(exc, STORAGE_ERRNOS if errnos is None else STORAGE_ERRNOS & set(errnos))
+            if cause is None:
+                raise
+            raise cls(path, cause) from exc
+
+
+def _storage_error_under(exc: BaseException, errnos: Iterable[int]) -> OSError | None:
+    """The ``OSError`` with one of ``errnos`` that ``exc`` was raised while handling (or from), if any."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in errnos:
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 @contextmanager

@@ -20,7 +20,6 @@ import fcntl
 import io
 import json
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,7 @@ from rlpipe.pipelines.artifacts.files import (
     write_json_atomic,
 )
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.system.runtime import say
 
 __all__ = ["MetricsCSV", "RunDir", "default_run_dir"]
 
@@ -52,8 +52,9 @@ def default_run_dir(algo: str, env_id: str) -> Path:
 
 
 def notice(message: str) -> None:
-    """One line on stderr about what a run does on its own (resumes elsewhere than asked, restarts)."""
-    print(f"rlpipe: {message}", file=sys.stderr, flush=True)
+    """One line on stderr about what a run does on its own (resumes elsewhere than asked, restarts); dropped where
+    stderr cannot take it (its reader gone, the terminal closed): the run goes on."""
+    say(f"rlpipe: {message}")
 
 
 class RunDir:

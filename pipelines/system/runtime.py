@@ -1,6 +1,7 @@
 """What a training process needs from the operating system: a stop signal (Ctrl-C, SIGTERM, SIGHUP)
-obeyed at safe points, workers started deaf to those signals, Python's garbage collector kept off
-long-lived objects, and freed memory kept for reuse.
+obeyed at safe points, output that never fails the run when no one can read it any more, workers
+started deaf to those signals, Python's garbage collector kept off long-lived objects, and freed
+memory kept for reuse.
 
 None of this is TorchRL's business (its collectors and evaluator leave signal handling to the
 caller), so it lives here, once, for the loop and for anyone driving rlpipe's parts by hand.
@@ -20,7 +21,8 @@ import time
 from collections.abc import Callable
 
 __all__ = [
-    "STOP_SIGNALS", "DeferredInterrupt", "Interrupted", "Stopped", "fault_point", "gc_frozen", "keep_freed_memory",
+    "STOP_SIGNALS", "DeferredInterrupt", "DroppingStream", "Interrupted", "Stopped", "dropping", "fault_point",
+    "gc_frozen", "keep_freed_memory", "open_closed_descriptors", "output_dropped_when_gone", "say",
     "WORKER_MODULES", "start_fork_server", "start_resource_tracker", "stop_signals_blocked",
 ]
 
@@ -106,12 +108,114 @@ class DeferredInterrupt:
         self.requested, self.signum = True, signum
         self._first = time.monotonic()
         what = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
-        print(f"\nrlpipe: {what}: stopping at the next safe point to save a checkpoint "
-              f"({what} again: stop now, unsaved)", file=sys.stderr, flush=True)
+        # said where it can be: the same Ctrl-C may have ended the `tee` reading stderr, and a closed terminal
+        # sent the SIGHUP (an error raised here would surface wherever the learner is, not at a safe point)
+        say(f"\nrlpipe: {what}: stopping at the next safe point to save a checkpoint ({what} again: stop now, unsaved)")
 
     def check(self) -> None:
         if self.requested:
             raise Stopped(self.signum)
+
+
+# --- output that no one may be reading any more ---------------------------------------------------------
+
+# A write to a stream whose other end is gone for good: the pipe's reader ended (`| head -5`, a `tee` ended by
+# the same Ctrl-C), the terminal closed (a pseudo-terminal's master side: EIO), the descriptor closed.
+_GONE = frozenset({errno.EPIPE, errno.EIO, errno.EBADF, errno.ENXIO, errno.ECONNRESET})
+
+
+class DroppingStream:
+    """A text stream (``sys.stdout``, ``sys.stderr``) whose writes never raise: what the stream under it
+    cannot take is dropped.
+
+    A run's output is for a person watching; its files are what it is for. Where the reader of a pipe has gone,
+    the terminal has closed or the descriptor was closed, a write raises (``BrokenPipeError``, ``OSError`` EIO or
+    EBADF, ``ValueError`` on a closed file) from wherever the run writes: a signal handler, a progress bar's
+    update, the live log, the last lines of a finished run. Once the other end is gone for good (``gone``), the
+    descriptor is pointed at /dev/null, so that what else writes there (a C library's warning, Python's own
+    flush of ``sys.__stdout__`` at exit) goes nowhere too, instead of failing again. A write that fails for
+    another reason (a full disk under a redirected file; a signal handler writing while the same stream was
+    being written to) drops just that write. Anything else (``fileno``, ``isatty``, ``encoding``) is the
+    stream's; ``None`` (a stream Python had no descriptor for) drops everything.
+    """
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.gone = stream is None
+
+    def write(self, text: str) -> int:
+        if not self.gone:
+            try:
+                return self.stream.write(text)
+            except (OSError, ValueError, RuntimeError) as exc:  # RuntimeError: a reentrant call (a signal handler)
+                self._failed(exc)
+        return len(text)
+
+    def writelines(self, lines) -> None:
+        for line in lines:
+            self.write(line)
+
+    def flush(self) -> None:
+        if not self.gone:
+            try:
+                self.stream.flush()
+            except (OSError, ValueError, RuntimeError) as exc:
+                self._failed(exc)
+
+    def _failed(self, exc: Exception) -> None:
+        if isinstance(exc, ValueError) or getattr(exc, "errno", None) in _GONE:  # ValueError: the file is closed
+            self.gone = True
+            with contextlib.suppress(Exception):
+                fd = self.stream.fileno()
+                null = os.open(os.devnull, os.O_WRONLY)
+                try:
+                    os.dup2(null, fd)
+                finally:
+                    os.close(null)
+
+    def __getattr__(self, name: str):
+        return getattr(self.stream, name)
+
+
+def dropping(stream) -> DroppingStream:
+    """``stream`` whose writes never raise (itself where it is already so)."""
+    return stream if isinstance(stream, DroppingStream) else DroppingStream(stream)
+
+
+def say(line: str) -> None:
+    """``line`` on stderr, or nowhere where stderr cannot take it (never an error)."""
+    stream = dropping(sys.stderr)
+    stream.write(line + "\n")
+    stream.flush()
+
+
+@contextlib.contextmanager
+def output_dropped_when_gone():
+    """``sys.stdout`` and ``sys.stderr`` as ``DroppingStream``s inside (a program's whole run, as ``rlpipe``'s
+    commands are): its prints, progress bars and log lines never fail it. Flushed on the way out, so that what
+    they still hold cannot fail at the interpreter's exit either."""
+    saved = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = dropping(sys.stdout), dropping(sys.stderr)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        sys.stdout, sys.stderr = saved
+
+
+def open_closed_descriptors() -> None:
+    """Open /dev/null on whichever of descriptors 0, 1 and 2 is closed (``rlpipe ... <&- >&- 2>&-``), as daemons
+    do: else the next file opened takes its number, and what is written to stderr (a C library's warning, a
+    worker's) lands in a checkpoint or a log. Python has set that stream to None; ``DroppingStream`` drops it."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_RDWR)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
 
 
 @contextlib.contextmanager

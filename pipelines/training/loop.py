@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -43,6 +44,7 @@ from rlpipe.pipelines.system.runtime import (
     DeferredInterrupt,
     Interrupted,
     Stopped,
+    dropping,
     fault_point,
     gc_frozen,
     keep_freed_memory,
@@ -113,8 +115,9 @@ class Loop:
         """``time.time()`` when this session's first block of env steps arrived"""
         self.finished_early: str | None = None
         """why a trigger ended the run before its last iteration (``finish_early``), else None"""
+        # on stderr, dropped where no one can read it (a pipe's reader gone, the terminal closed): the run goes on
         self.bar = tqdm(total=self.config.num_iterations, initial=self.state.iteration, unit="it", disable=not progress,
-                        desc=f"{pipeline.algo} {self.config.env}", dynamic_ncols=True)
+                        desc=f"{pipeline.algo} {self.config.env}", dynamic_ncols=True, file=dropping(sys.stderr))
 
     @property
     def collector(self):

@@ -82,7 +82,8 @@ class Run:
         except OSError as exc:  # a write the storage refused, outside rlpipe's own (TensorBoard's writer)
             if exc.errno not in STORAGE_ERRNOS:
                 raise
-            raise self._stopped_writing(FileWriteError(exc.filename or run.path, exc), loop) from exc
+            # raised from no known place (rlpipe's own writes raise FileWriteError, at safe points): no save from there
+            raise self._stopped_writing(FileWriteError(exc.filename or run.path, exc), None) from exc
         except FileWriteError as exc:
             raise self._stopped_writing(exc, loop) from exc
         finally:
@@ -107,7 +108,7 @@ class Run:
             try:
                 loop.save()
                 saved = f"saved a checkpoint at iteration {self.pipeline.state.iteration}"
-            except (FileWriteError, OSError):
+            except Exception:  # noqa: BLE001 - the refused write is the run's line, not this save's failure
                 pass
         if saved is None:
             try:
