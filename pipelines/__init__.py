@@ -79,8 +79,9 @@ def sized_presets(env: str) -> list[str]:
 
 def size_hint(name: str, cfg) -> str | None:
     """One line for a preset (a name or a file) pointed at an env other than its own (``rlpipe train sac
-    env=Pendulum-v1``): the preset sized for that env, or, for an env no preset knows, the keys that size a run.
-    None when ``cfg`` trains on the preset's own env."""
+    env=Pendulum-v1``): the preset sized for that env, or, for an env no preset knows, the keys that size a run
+    and the command that sizes one (``rlpipe train sac`` pointed at an env is sized for it: ``sizing``). None when
+    ``cfg`` trains on the preset's own env."""
     preset = presets.read(name)
     own = preset.config.env
     if cfg.env == own:
@@ -94,9 +95,11 @@ def size_hint(name: str, cfg) -> str | None:
         to = f" (to {target:g})" if target is not None else ""
         return f"{what}; the one sized for {cfg.env}{to} is {best!r}: rlpipe train {best}"
     networks = "/".join(layer_sizes(cfg))
+    sized = (f"; `rlpipe train {preset.algo} env={cfg.env}` sizes a run from the env (pipelines/sizing.py)"
+             if preset.algo in ("sac", "td3", "dqn") else "")
     return (f"{what} and none is sized for {cfg.env}; what matters most for a run's size: {networks} (networks), "
             f"initial_collect_steps (random steps), collector.workers and collector.sync (a process for the env, "
-            f"or the learner's own), batch_size, num_threads")
+            f"or the learner's own), batch_size, num_threads{sized}")
 
 
 def device_hint(cfg) -> str | None:

@@ -119,11 +119,15 @@ def cmd_train(args) -> int:
     from rlpipe.pipelines.artifacts.rundir import RunDir, default_run_dir
     from rlpipe.pipelines.config import apply_overrides, config_from_dict, field_docs, flat_keys
     from rlpipe.pipelines.errors import InputError
+    from rlpipe.pipelines.sizing import resolve_for_env
     from rlpipe.pipelines.system.runtime import start_fork_server
     from rlpipe.pipelines.workers.factory import backend_class
     from rlpipe.pipelines.workers.supervision import NoRestartLeft
 
-    algo, cfg = resolve_preset(args.preset)
+    # `env=ID` with no preset, or a tutorial preset pointed at another env: sized for that env (pipelines/sizing.py)
+    sized = resolve_for_env(args.preset, args.overrides, resume=args.resume is not None)
+    algo, cfg = (sized.algo, sized.config) if sized else resolve_preset(args.preset)
+    overrides, chosen = (sized.overrides, sized.lines) if sized else (args.overrides, [])
     Pipeline = pipeline_class(algo)
     if args.resume is not None:
         if args.out is not None and args.out.resolve() != args.resume.resolve():
@@ -133,8 +137,8 @@ def cmd_train(args) -> int:
         if saved_algo != algo:
             raise InputError(f"{args.resume} holds a {saved_algo} run; expected a {algo} run for preset {args.preset!r}")
         cfg = config_from_dict(Pipeline.Config, saved)
-    cfg = apply_overrides(cfg, args.overrides)
-    hint = None if args.resume is not None else size_hint(args.preset, cfg)
+    cfg = apply_overrides(cfg, overrides)
+    hint = None if args.resume is not None or sized else size_hint(args.preset, cfg)
     if args.keys:  # the values this command would train with, overrides included
         docs = field_docs(type(cfg))
         for key in flat_keys(type(cfg)):
@@ -142,12 +146,16 @@ def cmd_train(args) -> int:
             for part in key.split("."):
                 value = getattr(value, part)
             print(f"{key}={json.dumps(value)}\n    {docs.get(key, '')}")
+        for line in chosen:
+            print(line, file=sys.stderr)
         if hint:
             print(f"rlpipe: hint: {hint}", file=sys.stderr)
         return 0
     if args.fork_server and args.start_method == "forkserver" and backend_class(cfg).starts_processes(cfg):
         start_fork_server()  # its imports run while the pipeline is built
     pipeline = Pipeline(cfg)
+    for line in chosen:  # the run's first lines: what was chosen for its env, and why
+        print(line, flush=True)
     for line in (hint, device_hint(pipeline.config)):  # once the env and device are known to fit (else the error
         if line:                                        # is the one line); a hint: the run goes on as asked
             print(f"rlpipe: hint: {line}", file=sys.stderr)

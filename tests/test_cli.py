@@ -442,8 +442,9 @@ def test_a_crash_in_a_run_is_one_line_and_its_traceback_lands_in_the_run_directo
 
     monkeypatch.chdir(tmp_path)
     capfd.readouterr()
-    code = main(["train", "dqn", *GUARD, "env=rlpipe-test/Crashing-v0", "--out", "run", "--no-progress"])
-    # a preset pointed at an env no preset is sized for gets its hint line first; the crash is one line
+    # a sized preset, named, keeps its settings on another env (`dqn` there would be sized first, playing the env
+    # before the run directory exists); it gets its hint line first; the crash is one line
+    code = main(["train", "dqn-cartpole-v0", *GUARD, "env=rlpipe-test/Crashing-v0", "--out", "run", "--no-progress"])
     err = [line for line in capfd.readouterr().err.strip().splitlines() if not line.startswith("rlpipe: hint:")]
     assert code == 1
     assert len(err) == 1 and err[0].startswith("rlpipe: error: RuntimeError: the simulator crashed"), err

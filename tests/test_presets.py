@@ -76,30 +76,33 @@ def test_rlpipe_presets_lists_each_with_its_task_and_measured_time(tmp_path, mon
     assert "1 then 5" in lines["crossq-minitaur"] and "447.5 s to 1" in lines["crossq-minitaur"]  # which of its two
 
 
-def test_a_tutorial_preset_on_a_sized_env_hints_at_its_preset_and_trains_on(tmp_path, monkeypatch, capfd):
+def test_a_tutorial_preset_on_a_sized_env_trains_that_envs_sized_preset_and_says_so(tmp_path, monkeypatch, capfd):
     from rlpipe.scripts.cli import main
 
     monkeypatch.chdir(tmp_path)
     capfd.readouterr()
     code = main(["train", "sac", "env=Pendulum-v1", "num_iterations=20", "initial_collect_steps=50",
-                 "collector.sync=true", "eval_in_background=false", "num_eval_episodes=1", "baseline_episodes=0",
-                 "actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]", "num_threads=1",
+                 "num_eval_episodes=1", "actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]",
                  "--out", str(tmp_path / "run"), "--no-progress"])
-    err = capfd.readouterr().err
+    out, err = capfd.readouterr()
     assert code == 0, err
-    hints = [line for line in err.splitlines() if line.startswith("rlpipe: hint:")]
-    assert len(hints) == 1 and "rlpipe train sac-pendulum" in hints[0], err
+    assert "sac-pendulum" in out.splitlines()[0], out  # the run's first line names the settings it took
+    assert not [line for line in err.splitlines() if line.startswith("rlpipe: hint:")], err
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())["config"]
+    pendulum = resolve_preset("sac-pendulum")[1]
+    assert (saved["policy_delay"], saved["target_update_tau"]) == (pendulum.policy_delay, pendulum.target_update_tau)
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["iterations"] == 20
 
 
-def test_an_env_no_preset_knows_gets_the_keys_that_size_a_run(capfd):
+def test_a_sized_preset_on_an_env_no_preset_knows_gets_the_keys_that_size_a_run(capfd):
     from rlpipe.scripts.cli import main
 
     capfd.readouterr()
-    assert main(["train", "sac", "env=MountainCarContinuous-v0", "--keys"]) == 0
+    assert main(["train", "sac-pendulum", "env=MountainCarContinuous-v0", "--keys"]) == 0
     hints = [line for line in capfd.readouterr().err.splitlines() if line.startswith("rlpipe: hint:")]
     assert len(hints) == 1, hints
-    for key in ("actor_fc_layer_params", "critic_joint_fc_layer_params", "initial_collect_steps", "collector.sync"):
+    for key in ("actor_fc_layer_params", "critic_joint_fc_layer_params", "initial_collect_steps", "collector.sync",
+                "rlpipe train sac env=MountainCarContinuous-v0"):
         assert key in hints[0]
 
 

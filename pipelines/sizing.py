@@ -1,0 +1,309 @@
+"""A run sized from the env and the machine, for an env no preset is sized for.
+
+    rlpipe train env=Reacher-v5              # SAC (a Box action space), sized for Reacher-v5
+    rlpipe train sac env=Reacher-v5          # the same, the algorithm named
+
+    from rlpipe.pipelines import sizing
+    facts = sizing.measure(cfg)              # what the rule reads, from the env cfg.env names
+    config, why = sizing.sized_config("sac", facts)
+
+``measure`` records the facts: observation and action sizes, action bounds, the time limit, the random
+agent's return and episode length (5 episodes, seeded apart from any run, so the same on every call), and
+the CPUs. ``sized_config`` is a plain function of them, with no timing: the same facts give the same config,
+which the run writes to config.json as any other; ``why`` is the line ``rlpipe train`` prints first.
+
+The rule is what the sized presets learned on a 2-core CPU (their tries: BENCHMARKS.md, "Presets sized for
+a task"), written once for every env:
+
+- networks 64x64 (every sized preset: each halving of the width made the update ~4x cheaper for no more
+  env steps, on HalfCheetah and Minitaur), wider only for an observation wider than 64;
+- random steps enough for five random episodes, at least 1,000 and at most 5,000 (Pendulum and
+  InvertedPendulum 1,000; HalfCheetah 5,000, where 2,000 was no sooner);
+- one learner thread; no untrained evaluation or random baseline; exports at the end;
+- a body of one or two actuators (the pendulums) steps in the learner's process, with the pendulum
+  presets' faster target networks and larger learning rates (SAC: tau 0.02, 2e-3, the actor on every
+  second update; TD3: tau 0.05, 2e-3), which carried over from Pendulum to InvertedPendulum; a body of
+  three or more (HalfCheetah's 6, Minitaur's 8) steps in a collector process beside the learner when
+  there are two CPUs or more, with the HalfCheetah preset's learning rates 1e-3, tau 0.005 and (SAC)
+  target entropy -|A|;
+- DQN as the sized CartPole presets: learning rate 2.3e-3, gamma 0.99, epsilon 1.0 -> 0.04, the target
+  network copied every 20 updates, the env in the learner's process;
+- a budget of 100 episodes of the time limit, at least 50,000 and at most 1,000,000 env steps, with a
+  replay buffer that keeps them all.
+
+``resolve_for_env`` is what ``rlpipe train`` asks first: for ``env=ID`` with no preset, or a tutorial preset
+(``sac``, ``td3``, ``dqn``) pointed at another env, the preset sized for that env and algorithm where one
+exists, else the sized default; for anything else, nothing (the preset as named).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+from rlpipe.pipelines.config import CollectorConfig, TrainConfig, apply_overrides, flat_keys
+from rlpipe.pipelines.errors import InputError
+
+__all__ = ["EnvFacts", "Resolved", "measure", "resolve_for_env", "sized_config", "SIZED_ALGOS"]
+
+SIZED_ALGOS = ("sac", "td3", "dqn")
+"""the algorithms the rule sizes (CrossQ keeps its presets: it was sized on the pendulums and Minitaur only)"""
+RANDOM_EPISODES = 5
+"""episodes the random agent plays for the facts (the SAC presets' baseline_episodes)"""
+RANDOM_SEED = 20_000
+"""the random agent's seed for the facts: the baseline's offset (config.BASELINE_SEED_OFFSET) from seed 0"""
+NO_TIME_LIMIT_STEPS = 1000
+"""an episode of an env with no time limit is cut here when the random agent plays it"""
+
+
+@dataclass(frozen=True)
+class EnvFacts:
+    """What the rule reads about an env and the machine."""
+
+    env: str
+    """the env as config.env names it"""
+    discrete: bool
+    """a Discrete action space (else a Box)"""
+    observation_size: int
+    """entries of the observation the networks read"""
+    action_size: int
+    """a Box's dimensions, or a Discrete space's number of actions"""
+    action_low: tuple[float, ...] = ()
+    """a Box's lower bounds (empty for a Discrete space)"""
+    action_high: tuple[float, ...] = ()
+    """a Box's upper bounds"""
+    time_limit: int | None = None
+    """the env's max_episode_steps (None: none registered)"""
+    random_return: float = 0.0
+    """the random agent's mean return over RANDOM_EPISODES episodes"""
+    random_episode_length: float = 0.0
+    """the random agent's mean episode length (short where the env ends a failed episode early)"""
+    cpus: int = 1
+    """this machine's CPUs"""
+
+    def describe(self) -> str:
+        if self.discrete:
+            actions = f"{self.action_size} actions"
+        else:
+            low, high = set(self.action_low), set(self.action_high)
+            bounds = (f"in [{_g(min(low))}, {_g(max(high))}]" if len(low) == 1 and len(high) == 1
+                      else f"in [{_g(min(low))}..{_g(max(low))}, {_g(min(high))}..{_g(max(high))}]")
+            actions = f"act {self.action_size} {bounds}"
+        limit = f"{self.time_limit:,}-step episodes" if self.time_limit else "no time limit"
+        return (f"obs {self.observation_size}, {actions}, {limit}, random agent {self.random_return:,.1f} in "
+                f"{self.random_episode_length:,.0f} steps, {self.cpus} CPU{'s' if self.cpus != 1 else ''}")
+
+
+def _g(x: float) -> str:
+    return f"{x:g}"
+
+
+def measure(cfg: TrainConfig) -> EnvFacts:
+    """The facts of the env ``cfg`` makes (``cfg.env``, as the pipeline makes it) and of this machine."""
+    from rlpipe.envs import is_discrete
+    from rlpipe.pipelines.plugins import factory_and_env, observation_key_in
+
+    _, env = factory_and_env(None, cfg)
+    try:
+        spec = env.action_spec_unbatched
+        discrete = is_discrete(spec)
+        key = observation_key_in(env, None, cfg.env)
+        obs = int(math.prod(env.observation_spec[key].shape)) or 1
+        if discrete:
+            size, low, high = int(spec.space.n), (), ()
+        else:
+            size = int(spec.shape[-1])
+            low = tuple(float(v) for v in spec.space.low.flatten().tolist())
+            high = tuple(float(v) for v in spec.space.high.flatten().tolist())
+        limit, (ret, length) = _random_agent(env)
+    finally:
+        env.close()
+    return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1)
+
+
+def _random_agent(env) -> tuple[int | None, tuple[float, float]]:
+    """(time limit, (mean return, mean episode length)) of uniformly random actions over RANDOM_EPISODES
+    episodes: played on the gymnasium env under ``make_env``'s env where there is one (as evaluations are), else
+    through TorchRL's rollout; seeded with RANDOM_SEED, so every call plays the same episodes."""
+    import torch
+
+    from rlpipe.pipelines.workers.gym_collector import gym_env_of
+
+    gym_env = gym_env_of(env)
+    spec = getattr(gym_env, "spec", None) if gym_env is not None else None
+    limit = getattr(spec, "max_episode_steps", None)
+    cap = limit or NO_TIME_LIMIT_STEPS
+    returns, lengths = [], []
+    if gym_env is not None:
+        gym_env.action_space.seed(RANDOM_SEED)
+        for episode in range(RANDOM_EPISODES):
+            gym_env.reset(seed=RANDOM_SEED if episode == 0 else None)
+            total, steps, done = 0.0, 0, False
+            while not done and steps < cap:
+                _, reward, terminated, truncated, _ = gym_env.step(gym_env.action_space.sample())
+                total, steps, done = total + float(reward), steps + 1, terminated or truncated
+            returns.append(total)
+            lengths.append(steps)
+    else:
+        from torchrl.envs.utils import RandomPolicy
+
+        from rlpipe.pipelines.workers.evaluation import evaluate
+
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(RANDOM_SEED)
+            env.set_seed(RANDOM_SEED)
+            result = evaluate(env, RandomPolicy(env.full_action_spec), RANDOM_EPISODES, max_steps=cap)
+        returns = result["returns"]
+        lengths = [result["average_episode_length"]]
+    return limit, (sum(returns) / len(returns), sum(lengths) / len(lengths))
+
+
+def _round_up(x: float, unit: int) -> int:
+    return int(math.ceil(x / unit) * unit)
+
+
+def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
+    """The config the rule gives ``algo`` on the env of ``facts``, and one line saying what and why."""
+    from rlpipe.pipelines import pipeline_class
+
+    if algo not in SIZED_ALGOS:
+        raise InputError(f"the sized default is for {', '.join(SIZED_ALGOS)}; expected one of them, not {algo!r}")
+    Config = pipeline_class(algo).Config
+    width = 64 if facts.observation_size <= 64 else min(256, 2 ** math.ceil(math.log2(facts.observation_size)))
+    random_steps = min(5000, max(1000, _round_up(5 * facts.random_episode_length, 50)))
+    episode = facts.time_limit or NO_TIME_LIMIT_STEPS
+    budget = min(1_000_000, max(50_000, 100 * episode))
+    big_body = not facts.discrete and facts.action_size >= 3
+    in_process = not big_body or facts.cpus < 2
+    iterations = budget - random_steps
+    keys = dict(
+        env=facts.env, num_iterations=iterations, initial_collect_steps=random_steps, replay_buffer_capacity=budget,
+        initial_eval=False, baseline_episodes=0, live_report=not in_process, num_threads=1, num_eval_episodes=10,
+        eval_interval=max(1000, _round_up(iterations / 10, 1000)), log_interval=500 if budget <= 100_000 else 1000,
+        checkpoint_interval=min(25_000, iterations), policy_save_interval=iterations,
+        collector=CollectorConfig(workers=1, sync=in_process),
+    )
+    net = [width, width]
+    chosen = [f"{width}x{width}"]
+    if algo == "sac":
+        keys.update(actor_fc_layer_params=net, critic_joint_fc_layer_params=list(net))
+        if big_body:
+            rate, tau = 1e-3, 0.005
+            keys.update(target_entropy=-float(facts.action_size))
+            chosen += [f"lr {rate:g}", f"tau {tau:g}", f"target entropy -{facts.action_size}"]
+        else:
+            rate, tau = 2e-3, 0.02
+            keys.update(policy_delay=2)
+            chosen += [f"lr {rate:g}", f"tau {tau:g}", "the actor on every 2nd update"]
+        keys.update(actor_learning_rate=rate, critic_learning_rate=rate, alpha_learning_rate=rate, target_update_tau=tau)
+    elif algo == "td3":
+        rate, tau = (1e-3, 0.005) if big_body else (2e-3, 0.05)
+        keys.update(actor_fc_layer_params=net, critic_fc_layer_params=list(net), learning_rate=rate,
+                    target_update_tau=tau, learning_starts=random_steps)
+        chosen += [f"lr {rate:g}", f"tau {tau:g}"]
+    else:
+        decay = max(5000, _round_up(budget / 10, 1000))
+        keys.update(fc_layer_params=net, learning_rate=2.3e-3, gamma=0.99, epsilon_greedy=1.0, epsilon_greedy_end=0.04,
+                    epsilon_decay_steps=decay, target_update_period=20)
+        chosen += ["lr 0.0023", f"epsilon 1 -> 0.04 over {decay:,} steps"]
+    chosen += [f"{random_steps:,} random steps", f"{budget:,} env steps"]
+    where = ("env in the learner's process" if in_process else
+             f"env in a collector process ({facts.action_size} actuators; {facts.cpus} CPUs)")
+    cfg = Config(**keys)
+    line = f"sized for {facts.env}: {facts.describe()} -> {', '.join(chosen)}, {where} (pipelines/sizing.py)"
+    return cfg, line
+
+
+# --- what `rlpipe train` trains when it names an env -------------------------------------------------
+
+
+@dataclass
+class Resolved:
+    """What ``rlpipe train`` trains: the algorithm, the config before the command's overrides, the overrides
+    (``env=ID`` included), and the lines to print first (what was chosen, and why)."""
+
+    algo: str
+    config: TrainConfig
+    overrides: list[str]
+    lines: list[str]
+
+
+def _key(item: str) -> str:
+    return item.partition("=")[0].strip()
+
+
+def _env_overrides(overrides: list[str]) -> list[str]:
+    """The overrides that say which env to make (``env=``, and the keys of its making, ``env_*``)."""
+    return [o for o in overrides if _key(o) == "env" or _key(o).startswith("env_")]
+
+
+def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) -> Resolved | None:
+    """What ``rlpipe train NAME [overrides]`` trains when NAME is a ``key=value`` (no preset: ``env=ID``), or a
+    tutorial preset (``sac``, ``td3``, ``dqn``) with ``env=`` naming another env than its own; None otherwise.
+
+    - no algorithm: SAC for a Box action space, DQN for a Discrete one;
+    - then the preset sized for that env and algorithm if there is one (``sac env=Pendulum-v1`` trains
+      ``sac-pendulum``'s settings), else the sized default (``sized_config``).
+
+    With ``resume``, nothing is sized: the run's saved config is what it goes on with.
+    """
+    from rlpipe.pipelines import ALGOS, pipeline_class, preset_info, resolve_preset, sized_presets
+
+    no_algo = "=" in name and _key(name) in flat_keys(TrainConfig)
+    if no_algo:
+        overrides = [name, *overrides]
+        if not any(_key(o) == "env" for o in overrides):
+            raise InputError(f"rlpipe train {name}: no preset and no env; expected `rlpipe train PRESET [key=value ...]` "
+                             "or `rlpipe train env=ID [key=value ...]`")
+        algo = None
+    elif name in ALGOS and preset_info(name) is not None and not preset_info(name).sized:
+        algo = name
+    else:
+        return None
+    base = resolve_preset(algo or "sac")[1]
+    wanted = apply_overrides(base, _env_overrides(overrides))
+    if algo is not None and wanted.env == base.env:
+        return None  # the tutorial on its own env: as the tutorial specifies
+    facts = None
+    if algo is None:
+        facts = _facts_or_kind(wanted, resume)
+        algo = "dqn" if facts.discrete else "sac"
+        kind = f"a Discrete({facts.action_size})" if facts.discrete else f"a Box({facts.action_size})"
+        other = "" if facts.discrete else f"; `rlpipe train td3 env={wanted.env}` for TD3"
+        first = [f"rlpipe: training {algo.upper()}: {wanted.env} has {kind} action space "
+                 f"(SAC for a Box action space, DQN for a Discrete one{other})"]
+    else:
+        first = []
+    if resume:
+        return Resolved(algo, resolve_preset(algo)[1], overrides, [])
+    fits = [p for p in sized_presets(wanted.env) if resolve_preset(p)[0] == algo]
+    if fits:
+        info = preset_info(fits[0])
+        line = (f"rlpipe: {algo} on {wanted.env}: the settings of preset {fits[0]!r} ({info.task}), the preset "
+                f"sized for this env (`rlpipe train {fits[0]}`)")
+        return Resolved(algo, resolve_preset(fits[0])[1], overrides, [*first, line])
+    if algo not in SIZED_ALGOS:
+        return None  # CrossQ: its tutorial preset and the hint of what sizes a run
+    facts = facts or _facts_or_kind(wanted, resume)
+    if facts.discrete != (pipeline_class(algo).action_space == "discrete"):
+        return None  # the pipeline says, in its own line, which action space the algorithm needs
+    cfg, line = sized_config(algo, facts)
+    return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"])
+
+
+def _facts_or_kind(cfg: TrainConfig, resume: bool) -> EnvFacts:
+    """The env's facts; at a resume (nothing to size) only what the algorithm is chosen by."""
+    if not resume:
+        return measure(cfg)
+    from rlpipe.envs import is_discrete
+    from rlpipe.pipelines.plugins import factory_and_env
+
+    _, env = factory_and_env(None, cfg)
+    try:
+        spec = env.action_spec_unbatched
+        discrete = is_discrete(spec)
+        size = int(spec.space.n) if discrete else int(spec.shape[-1])
+    finally:
+        env.close()
+    return EnvFacts(cfg.env, discrete, 0, size)

@@ -1,0 +1,130 @@
+"""The sized default (pipelines/sizing.py): the rule as a function of an env's facts, the facts measured the same
+way every time, `rlpipe train env=ID` choosing the algorithm and saying what it chose, and the development suite
+in `rlpipe bench time-to-return`."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from rlpipe.pipelines import resolve_preset
+from rlpipe.pipelines.config import TrainConfig, apply_overrides, validate
+from rlpipe.pipelines.sizing import EnvFacts, measure, resolve_for_env, sized_config
+from rlpipe.scripts.bench import time_to_return as ttr
+
+REACHER = EnvFacts("Reacher-v5", False, 10, 2, (-1.0, -1.0), (1.0, 1.0), 50, -42.7, 50.0, 2)
+CHEETAH = EnvFacts("HalfCheetah-v5", False, 17, 6, (-1.0,) * 6, (1.0,) * 6, 1000, -300.0, 1000.0, 2)
+ACROBOT = EnvFacts("Acrobot-v1", True, 6, 3, (), (), 500, -500.0, 500.0, 2)
+# what `rlpipe train` runs in these tests: a few updates, nothing else
+TINY = ["num_iterations=20", "initial_collect_steps=50", "num_eval_episodes=1", "eval_interval=0", "log_interval=10",
+        "batch_size=16", "--no-progress"]
+
+
+@pytest.mark.unit
+def test_the_rule_sizes_a_small_body_in_the_learners_process_with_the_pendulum_presets_rates():
+    cfg, line = sized_config("sac", REACHER)
+    assert cfg.actor_fc_layer_params == cfg.critic_joint_fc_layer_params == [64, 64]
+    assert (cfg.actor_learning_rate, cfg.target_update_tau, cfg.policy_delay) == (2e-3, 0.02, 2)
+    assert cfg.initial_collect_steps == 1000  # five random episodes are 250 steps: at least 1,000
+    assert cfg.initial_collect_steps + cfg.num_iterations == cfg.replay_buffer_capacity == 50_000
+    assert (cfg.collector.workers, cfg.collector.sync, cfg.num_threads) == (1, True, 1)
+    validate(cfg)
+    for said in ("Reacher-v5", "obs 10", "act 2 in [-1, 1]", "50-step episodes", "-42.7", "64x64",
+                 "1,000 random steps", "env in the learner's process"):
+        assert said in line, (said, line)
+
+
+@pytest.mark.unit
+def test_the_rule_puts_a_many_jointed_body_in_a_collector_process_only_where_there_is_a_second_cpu():
+    cfg, line = sized_config("sac", CHEETAH)
+    assert (cfg.collector.workers, cfg.collector.sync) == (1, False) and "collector process" in line
+    assert (cfg.actor_learning_rate, cfg.target_update_tau, cfg.target_entropy) == (1e-3, 0.005, -6.0)
+    assert cfg.initial_collect_steps == 5000  # five 1,000-step random episodes
+    one_cpu, line = sized_config("sac", dataclasses.replace(CHEETAH, cpus=1))
+    assert one_cpu.collector.sync and "learner's process" in line
+    td3, _ = sized_config("td3", CHEETAH)
+    assert (td3.learning_rate, td3.target_update_tau, td3.learning_starts) == (1e-3, 0.005, 5000)
+
+
+@pytest.mark.unit
+def test_the_rule_is_a_function_of_the_facts_alone():
+    for algo, facts in (("sac", REACHER), ("td3", REACHER), ("sac", CHEETAH), ("dqn", ACROBOT)):
+        assert sized_config(algo, facts) == sized_config(algo, facts)
+    dqn, line = sized_config("dqn", ACROBOT)
+    assert (dqn.fc_layer_params, dqn.learning_rate, dqn.epsilon_greedy_end, dqn.target_update_period) == (
+        [64, 64], 2.3e-3, 0.04, 20)
+    assert dqn.initial_collect_steps == 2500 and "3 actions" in line
+
+
+def test_the_facts_are_measured_the_same_way_every_time():
+    cfg = apply_overrides(TrainConfig(), ["env=Reacher-v5"])
+    first, second = measure(cfg), measure(cfg)
+    assert first == second  # the random agent is seeded apart from any run
+    assert (first.observation_size, first.action_size, first.time_limit, first.discrete) == (10, 2, 50, False)
+    assert first.random_episode_length == 50 and first.random_return < 0
+
+
+def test_a_tutorial_preset_on_its_own_env_stays_the_tutorial():
+    assert resolve_for_env("sac", ["seed=3"]) is None
+    assert resolve_for_env("sac", ["env=MinitaurBulletEnv-v0"]) is None
+    assert resolve_for_env("sac-pendulum", ["env=Reacher-v5"]) is None  # a sized preset named: as named
+    assert resolve_for_env("td3", ["env=Pendulum-v1"]) is None  # the TD3 tutorial's own env
+    cartpole = resolve_for_env("dqn", ["env=CartPole-v1"])  # the env's sized preset of that algorithm
+    assert cartpole.config == resolve_preset("dqn-cartpole-v1-fast")[1] and "dqn-cartpole-v1-fast" in cartpole.lines[0]
+
+
+def _train(tmp_path, capfd, *argv):
+    from rlpipe.scripts.cli import main
+
+    capfd.readouterr()
+    code = main(["train", *argv, *TINY, "--out", str(tmp_path / "run")])
+    out, err = capfd.readouterr()
+    assert code == 0, err
+    algo, saved = (lambda d: (d["algo"], d["config"]))(json.loads((tmp_path / "run" / "config.json").read_text()))
+    return out.splitlines(), algo, saved
+
+
+def test_train_env_with_discrete_actions_picks_dqn_and_says_so_first(tmp_path, monkeypatch, capfd):
+    monkeypatch.chdir(tmp_path)
+    lines, algo, saved = _train(tmp_path, capfd, "env=Acrobot-v1")
+    assert algo == "dqn"
+    assert lines[0].startswith("rlpipe: training DQN: Acrobot-v1 has a Discrete(3) action space"), lines[:2]
+    assert lines[1].startswith("rlpipe: sized for Acrobot-v1: obs 6, 3 actions, 500-step episodes"), lines[:2]
+    sized, _ = sized_config("dqn", measure(apply_overrides(TrainConfig(), ["env=Acrobot-v1"])))
+    assert saved["learning_rate"] == sized.learning_rate and saved["fc_layer_params"] == sized.fc_layer_params
+    assert saved["num_iterations"] == 20  # the command's keys over the sized ones
+
+
+def test_train_env_with_box_actions_picks_sac_sized_for_the_env(tmp_path, monkeypatch, capfd):
+    monkeypatch.chdir(tmp_path)
+    lines, algo, saved = _train(tmp_path, capfd, "env=InvertedDoublePendulum-v5")
+    assert algo == "sac"
+    assert lines[0].startswith("rlpipe: training SAC: InvertedDoublePendulum-v5 has a Box(1) action space"), lines[:2]
+    assert "sized for InvertedDoublePendulum-v5: obs 9, act 1" in lines[1], lines[:2]
+    assert (saved["actor_fc_layer_params"], saved["target_update_tau"], saved["policy_delay"]) == ([64, 64], 0.02, 2)
+
+
+@pytest.mark.unit
+def test_the_bench_takes_the_development_suite_and_plays_the_sized_default_there():
+    assert set(ttr.DEV_SUITE) <= set(ttr.TASKS)
+    for name in ttr.DEV_SUITE:
+        task = ttr.TASKS[name]
+        assert not task.preset and task.fallback == (task.algo, (f"env={task.env}",)), name
+        assert set(task.peers) == {"sb3", "sbx"}
+    assert {ttr.TASKS[n].env for n in ttr.DEV_SUITE} == {"Reacher-v5", "Swimmer-v5", "InvertedDoublePendulum-v5",
+                                                         "LunarLanderContinuous-v3", "Acrobot-v1"}
+
+
+def test_the_bench_launches_the_sized_default_with_a_cap_from_its_random_steps(tmp_path):
+    from rlpipe.scripts.cli import _parser
+
+    args = _parser().parse_args(["bench", "time-to-return", "--tasks", "reacher-sac", "acrobot-dqn", "--seeds", "2", "--seed", "100",
+                                 "--peers", "sbx"])
+    ttr.check_args(args)  # the rlpipe side's config for each task resolves before any run
+    task = ttr.TASKS["reacher-sac"]
+    launch = ttr.rlpipe_launch(task, "rlpipe", 100, task.target, 10_000, tmp_path / "run", None, [])
+    assert launch.cmd[launch.cmd.index("train") + 1:][:2] == ["sac", "env=Reacher-v5"]
+    assert "num_iterations=9000" in launch.cmd  # 10,000 less the sized default's 1,000 random steps
+    assert "sized from the env" in launch.settings
