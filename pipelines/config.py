@@ -495,17 +495,26 @@ def apply_mapping(cfg, data: dict[str, Any]):
     the same errors. Validated without this machine's checks: a file may come from another machine, and the
     overrides given with it fix that (``apply_overrides`` checks the machine)."""
     keys = flat_keys(type(cfg))
-    conf = OmegaConf.structured(cfg)
-    for key, value in _leaves(data, keys):
+    leaves = list(_leaves(data, keys))
+    nested: dict[str, Any] = {}
+    for key, value in leaves:
         if key not in keys:
             raise _unknown_key(key, keys)
-        nested: Any = value
-        for part in reversed(key.split(".")):
-            nested = {part: nested}
-        try:
-            conf = OmegaConf.merge(conf, OmegaConf.create(nested))
-        except OmegaConfBaseException as exc:
-            raise InputError(f"{key}={value!r}: expected {_describe_type(cfg, key)}") from exc
+        *groups, leaf = key.split(".")
+        into = nested
+        for group in groups:
+            into = into.setdefault(group, {})
+        into[leaf] = value
+    base = OmegaConf.structured(cfg)
+    try:
+        conf = OmegaConf.merge(base, nested)  # in one merge: each merge copies the whole config
+    except OmegaConfBaseException as exc:
+        for key, value in leaves:  # the key whose value does not fit, for its line
+            try:
+                OmegaConf.update(base, key, value, merge=False)
+            except OmegaConfBaseException:
+                raise InputError(f"{key}={value!r}: expected {_describe_type(cfg, key)}") from exc
+        raise
     result = OmegaConf.to_object(conf)
     validate(result, machine=False)
     return result

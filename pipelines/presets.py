@@ -25,6 +25,7 @@ same one line, naming the file.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import functools
@@ -147,11 +148,15 @@ def read(name_or_path: str | os.PathLike) -> Preset:
         where = os.fspath(name_or_path)
         data = _parse(_read_file(path), where)
         name = path.name.rsplit(".", 1)[0] if path.name.endswith(SUFFIXES) else path.name
-    else:
-        source(name_or_path)  # an unknown name: its line
-        name, where = os.fspath(name_or_path), f"presets/{name_or_path}.yaml"
-        data = _catalogue()[name][1]
-    return _build(name, data, where)
+        return _build(name, data, where)
+    source(name_or_path)  # an unknown name: its line
+    shipped = _shipped_preset(name_or_path)
+    return dataclasses.replace(shipped, config=copy.deepcopy(shipped.config))  # a config of its own to change
+
+
+@functools.cache
+def _shipped_preset(name: str) -> Preset:
+    return _build(name, _catalogue()[name][1], f"presets/{name}.yaml")
 
 
 def load(name_or_path: str | os.PathLike) -> tuple[str, TrainConfig]:
@@ -162,12 +167,7 @@ def load(name_or_path: str | os.PathLike) -> tuple[str, TrainConfig]:
 
 def info(name_or_path: str | os.PathLike) -> PresetInfo | None:
     """The task a preset is for (env, targets, whether it is sized for time to them); None where its file says none."""
-    return read(name_or_path).info if is_file(name_or_path) else _shipped_info(name_or_path)
-
-
-@functools.cache
-def _shipped_info(name: str) -> PresetInfo | None:
-    return read(name).info
+    return read(name_or_path).info
 
 
 def save(path: str | os.PathLike, algo: str, config: TrainConfig, info: PresetInfo | None = None,

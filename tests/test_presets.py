@@ -7,12 +7,15 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import re
+from pathlib import Path
 
 import pytest
+import yaml
 
 import rlpipe.envs  # noqa: F401  (registers MinitaurBulletEnv-v0)
 from rlpipe.pipelines import device_hint, pipeline_class, preset_info, presets, resolve_preset, size_hint, sized_presets
-from rlpipe.pipelines.config import apply_overrides
+from rlpipe.pipelines.config import PresetInfo, apply_overrides
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -143,3 +146,149 @@ def test_sac_pendulum_learns_within_a_few_thousand_steps(tmp_path):
     cfg = apply_overrides(cfg, ["num_iterations=4000", "eval_interval=4000"])
     result = pipeline_class(algo)(cfg).train(tmp_path / "run", progress=False)
     assert result.summary["final_average_return"] > -400, result.summary
+
+
+# --- presets as files: presets/NAME.yaml, a user's own file, `rlpipe presets --show`, `rlpipe train my.yaml` ---
+
+SNAPSHOT = Path(__file__).parent / "data" / "presets_resolved.json"
+"""every preset's algo, config (``dataclasses.asdict``) and info as the Python preset functions made them, taken
+before the presets became files"""
+BENCHMARKS = Path(__file__).resolve().parents[1] / "BENCHMARKS.md"
+
+
+def _with_defaults(defaults, snapshot):
+    """``snapshot`` with a key added to the config since it was taken at its default (a group's keys too)."""
+    if not (isinstance(defaults, dict) and isinstance(snapshot, dict)):
+        return snapshot
+    return {**{key: _with_defaults(value, snapshot[key]) if key in snapshot else value for key, value in defaults.items()},
+            **{key: value for key, value in snapshot.items() if key not in defaults}}
+
+
+def test_each_preset_file_resolves_to_the_settings_it_had_as_python():
+    snapshot = json.loads(SNAPSHOT.read_text())
+    assert set(presets.names()) == set(snapshot)
+    for name, before in snapshot.items():
+        algo, cfg = resolve_preset(name)
+        as_data = json.loads(json.dumps(dataclasses.asdict(cfg)))
+        defaults = json.loads(json.dumps(dataclasses.asdict(type(cfg)())))
+        assert algo == before["algo"], name
+        assert as_data == _with_defaults(defaults, before["config"]), name
+        assert json.loads(json.dumps(dataclasses.asdict(preset_info(name)))) == before["info"], name
+        assert pipeline_class(algo).preset(name) == cfg and name in pipeline_class(algo).presets
+
+
+def test_each_preset_file_says_what_it_is_for_and_where_its_figures_are():
+    lines = BENCHMARKS.read_text().splitlines()
+    headings = [line.lstrip("#").strip() for line in lines if line.startswith("#")]
+    notes = lines[lines.index("## Preset tuning notes"):]
+    noted = " ".join(line for line in notes if line.startswith("### "))
+    for name in presets.names():
+        first = presets.text(name).splitlines()[0]
+        assert first.startswith(f"# {name}: "), first
+        figures = re.search(r'figures: BENCHMARKS\.md, "(.+)"$', first)
+        assert figures or first.endswith("not timed here"), first
+        if figures:
+            assert any(h.startswith(figures.group(1)) for h in headings), f"{name}: no heading {figures.group(1)!r}"
+        assert re.search(rf"(### |and ){re.escape(name)}( |$)", noted), f"no tuning notes for {name}"
+
+
+def test_a_preset_of_your_own_round_trips_through_save_and_load(tmp_path):
+    algo, cfg = resolve_preset("sac-pendulum")
+    mine = apply_overrides(cfg, ["env=InvertedPendulum-v5", "actor_fc_layer_params=[32,32]", "target_entropy=-0.5",
+                                 "actor_learning_rate=1e-05", "collector.frames_per_batch=8"])
+    info = PresetInfo("InvertedPendulum-v5", (900.0,), "sized for time to 900", sized=True)
+    path = presets.save(tmp_path / "runs" / "mine.yaml", algo, mine, info=info, comment="mine: my tries\nseed 3")
+    assert presets.load(path) == (algo, mine) and presets.load(str(path)) == (algo, mine)
+    assert presets.info(path) == info and preset_info(str(path)) == info
+    text = path.read_text()
+    assert text.startswith("# mine: my tries\n# seed 3\nalgo: sac\n"), text
+    written = yaml.safe_load(text)["config"]  # only what differs from SACConfig's defaults, a group as a mapping
+    assert written["collector"] == {"frames_per_batch": 8} and written["actor_fc_layer_params"] == [32, 32]
+    assert written["actor_learning_rate"] == 1e-05 and "batch_size" not in written and "seed" not in written
+    plain = presets.save(tmp_path / "plain.yaml", "td3", pipeline_class("td3").Config())
+    assert yaml.safe_load(plain.read_text()) == {"algo": "td3", "config": {}}
+    assert presets.load(plain) == ("td3", pipeline_class("td3").Config()) and presets.info(plain) is None
+
+
+def test_rlpipe_presets_show_prints_the_file_and_a_copy_of_it_is_the_preset(tmp_path, capsys):
+    from rlpipe.scripts.cli import main
+
+    assert main(["presets", "--show", "td3-pendulum"]) == 0
+    shown = capsys.readouterr().out
+    assert shown == presets.text("td3-pendulum") and shown.startswith("# td3-pendulum: ")
+    (tmp_path / "copy.yaml").write_text(shown)
+    assert presets.load(tmp_path / "copy.yaml") == resolve_preset("td3-pendulum")
+
+
+BAD_FILES = {
+    # name: (the file's text (None: no file), words its one line names besides the file)
+    "missing": (None, ["no such preset file"]),
+    "not-yaml": ("algo: sac\nconfig: [1, 2\n", ["not valid YAML", "line 3"]),
+    "a-list": ("- algo: sac\n", ["list", "mapping"]),
+    "unknown-algo": ("algo: ppo\n", ["ppo", "sac"]),
+    "no-algo": ("config: {batch_size: 3}\n", ["algo", "sac"]),
+    "top-level-config-key": ("algo: sac\nbatch_size: 3\n", ["'batch_size'", "config:"]),
+    "unknown-key": ("algo: dqn\nconfig:\n  batchsize: 3\n", ["batchsize", "batch_size"]),
+    "unknown-group-key": ("algo: td3\nconfig:\n  collector: {workerz: 2}\n", ["collector.workerz", "collector.workers"]),
+    "group-not-a-mapping": ("algo: td3\nconfig:\n  collector: 2\n", ["collector=2", "mapping"]),
+    "ill-typed": ("algo: dqn\nconfig:\n  batch_size: abc\n", ["batch_size", "integer"]),
+    "zero-batch": ("algo: dqn\nconfig:\n  batch_size: 0\n", ["batch_size=0", "positive"]),
+    "key-twice": ("algo: dqn\nconfig:\n  batch_size: 3\n  batch_size: 4\n", ["batch_size", "twice"]),
+    "bad-info": ("algo: dqn\ninfo: {env: CartPole-v0, targets: high}\n", ["info.targets", "list"]),
+}
+SAME_AS_OVERRIDE = {"unknown-key": "batchsize=3", "ill-typed": "batch_size=abc", "zero-batch": "batch_size=0"}
+
+
+@pytest.mark.parametrize("name", list(BAD_FILES))
+def test_a_bad_preset_file_is_one_line_naming_it_and_exit_2(name, tmp_path, monkeypatch, capfd):
+    from rlpipe.scripts.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    text, words = BAD_FILES[name]
+    if text is not None:
+        (tmp_path / "mine.yaml").write_text(text)
+    capfd.readouterr()
+    for argv in (["train", "mine.yaml", "--out", "new"], ["train", "mine.yaml", "--keys"], ["presets", "--show", "mine.yaml"]):
+        code = main(argv)
+        lines = capfd.readouterr().err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, (argv, lines)
+        assert lines[0].startswith("rlpipe: error: mine.yaml: "), lines[0]
+        for word in words:
+            assert word in lines[0], (word, lines[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ([] if text is None else ["mine.yaml"])  # nothing written
+    if name in SAME_AS_OVERRIDE:  # the line the same key=value on the command line gets
+        assert main(["train", "dqn", SAME_AS_OVERRIDE[name], "--out", "new"]) == 2
+        assert lines[0].replace("mine.yaml: ", "") == capfd.readouterr().err.strip()
+
+
+def test_rlpipe_train_a_preset_file_with_overrides_on_top(tmp_path, monkeypatch, capfd):
+    from rlpipe.scripts.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "tiny.yaml").write_text(
+        "# tiny: Pendulum-v1 in a few iterations\n"
+        "algo: sac\n"
+        "config:\n"
+        "  env: Pendulum-v1\n"
+        "  num_iterations: 20\n"
+        "  initial_collect_steps: 50\n"
+        "  actor_fc_layer_params: [16]\n"
+        "  critic_joint_fc_layer_params: [16]\n"
+        "  actor_learning_rate: 2e-3\n"
+        "  num_eval_episodes: 1\n"
+        "  initial_eval: false\n"
+        "  baseline_episodes: 0\n"
+        "  eval_in_background: false\n"
+        "  live_report: false\n"
+        "  num_threads: 1\n"
+        "  collector: {workers: 1, sync: true}\n")
+    capfd.readouterr()
+    assert main(["train", "tiny.yaml", "num_iterations=30", "--keys"]) == 0
+    keys = capfd.readouterr().out
+    assert "num_iterations=30\n" in keys and "actor_fc_layer_params=[16]\n" in keys and "actor_learning_rate=0.002\n" in keys
+    code = main(["train", "tiny.yaml", "num_iterations=30", "--out", "run", "--no-progress"])
+    err = capfd.readouterr().err
+    assert code == 0, err
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["algo"] == "sac" and saved["config"]["critic_joint_fc_layer_params"] == [16], saved
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["iterations"] == 30
