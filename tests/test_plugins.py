@@ -430,7 +430,8 @@ def test_building_and_training_leave_threads_and_the_callers_random_state_alone(
         torch.set_num_threads(1)
 
 
-def test_a_broken_pipeline_module_is_an_import_error_not_an_unknown_preset(monkeypatch):
-    monkeypatch.setitem(pipelines.ALGOS, "dqn", "rlpipe.pipelines.no_such_module:Broken")
+def test_a_broken_pipeline_module_is_an_import_error_not_an_unknown_preset(monkeypatch, tmp_path):
+    monkeypatch.setitem(pipelines.ALGOS, "broken", "rlpipe.pipelines.no_such_module:Broken")
+    (tmp_path / "broken.yaml").write_text("algo: broken\n")
     with pytest.raises(ModuleNotFoundError):
-        pipelines.resolve_preset("dqn")
+        pipelines.resolve_preset(str(tmp_path / "broken.yaml"))
