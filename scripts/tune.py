@@ -27,6 +27,7 @@ import fcntl
 import functools
 import json
 import re
+import signal
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -109,26 +110,43 @@ def make_plan(args) -> Plan:
         raise InputError("no env: expected env=ID (a gymnasium id, or module:Class)")
     resolve_env_id(env[-1])
     overrides = [o for o in args.overrides if not o.startswith(("env=", "ray.address="))]
+    out = args.out or Path("runs") / f"tune-{'-'.join(algos)}-{_slug(env[-1])}"
+    check_output_dir(out)
     ray_address = next((o.split("=", 1)[1] for o in reversed(args.overrides) if o.startswith("ray.address=")), None)
     for name, value, least in (("--seeds", args.seeds, 2), ("--workers", args.workers, 1),
                                ("--confirm-seeds", args.confirm_seeds, 0), ("--trials", args.trials or 1, 1)):
         if value < least:
             raise InputError(f"{name}={value}: expected an integer of at least {least}")
     budget = parse_budget(args.budget)
-    cap = args.cap if args.cap is not None else max(60.0, budget / 10)
-    penalty = args.penalty if args.penalty is not None else cap
+    saved = _saved_settings(out)
+    cap = args.cap if args.cap is not None else saved.get("cap_s", max(60.0, budget / 10))
+    penalty = args.penalty if args.penalty is not None else saved.get("penalty_s", cap)
     if not cap > 0 or penalty < 0:
         raise InputError(f"--cap {cap:g} --penalty {penalty:g}: expected a positive cap and a penalty of at least 0 seconds")
     for algo in algos:
         base_config(algo, env[-1], overrides)  # an unknown key or a bad value: its own line
-    out = args.out or Path("runs") / f"tune-{'-'.join(algos)}-{_slug(env[-1])}"
-    check_output_dir(out)
     if ray_address:
         from rlpipe.pipelines.workers.ray_runtime import check_address
 
         check_address(ray_address)
     return Plan(algos, env[-1], float(args.target), overrides, args.seeds, cap, penalty, budget, args.workers,
                 args.trials, args.confirm_seeds, out.resolve(), ray_address)
+
+
+def _saved_settings(out: Path) -> dict[str, Any]:
+    """The settings of the study stored in ``out`` ({} for none), read without changing it: a rerun keeps the
+    study's --cap and --penalty unless it names them."""
+    import sqlite3
+
+    db = out / "study.db"
+    if not db.exists():
+        return {}
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as conn:
+            row = conn.execute("SELECT value_json FROM study_user_attributes WHERE key = 'settings'").fetchone()
+    except sqlite3.Error:
+        return {}
+    return json.loads(row[0]) if row else {}
 
 
 def _slug(env: str) -> str:
@@ -186,7 +204,7 @@ def requeue_cut_short(study) -> list[int]:
 
     done = set(study.user_attrs.get("requeued", []))
     cut = [t for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING, TrialState.FAIL))
-           if t.number not in done]
+           if t.number not in done and not t.user_attrs.get("refused")]
     for t in cut:
         if t.state == TrialState.RUNNING:  # its tuner died: one tuner holds the study at a time (the lock)
             study._storage.set_trial_state_values(t._trial_id, TrialState.FAIL)
@@ -230,12 +248,23 @@ def launch_trial(study, plan: Plan, number_of_processes: int, seeds: list[int], 
 
 def search(study, plan: Plan, stop) -> list:
     """Ask, run and tell trials until the budget or ``--trials`` is spent; returns the trials running when a stop
-    signal came (ended, and told as failed)."""
-    from rlpipe.pipelines.system.runtime import fault_point
-
+    signal came (ended, and told as failed: a rerun runs them again)."""
     spent_before = float(study.user_attrs.get("spent_s", 0.0))
     began = time.time()
     running: list = []
+    try:
+        _search(study, plan, stop, running, spent_before, began)
+    except BaseException:  # a second stop signal, or a failure: no run outlives the loop
+        _cut_short(study, running, signal.SIGKILL)
+        raise
+    _cut_short(study, running, signal.SIGTERM)
+    study.set_user_attr("spent_s", spent_before + time.time() - began)
+    return running
+
+
+def _search(study, plan: Plan, stop, running: list, spent_before: float, began: float) -> None:
+    from rlpipe.pipelines.system.runtime import fault_point
+
     processes = plan.workers * plan.seeds
     while True:
         spent = spent_before + time.time() - began
@@ -248,19 +277,20 @@ def search(study, plan: Plan, stop) -> list:
             print(f"trial {trial.number}: {trial_runs.algo} {' '.join(trial_runs.overrides)}", flush=True)
             fault_point("tune_trial", trial.number)  # tests: a stop signal while a trial runs
         if stop.requested or not running:
-            break
+            return
         time.sleep(POLL_S)
         for trial_runs in list(running):
             if trial_runs.poll():
                 running.remove(trial_runs)
                 tell(study, plan, trial_runs)
         study.set_user_attr("spent_s", spent_before + time.time() - began)
+
+
+def _cut_short(study, running: list, sig: int) -> None:
     for trial_runs in running:
-        trial_runs.stop()
+        trial_runs.stop(sig)
         trial_runs.close()
         study.tell(trial_runs.trial, state=_state("FAIL"))
-    study.set_user_attr("spent_s", spent_before + time.time() - began)
-    return running
 
 
 def _state(name: str):
@@ -282,6 +312,7 @@ def tell(study, plan: Plan, trial_runs) -> None:
         print(f"trial {trial.number}: pruned at {trial_runs.reported} s (behind the best trial's curve)", flush=True)
         return
     if all(r["rc"] == 2 for r in results):  # every seed refused its input: the settings, not the luck
+        trial.set_user_attr("refused", True)  # not asked again on a rerun
         study.tell(trial, state=_state("FAIL"))
         raise InputError(f"trial {trial.number}'s runs refused their input: {results[0].get('error', '')} "
                          f"(log: {results[0]['log']})")

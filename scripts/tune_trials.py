@@ -10,6 +10,7 @@ and ``BehindBestPruner`` stops a trial whose curve falls behind the best finishe
 from __future__ import annotations
 
 import csv
+import functools
 import os
 import signal
 import statistics
@@ -24,6 +25,7 @@ import optuna
 from rlpipe.scripts.bench.time_to_return import Launch, timed_result
 
 STOP_TIMEOUT_S = 30.0
+PR_SET_PDEATHSIG = 1
 
 
 class SeedRun:
@@ -43,7 +45,8 @@ class SeedRun:
             out.flush()
             self.start = time.time()
             self.proc = subprocess.Popen(self.launch.cmd, stdout=out, stderr=subprocess.STDOUT, env=self.launch.env,
-                                         cwd=self.launch.cwd, start_new_session=True)
+                                         cwd=self.launch.cwd, start_new_session=True,
+                                         preexec_fn=None if _ray_node() else _ending_with_parent())
 
     def done(self) -> bool:
         """Whether the run has ended; one past its cap is stopped here (as Ctrl-C stops it: a run that met the
@@ -85,6 +88,21 @@ class SeedRun:
         """The bench's figures of the ended run (``seconds`` to the target, None where not reached)."""
         result = timed_result(self.launch, self.log, self.proc.returncode, self.start, self.end)
         return {**result, "capped": self.capped, "node": _ray_node()}
+
+
+@functools.cache
+def _ending_with_parent():
+    """What a run's process calls before it starts (Linux): SIGTERM to it when the tuner dies, so a tuner that
+    crashed or was killed leaves no run going (the run is in a session of its own, which no terminal signal
+    reaches). None elsewhere: there a crashed tuner's runs end at their own step cap."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        prctl = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True).prctl
+    except (OSError, AttributeError, TypeError):
+        return None
+    return lambda: prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def _ray_node() -> str | None:
