@@ -99,8 +99,9 @@ def _g(x: float) -> str:
     return f"{x:g}"
 
 
-def measure(cfg: TrainConfig) -> EnvFacts:
-    """The facts of the env ``cfg`` makes (``cfg.env``, as the pipeline makes it) and of this machine."""
+def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
+    """The facts of the env ``cfg`` makes (``cfg.env``, as the pipeline makes it) and of this machine; with
+    ``play=False`` its spaces only (no time limit, no random agent: what the algorithm is chosen by)."""
     from rlpipe.envs import is_discrete
     from rlpipe.pipelines.plugins import factory_and_env, observation_key_in
 
@@ -116,7 +117,7 @@ def measure(cfg: TrainConfig) -> EnvFacts:
             size = int(spec.shape[-1])
             low = tuple(float(v) for v in spec.space.low.flatten().tolist())
             high = tuple(float(v) for v in spec.space.high.flatten().tolist())
-        limit, (ret, length) = _random_agent(env)
+        limit, (ret, length) = _random_agent(env) if play else (None, (0.0, 0.0))
     finally:
         env.close()
     return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1)
@@ -265,13 +266,13 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
     wanted = apply_overrides(base, _env_overrides(overrides))
     if algo is not None and wanted.env == base.env:
         return None  # the tutorial on its own env: as the tutorial specifies
-    facts = None
+    kind = None
     if algo is None:
-        facts = _facts_or_kind(wanted, resume)
-        algo = "dqn" if facts.discrete else "sac"
-        kind = f"a Discrete({facts.action_size})" if facts.discrete else f"a Box({facts.action_size})"
-        other = "" if facts.discrete else f"; `rlpipe train td3 env={wanted.env}` for TD3"
-        first = [f"rlpipe: training {algo.upper()}: {wanted.env} has {kind} action space "
+        kind = measure(wanted, play=False)
+        algo = "dqn" if kind.discrete else "sac"
+        space = f"a Discrete({kind.action_size})" if kind.discrete else f"a Box({kind.action_size})"
+        other = "" if kind.discrete else f"; `rlpipe train td3 env={wanted.env}` for TD3"
+        first = [f"rlpipe: training {algo.upper()}: {wanted.env} has {space} action space "
                  f"(SAC for a Box action space, DQN for a Discrete one{other})"]
     else:
         first = []
@@ -285,25 +286,8 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
         return Resolved(algo, resolve_preset(fits[0])[1], overrides, [*first, line])
     if algo not in SIZED_ALGOS:
         return None  # CrossQ: its tutorial preset and the hint of what sizes a run
-    facts = facts or _facts_or_kind(wanted, resume)
-    if facts.discrete != (pipeline_class(algo).action_space == "discrete"):
+    kind = kind or measure(wanted, play=False)
+    if kind.discrete != (pipeline_class(algo).action_space == "discrete"):
         return None  # the pipeline says, in its own line, which action space the algorithm needs
-    cfg, line = sized_config(algo, facts)
+    cfg, line = sized_config(algo, measure(wanted))
     return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"])
-
-
-def _facts_or_kind(cfg: TrainConfig, resume: bool) -> EnvFacts:
-    """The env's facts; at a resume (nothing to size) only what the algorithm is chosen by."""
-    if not resume:
-        return measure(cfg)
-    from rlpipe.envs import is_discrete
-    from rlpipe.pipelines.plugins import factory_and_env
-
-    _, env = factory_and_env(None, cfg)
-    try:
-        spec = env.action_spec_unbatched
-        discrete = is_discrete(spec)
-        size = int(spec.space.n) if discrete else int(spec.shape[-1])
-    finally:
-        env.close()
-    return EnvFacts(cfg.env, discrete, 0, size)
