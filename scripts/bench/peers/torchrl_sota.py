@@ -17,7 +17,9 @@ first on the runner's ``PYTHONPATH``. The runner, ``ttr_torchrl.py`` beside this
 unchanged with Hydra overrides for the env id, the seed (SAC's and TD3's ``env.seed``; the DQN script has
 none), the frame budget (the task's cap) and the logging switches (no W&B; Hydra's run folder is the run's own).
 Everything else is the published config, its random frames, batch sizes, env workers and periodic
-evaluation included.
+evaluation included. It runs on the torch peers' one thread (``--threads torchrl=N`` for another count);
+under SAC's and TD3's configs TorchRL's ``ParallelEnv`` of 8 env workers sets the learner's torch threads to
+the count less 8 workers, at least 1, whatever it is given.
 """
 
 from __future__ import annotations
