@@ -214,6 +214,10 @@ def _read_file(path: Path) -> str:
     try:
         return path.read_text(encoding="utf-8")
     except FileNotFoundError:
+        stem = path.name.rsplit(".", 1)[0]
+        if stem in names():
+            raise InputError(f"{path}: no such preset file; expected a preset file, or a preset's name such as "
+                             f"{stem} (the shipped {stem!r}: rlpipe train {stem})") from None
         raise InputError(f"{path}: no such preset file; expected a YAML preset file (`rlpipe presets --show sac` "
                          "prints one) or a preset's name (`rlpipe presets` lists them)") from None
     except (OSError, UnicodeDecodeError) as exc:
