@@ -28,8 +28,8 @@ a task"), written once for every env:
   target entropy -|A|;
 - DQN as the sized CartPole presets: learning rate 2.3e-3, gamma 0.99, epsilon 1.0 -> 0.04, the target
   network copied every 20 updates, the env in the learner's process;
-- a budget of 100 episodes of the time limit, at least 50,000 and at most 1,000,000 env steps, with a
-  replay buffer that keeps them all.
+- a budget of 100 episodes of the time limit (of the random agent's episodes where the env has none), at
+  least 50,000 and at most 1,000,000 env steps, with a replay buffer that keeps them all.
 
 ``resolve_for_env`` is what ``rlpipe train`` asks first: for ``env=ID`` with no preset, or a tutorial preset
 (``sac``, ``td3``, ``dqn``) pointed at another env, the preset sized for that env and algorithm where one
@@ -173,7 +173,7 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     Config = pipeline_class(algo).Config
     width = 64 if facts.observation_size <= 64 else min(256, 2 ** math.ceil(math.log2(facts.observation_size)))
     random_steps = min(5000, max(1000, _round_up(5 * facts.random_episode_length, 50)))
-    episode = facts.time_limit or NO_TIME_LIMIT_STEPS
+    episode = facts.time_limit or max(1, round(facts.random_episode_length))  # no limit: as long as it lasts
     budget = min(1_000_000, max(50_000, 100 * episode))
     big_body = not facts.discrete and facts.action_size >= 3
     in_process = not big_body or facts.cpus < 2
