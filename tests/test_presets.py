@@ -8,6 +8,8 @@ import csv
 import dataclasses
 import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -292,3 +294,14 @@ def test_rlpipe_train_a_preset_file_with_overrides_on_top(tmp_path, monkeypatch,
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
     assert saved["algo"] == "sac" and saved["config"]["critic_joint_fc_layer_params"] == [16], saved
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["iterations"] == 30
+
+
+def test_rlpipe_train_a_bad_preset_file_as_a_process_exits_2_with_one_line(tmp_path):
+    (tmp_path / "mine.yaml").write_text("algo: td3\nconfig:\n  collector: {workerz: 2}\n")
+    rlpipe = Path(sys.executable).parent / "rlpipe"
+    proc = subprocess.run([str(rlpipe), "train", "mine.yaml", "--out", "new"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        "rlpipe: error: mine.yaml: unknown config key 'collector.workerz'; closest valid keys: collector.workers, "
+        "collector.envs_per_worker, collector.direct"], proc.stderr
+    assert not (tmp_path / "new").exists()
