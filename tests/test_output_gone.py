@@ -204,10 +204,10 @@ def test_ctrl_c_while_the_command_imports_is_one_line(tmp_path):
 
 @pytest.fixture
 def tiny_disk(tmp_path):
-    """A 1 MiB file system of its own (tmpfs), to fill; skipped where mounting is not allowed."""
+    """A 4 MiB file system of its own (tmpfs), to fill; skipped where mounting is not allowed."""
     mount = tmp_path / "disk"
     mount.mkdir()
-    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)], capture_output=True)
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(mount)], capture_output=True)
     if made.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {made.stderr.decode().strip()}")
     try:
@@ -216,15 +216,56 @@ def tiny_disk(tmp_path):
         subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
+def fill(disk: Path, leave_pages: int = 0) -> Path:
+    """Fill ``disk`` but for ``leave_pages`` pages of 4 KiB; the file that fills it."""
+    filler = disk / "filler"
+    with filler.open("wb") as fh:
+        with contextlib.suppress(OSError):
+            while True:
+                fh.write(b"\0" * (1 << 16))
+                fh.flush()
+    os.truncate(filler, max(0, filler.stat().st_size // 4096 - leave_pages) * 4096)
+    return filler
+
+
+def one_line(err: str) -> str:
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert "Traceback" not in err and len(lines) == 1, f"expected one line on stderr, got:\n{err}"
+    return lines[0]
+
+
 def test_a_checkpoint_that_fills_the_disk_says_so_naming_its_file(tiny_disk):
     """torch's writer fails on a full disk with its own error ("[enforce fail at inline_container.cc] unexpected
     pos"): the checkpoint's error is the disk's, one line naming the file, and the previous checkpoint stays."""
     folder = tiny_disk / "checkpoints"
     ckpt.save_checkpoint(folder, 1, {"w": torch.zeros(1000)})
     with pytest.raises(FileWriteError) as raised:
-        ckpt.save_checkpoint(folder, 2, {"w": torch.zeros(1 << 20)})  # 4 MiB
+        ckpt.save_checkpoint(folder, 2, {"w": torch.zeros(2 << 20)})  # 8 MiB
     line = str(raised.value)
     assert raised.value.errno == errno.ENOSPC and len(line.splitlines()) == 1, line
     assert "No space left on device" in line and "step_0000000002/state.pt" in line and "enforce" not in line, line
     assert ckpt.latest_checkpoint(folder).name == "step_0000000001"
     assert sorted(p.name for p in folder.iterdir()) == ["latest", "step_0000000001"]
+
+
+@pytest.mark.slow
+def test_a_disk_that_fills_after_the_summary_leaves_the_page_to_resume(tiny_disk):
+    """The disk fills after the run's last checkpoint, with room left for summary.json but not for the report
+    page: the run says so in one line (the page's failure, not that of the checkpoint it then tries: torch's own
+    error there), and once there is room, ``--resume`` writes the page it owes."""
+    run = tiny_disk / "run"
+    proc = start([*RUN, "--no-progress"], run, fault=f"checkpoint.latest@{N}:SIGSTOP",
+                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    wait_held(proc)
+    filler = fill(tiny_disk, leave_pages=3)  # summary.json (one page), not returns.png (~30 KB)
+    status = let_go(proc)
+    line = one_line(proc.stderr.read())
+    assert status == 2 and "No space left on device" in line and f"--resume {run}" in line, line
+    assert not (run / "report.html").exists()
+
+    filler.unlink()
+    resumed = subprocess.run([ENTRY_POINT, *RUN, "--resume", str(run), "--no-progress"], cwd=tiny_disk,
+                             capture_output=True, text=True, timeout=DEADLINE_S)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "report.html" in resumed.stderr, resumed.stderr  # it says what it did
+    assert_finished(run)

@@ -26,6 +26,7 @@ from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.training.arithmetic import NOT_ARITHMETIC, arithmetic_record, changed_arithmetic
 from rlpipe.pipelines.training.loop import Loop, TrainResult
 from rlpipe.pipelines.training.meters import Clock
+from rlpipe.pipelines.training.page import ReportPage
 from rlpipe.pipelines.training.state import EVAL, RunState
 from rlpipe.pipelines.training.threads import choose_threads, torch_threads
 from rlpipe.pipelines.training.triggers import Trigger, default_triggers
@@ -204,15 +205,21 @@ class Run:
         return state.iteration >= cfg.num_iterations or not changed_keys(run.read_config()[1], config_to_dict(cfg))
 
     def _unchanged(self, run: RunDir) -> TrainResult:
-        """What ``train`` hands back for a finished run resumed with nothing owed, after saying so: its own files."""
+        """What ``train`` hands back for a finished run resumed with nothing owed, after saying so: its own files,
+        and its report page where the run's end could not write it (the disk full after summary.json)."""
         cfg, iteration = self.pipeline.config, self.pipeline.state.iteration
         done = (f"finished all {cfg.num_iterations:,} iterations" if iteration >= cfg.num_iterations
                 else f"finished at iteration {iteration:,} of {cfg.num_iterations:,}")
-        notice(f"{run.path} {done} and owes nothing: nothing changed (to train on, resume with a larger "
-               f"num_iterations=N)")
         rows = MetricsCSV.read_rows(run.metrics_path)
         summary = json.loads(run.summary_path.read_text())
         evaluations = [evaluation_of(r) for r in rows if r.get("average_return") not in ("", None)]
+        page = _page_behind(run)
+        if page is not None:
+            ReportPage(run.path, evaluations, title=f"{self.pipeline.algo} on {cfg.env}").write(running=False)
+            notice(f"{run.path} {done}; it owed only its report page, which its end could not write: {page}")
+        else:
+            notice(f"{run.path} {done} and owes nothing: nothing changed (to train on, resume with a larger "
+                   f"num_iterations=N)")
         return TrainResult(policy=self.pipeline.policy, run_dir=run.path, metrics=rows, summary=summary,
                            evaluations=evaluations)
 
@@ -249,6 +256,18 @@ def _opened(run: RunDir, then: Callable[[RunDir], tuple]) -> tuple:
     except BaseException:
         run.close()
         raise
+
+
+def _page_behind(run: RunDir) -> Path | None:
+    """The run's report page where it is missing or older than its summary.json (a finished run writes it right
+    after, from the summary: that write failed), else None."""
+    from rlpipe.pipelines.analysis.pages import REPORT_FILE
+
+    page = run.path / REPORT_FILE
+    try:
+        return page if page.stat().st_mtime_ns < run.summary_path.stat().st_mtime_ns else None
+    except FileNotFoundError:
+        return page
 
 
 def changed_keys(saved: dict, current: dict, prefix: str = "") -> list[str]:
