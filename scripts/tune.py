@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import functools
+import io
 import json
 import re
 import signal
@@ -124,13 +125,26 @@ def make_plan(args) -> Plan:
     if not cap > 0 or penalty < 0:
         raise InputError(f"--cap {cap:g} --penalty {penalty:g}: expected a positive cap and a penalty of at least 0 seconds")
     for algo in algos:
-        base_config(algo, env[-1], overrides)  # an unknown key or a bad value: its own line
+        check_env(algo, base_config(algo, env[-1], overrides))  # an unknown key, a bad value, an env: its own line
     if ray_address:
         from rlpipe.pipelines.workers.ray_runtime import check_address
 
         check_address(ray_address)
     return Plan(algos, env[-1], float(args.target), overrides, args.seeds, cap, penalty, budget, args.workers,
                 args.trials, args.confirm_seeds, out.resolve(), ray_address)
+
+
+def check_env(algo: str, cfg) -> None:
+    """The env made once, as a trial's runs make it: one that fails, or whose actions ``algo`` does not learn, is
+    one line before anything runs."""
+    from rlpipe.pipelines import pipeline_class
+    from rlpipe.pipelines.plugins import check_action_space, factory_and_env
+
+    _, env = factory_and_env(None, cfg)
+    try:
+        check_action_space(algo, pipeline_class(algo).action_space, env.action_spec_unbatched, cfg.env)
+    finally:
+        env.close()
 
 
 def _saved_settings(out: Path) -> dict[str, Any]:
@@ -380,7 +394,6 @@ def write_preset(study, plan: Plan) -> Path:
 
 
 def run(args) -> int:
-    from rlpipe.pipelines.system.runtime import DeferredInterrupt
     from rlpipe.scripts.tune_page import write_page
 
     plan = make_plan(args)
@@ -390,7 +403,7 @@ def run(args) -> int:
         again = requeue_cut_short(study)
         if again:
             print(f"running again the trials cut short: {', '.join(map(str, again))}", flush=True)
-        stop = DeferredInterrupt()
+        stop = _stop_request()
         with stop:
             cut = search(study, plan, stop)
             confirmation = None if stop.requested else confirm(study, plan, stop)
@@ -411,6 +424,19 @@ def run(args) -> int:
     print(f"preset: {preset} (rlpipe train {preset})")
     print(f"page: {page}")
     return 0
+
+
+def _stop_request():
+    """Ctrl-C, SIGTERM or SIGHUP as a flag the loop reads between polls (``DeferredInterrupt``), without the line a
+    training run prints about its checkpoint: the tuner's own line says what was kept. A second one stops at once."""
+    from rlpipe.pipelines.system.runtime import DeferredInterrupt
+
+    class StopRequest(DeferredInterrupt):
+        def _handle(self, signum, frame) -> None:
+            with contextlib.redirect_stderr(io.StringIO()):
+                super()._handle(signum, frame)
+
+    return StopRequest()
 
 
 @contextlib.contextmanager

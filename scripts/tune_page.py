@@ -20,8 +20,10 @@ def write_plots(study, out: Path) -> dict[str, str]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import optuna
     import optuna.visualization.matplotlib as ovm
 
+    optuna.logging.set_verbosity(optuna.logging.ERROR)  # a plot that cannot be drawn says so on the page instead
     shown: dict[str, str] = {}
     for name, (function, caption) in PLOTS.items():
         try:

@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -26,7 +27,8 @@ from rlpipe.scripts.tune_trials import BehindBestPruner, trial_value  # noqa: E4
 CLI = [sys.executable, "-m", "rlpipe.scripts.cli"]
 # every trial's runs: no evaluations but the target's (2 greedy episodes), a log row every 50 iterations
 TINY = ["eval_interval=0", "baseline_episodes=0", "target_eval_episodes=2", "log_interval=50"]
-STUDY = ["tune", "dqn", "env=CartPole-v1", "--target", "8", "--budget", "20m", "--trials", "2", "--cap", "90", *TINY]
+BASE = ["tune", "dqn", "env=CartPole-v1", "--target", "8", "--budget", "20m", "--cap", "90", *TINY]
+STUDY = [*BASE, "--trials", "2"]
 QUIET = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_DEDUP_LOGS": "0"}
 
 
@@ -112,6 +114,30 @@ def test_a_study_stopped_by_ctrl_c_continues_on_rerun_and_writes_the_preset_page
     assert "fresh seeds 100, 101" in page and str(preset) in page
 
 
+@pytest.mark.slow
+def test_a_study_whose_tuner_was_killed_runs_the_trial_it_left_again_and_no_run_outlives_the_tuner(tmp_path):
+    out = tmp_path / "study"
+    args = [*BASE, "--trials", "1", "--confirm-seeds", "0", "--out", str(out)]
+    # SIGKILL to the tuner (its group: the runs are in sessions of their own) while its first trial runs: a crash
+    first = tune(args, tmp_path, env={"RLPIPE_FAULT": "tune_trial@0:SIGKILL"})
+    assert first.returncode == -signal.SIGKILL
+    assert (out / "trials" / "0000" / "seed0" / "output.log").exists()
+    deadline = time.monotonic() + 60
+    while processes_under(out / "trials") and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert processes_under(out / "trials") == []  # each run was told to stop when its tuner died
+    (left,) = load(out).trials
+    assert left.state.name == "RUNNING"  # as the crash left it
+
+    second = tune(args, tmp_path)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "running again the trials cut short: 0" in second.stdout
+    study = load(out)
+    assert [t.state.name for t in study.trials] == ["FAIL", "COMPLETE"]
+    assert study.trials[1].params == left.params
+    assert (out / "dqn-cartpole-v1-tuned.yaml").exists() and "confirmation" not in study.user_attrs
+
+
 def _finished(value: float, curve: dict[int, float]):
     return optuna.trial.create_trial(value=value, intermediate_values=curve, params={"x": 0.0},
                                      distributions={"x": optuna.distributions.FloatDistribution(0, 1)})
@@ -146,6 +172,7 @@ def test_a_miss_counts_as_the_cap_plus_the_penalty_and_a_trial_is_the_mean_of_it
     (["tune", "td3", "env=NoSuchEnv-v0", "--target", "1"], "unknown env id 'NoSuchEnv-v0'"),
     (["tune", "td3", "env=Pendulum-v1", "--target", "1", "--seeds", "1"], "--seeds=1: expected an integer of at least 2"),
     (["tune", "td3", "env=Pendulum-v1", "--target", "1", "bogus=3"], "unknown config key 'bogus'"),
+    (["tune", "sac,dqn", "env=Pendulum-v1", "--target", "1"], "DQN needs a discrete action space; env 'Pendulum-v1'"),
 ])
 def test_bad_input_is_one_line_and_exit_2_with_nothing_written(tmp_path, capsys, args, line):
     out = tmp_path / "study"
