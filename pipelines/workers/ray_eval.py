@@ -26,7 +26,6 @@ and go on it (each restart of one leaves the other running), and it is let go at
 from __future__ import annotations
 
 import contextlib
-import sys
 import time
 from collections import deque
 from collections.abc import Callable
@@ -36,6 +35,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, TrainConfig, eval_seed
+from rlpipe.pipelines.system.runtime import say
 from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, EvalActor, _PolicyCopy
 from rlpipe.pipelines.workers.ray_runtime import RayRuntime, check_cpus
 from rlpipe.pipelines.workers.supervision import MIN_START_TIMEOUT_S, WorkerFailure, first_line
@@ -135,8 +135,7 @@ class RayEvaluator(AsyncEvaluator):
         deadline = time.monotonic() + timeout
         while _actor_state(actor) not in ("DEAD", None):
             if time.monotonic() > deadline:
-                print(f"rlpipe: warning: the evaluator actor (pid {self.worker_pid}) did not stop within "
-                      f"{timeout:g} s", file=sys.stderr, flush=True)
+                say(f"rlpipe: warning: the evaluator actor (pid {self.worker_pid}) did not stop within {timeout:g} s")
                 return
             time.sleep(0.05)
 

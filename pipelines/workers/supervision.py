@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import signal
-import sys
 import threading
 import time
 import warnings
@@ -35,6 +34,7 @@ from tensordict import TensorDictBase
 from torchrl.weight_update import SharedMemWeightSyncScheme
 
 from rlpipe.pipelines.compat.torchrl import AckDeadline, close_weight_sync_queues
+from rlpipe.pipelines.system.runtime import say
 
 if TYPE_CHECKING:
     from rlpipe.pipelines.workers.backend import CollectorBackend
@@ -242,7 +242,7 @@ class Supervisor:
         self.start_timeout = start_timeout(self.timeout)
         self.restarts: Counter[str] = Counter()
         self.alive: dict[str, tuple[int, int]] = {}
-        self._log = log or (lambda line: print(line, file=sys.stderr, flush=True))
+        self._log = log or say  # dropped where stderr cannot take it (its reader gone): the run goes on
 
     def report(self, role: str, alive: int, total: int) -> None:
         self.alive[role] = (alive, total)
