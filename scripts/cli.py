@@ -19,6 +19,7 @@ Any other failure ends with one line naming the error and the file holding its f
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -28,7 +29,6 @@ import time
 import traceback
 from pathlib import Path
 
-from rlpipe.pipelines.system.runtime import open_closed_descriptors, output_dropped_when_gone
 from rlpipe.scripts.output_paths import check_output_dir, check_output_file
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -424,6 +424,12 @@ def main(argv: list[str] | None = None, *, fork_server: bool | None = None) -> i
 
     What cannot be shown is dropped (the reader of a pipe gone, the terminal closed, the descriptors closed): the
     command goes on and ends with its own status."""
+    try:  # rlpipe.pipelines (numpy, the configs): the first import that takes time
+        from rlpipe.pipelines.system.runtime import open_closed_descriptors, output_dropped_when_gone
+    except KeyboardInterrupt:
+        with contextlib.suppress(OSError):
+            os.write(2, b"rlpipe: interrupted\n")  # unbuffered: nothing is left to fail at the interpreter's exit
+        return 130
     open_closed_descriptors()
     with output_dropped_when_gone():
         try:
