@@ -86,9 +86,14 @@ def parse_budget(text: str) -> float:
     """``90s``, ``30m``, ``2h``, ``1h30m`` or plain seconds -> seconds."""
     from rlpipe.pipelines.errors import InputError
 
-    parts = re.fullmatch(r"(?:\d+(?:\.\d+)?[smh])+|\d+(?:\.\d+)?", text.strip())
-    seconds = float(text) if parts and text.strip()[-1].isdigit() else sum(
-        float(n) * _UNITS[u] for n, u in re.findall(r"(\d+(?:\.\d+)?)([smh])", text)) if parts else 0.0
+    number = r"\d+(?:\.\d+)?"
+    text = text.strip()
+    if re.fullmatch(number, text):
+        seconds = float(text)
+    elif re.fullmatch(f"(?:{number}[smh])+", text):
+        seconds = sum(float(n) * _UNITS[unit] for n, unit in re.findall(f"({number})([smh])", text))
+    else:
+        seconds = 0.0
     if not seconds > 0:
         raise InputError(f"--budget {text}: expected a positive duration such as 90s, 30m or 2h")
     return seconds
@@ -115,8 +120,8 @@ def make_plan(args) -> Plan:
     check_output_dir(out)
     ray_address = next((o.split("=", 1)[1] for o in reversed(args.overrides) if o.startswith("ray.address=")), None)
     for name, value, least in (("--seeds", args.seeds, 2), ("--workers", args.workers, 1),
-                               ("--confirm-seeds", args.confirm_seeds, 0), ("--trials", args.trials or 1, 1)):
-        if value < least:
+                               ("--confirm-seeds", args.confirm_seeds, 0), ("--trials", args.trials, 1)):
+        if value is not None and value < least:
             raise InputError(f"{name}={value}: expected an integer of at least {least}")
     budget = parse_budget(args.budget)
     saved = _saved_settings(out)
@@ -221,7 +226,7 @@ def requeue_cut_short(study) -> list[int]:
            if t.number not in done and not t.user_attrs.get("refused")]
     for t in cut:
         if t.state == TrialState.RUNNING:  # its tuner died: one tuner holds the study at a time (the lock)
-            study._storage.set_trial_state_values(t._trial_id, TrialState.FAIL)
+            study.tell(t.number, state=TrialState.FAIL)
         study.enqueue_trial(t.params, skip_if_exists=False)
     if cut:
         study.set_user_attr("requeued", sorted(done | {t.number for t in cut}))
@@ -234,7 +239,7 @@ def finished(study) -> list:
     return study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED))
 
 
-def launch_trial(study, plan: Plan, number_of_processes: int, seeds: list[int], work: Path, trial=None, params=None):
+def launch_trial(plan: Plan, number_of_processes: int, seeds: list[int], work: Path, trial=None, params=None):
     """A trial's seed runs, launched: Optuna's next trial (``trial``: an asked one; ``params``: a fixed setting)."""
     from rlpipe.scripts import tune_space
     from rlpipe.scripts.bench.time_to_return import Task, rlpipe_launch
@@ -285,7 +290,7 @@ def _search(study, plan: Plan, stop, running: list, spent_before: float, began: 
         while (not stop.requested and len(running) < plan.workers and spent < plan.budget_s
                and (plan.trials is None or len(finished(study)) + len(running) < plan.trials)):
             trial = study.ask()
-            trial_runs = launch_trial(study, plan, processes, list(range(plan.seeds)),
+            trial_runs = launch_trial(plan, processes, list(range(plan.seeds)),
                                       plan.out / "trials" / f"{trial.number:04d}", trial=trial)
             running.append(trial_runs)
             print(f"trial {trial.number}: {trial_runs.algo} {' '.join(trial_runs.overrides)}", flush=True)
@@ -357,7 +362,7 @@ def confirm(study, plan: Plan, stop) -> dict[str, Any] | None:
         return saved
     seeds = list(range(CONFIRM_FIRST_SEED, CONFIRM_FIRST_SEED + plan.confirm_seeds))
     print(f"confirming trial {best.number} on fresh seeds {', '.join(map(str, seeds))}", flush=True)
-    trial_runs = launch_trial(study, plan, len(seeds), seeds, plan.out / "confirm" / f"{best.number:04d}",
+    trial_runs = launch_trial(plan, len(seeds), seeds, plan.out / "confirm" / f"{best.number:04d}",
                               params=best.params)
     while not all(run.done() for run in trial_runs.runs):
         if stop.requested:

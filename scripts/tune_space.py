@@ -37,7 +37,9 @@ DIMS: tuple[Dim, ...] = (
         lambda t, n: t.suggest_categorical(n, [64, 128, 256]), _width),
     Dim("learning_rate", ("learning_rate", "actor_learning_rate", "critic_learning_rate"),
         lambda t, n: t.suggest_float(n, 1e-4, 3e-3, log=True)),
-    Dim("initial_collect_steps", ("initial_collect_steps",), lambda t, n: t.suggest_int(n, 100, 10_000, log=True)),
+    # random steps, and updates from their end (a preset's own learning_starts would hide the draw)
+    Dim("initial_collect_steps", ("initial_collect_steps", "learning_starts"),
+        lambda t, n: t.suggest_int(n, 100, 10_000, log=True)),
     Dim("collect_steps_per_iteration", ("collect_steps_per_iteration",),
         lambda t, n: t.suggest_categorical(n, [1, 2, 4])),
     Dim("policy_delay", ("policy_delay",), lambda t, n: t.suggest_int(n, 1, 3)),

@@ -68,8 +68,8 @@ def test_a_study_stopped_by_ctrl_c_continues_on_rerun_and_writes_the_preset_page
     out = tmp_path / "study"
     first = tune([*STUDY, "--out", str(out)], tmp_path, env={"RLPIPE_FAULT": "tune_trial@1"})
     assert first.returncode == 130, first.stderr[-3000:]
-    last = first.stderr.strip().splitlines()[-1]
-    assert last.startswith("rlpipe: interrupted; 1 finished trials kept in") and "rerun the same command" in last, last
+    (line,) = first.stderr.strip().splitlines()  # one line
+    assert line.startswith("rlpipe: interrupted; 1 finished trials kept in") and "rerun the same command" in line, line
     study = load(out)
     states = [t.state.name for t in study.trials]
     assert states == ["COMPLETE", "FAIL"]
