@@ -1,6 +1,7 @@
 """The ``rlpipe`` command line.
 
     rlpipe train PRESET|FILE.yaml [key=value ...] [--out DIR] [--resume DIR]
+    rlpipe train [sac|td3|dqn] env=ID [key=value ...]   (sized for the env: pipelines/sizing.py)
     rlpipe eval RUN_DIR [--step N] [--trust] [--episodes N] [--json] [--ecdf]
     rlpipe eval RUN_DIR --random | rlpipe eval --env ID --random
     rlpipe video RUN_DIR [--step N] [--trust] [--episodes N] [--random] [--out FILE]
@@ -56,7 +57,9 @@ def _parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="train a preset (dqn, dqn-cartpole-v1, td3, sac, ...)")
     train.add_argument("preset", help="preset name (`rlpipe presets` lists them) or preset file (PATH.yaml: a file "
-                       "`rlpipe presets --show NAME` prints, or `rlpipe tune` writes)")
+                       "`rlpipe presets --show NAME` prints, or `rlpipe tune` writes); env=ID alone trains SAC (Box "
+                       "actions) or DQN (Discrete) sized for that env, as `sac`, `td3`, `dqn` are when env= names "
+                       "another env than their tutorial's")
     train.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, dotted for groups (collector.workers=2)")
     train.add_argument("--out", type=Path, help="run directory (default runs/<algo>-<env>-<time>)")
     train.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue the run in RUN_DIR from its last checkpoint")
