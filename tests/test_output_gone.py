@@ -185,15 +185,16 @@ def test_a_run_started_with_its_descriptors_closed_saves_at_a_stop(tmp_path):
 # --- Ctrl-C while the command starts --------------------------------------------------------------------------
 
 
-def test_ctrl_c_while_the_command_imports_is_one_line(tmp_path):
-    """Ctrl-C while torch is being imported (the first seconds): one line and exit 130, not a traceback."""
+@pytest.mark.parametrize("library", ["_multiarray_umath", "libtorch"])  # numpy's, the first to load; torch's
+def test_ctrl_c_while_the_command_imports_is_one_line(tmp_path, library):
+    """Ctrl-C while numpy or torch is being imported (the first seconds): one line and exit 130, not a traceback."""
     proc = subprocess.Popen([ENTRY_POINT, *RUN, "--out", str(tmp_path / "run")], cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + DEADLINE_S
     maps = Path(f"/proc/{proc.pid}/maps")
-    while "libtorch" not in maps.read_text():  # torch's libraries are loading: its import is under way
-        assert proc.poll() is None and time.monotonic() < deadline, "the command never imported torch"
-        time.sleep(0.005)
+    while library not in maps.read_text():  # the library's code is loading: its import is under way
+        assert proc.poll() is None and time.monotonic() < deadline, f"the command never loaded {library}"
+        time.sleep(0.002)
     os.killpg(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=DEADLINE_S)
     assert proc.returncode == 130 and err.strip() == "rlpipe: interrupted", f"exit {proc.returncode}:\n{err}"
