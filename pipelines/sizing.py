@@ -249,7 +249,7 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
 
     With ``resume``, nothing is sized: the run's saved config is what it goes on with.
     """
-    from rlpipe.pipelines import ALGOS, pipeline_class, preset_info, resolve_preset, sized_presets
+    from rlpipe.pipelines import ALGOS, pipeline_class, preset_info, presets, resolve_preset
 
     no_algo = "=" in name and _key(name) in flat_keys(TrainConfig)
     if no_algo:
@@ -264,7 +264,7 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
         return None
     base = resolve_preset(algo or "sac")[1]
     wanted = apply_overrides(base, _env_overrides(overrides))
-    if algo is not None and wanted.env == base.env:
+    if algo is not None and _same_env(wanted.env, base.env):
         return None  # the tutorial on its own env: as the tutorial specifies
     kind = None
     if algo is None:
@@ -278,7 +278,8 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
         first = []
     if resume:
         return Resolved(algo, resolve_preset(algo)[1], overrides, [])
-    fits = [p for p in sized_presets(wanted.env) if resolve_preset(p)[0] == algo]
+    fits = [p for p in presets.names() if _same_env(getattr(presets.info(p), "env", None) or "", wanted.env)
+            and preset_info(p).sized and resolve_preset(p)[0] == algo]
     if fits:
         info = preset_info(fits[0])
         line = (f"rlpipe: {algo} on {wanted.env}: the settings of preset {fits[0]!r} ({info.task}), the preset "
@@ -291,3 +292,15 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
         return None  # the pipeline says, in its own line, which action space the algorithm needs
     cfg, line = sized_config(algo, measure(wanted))
     return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"])
+
+
+def _same_env(a: str, b: str) -> bool:
+    """``a`` and ``b`` name the same env (``MinitaurBulletEnv-v0`` and ``rlpipe/MinitaurBullet-v0`` do)."""
+    if a == b:
+        return True
+    from rlpipe.envs import EnvError, resolve_env_id
+
+    try:
+        return resolve_env_id(a) == resolve_env_id(b)
+    except EnvError:  # an env of the user's own (module:Class), or one that is not there: by its name
+        return False

@@ -69,6 +69,7 @@ def test_the_facts_are_measured_the_same_way_every_time():
 def test_a_tutorial_preset_on_its_own_env_stays_the_tutorial():
     assert resolve_for_env("sac", ["seed=3"]) is None
     assert resolve_for_env("sac", ["env=MinitaurBulletEnv-v0"]) is None
+    assert resolve_for_env("sac", ["env=rlpipe/MinitaurBullet-v0"]) is None  # the same env by its registered id
     assert resolve_for_env("sac-pendulum", ["env=Reacher-v5"]) is None  # a sized preset named: as named
     assert resolve_for_env("td3", ["env=Pendulum-v1"]) is None  # the TD3 tutorial's own env
     cartpole = resolve_for_env("dqn", ["env=CartPole-v1"])  # the env's sized preset of that algorithm
