@@ -44,7 +44,9 @@ _UNITS = {"s": 1, "m": 60, "h": 3600}
 def add_parser(sub) -> None:
     tune = sub.add_parser("tune", help="search the settings that reach a target return soonest (Optuna)")
     tune.add_argument("algo", help="algorithm, or several comma-separated to search among (sac,crossq)")
-    tune.add_argument("overrides", nargs="*", metavar="key=value", help="env=ID (required), and overrides of every trial")
+    tune.add_argument("overrides", nargs="*", metavar="key=value",
+                      help="env=ID (required); ray.address=ADDR: the trials' runs on that Ray cluster, one CPU each "
+                           "(empty: a local Ray instance); any other key: an override of every trial")
     tune.add_argument("--target", type=float, required=True, help="the return to reach")
     tune.add_argument("--budget", default="30m", help="time for the search, such as 90s, 30m or 2h (default 30m)")
     tune.add_argument("--seeds", type=int, default=2, help="seeds per trial, run side by side (default 2, at least 2)")

@@ -45,6 +45,10 @@ def write_page(study, plan, confirmation: dict[str, Any] | None, preset: Path) -
     from optuna.trial import TrialState
 
     plots = write_plots(study, plan.out)
+    complete = len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
+    pruned = len(study.get_trials(deepcopy=False, states=(TrialState.PRUNED,)))
+    if complete < 5 and "not drawn" not in plots["importances.png"]:
+        plots["importances.png"] += f" from {complete} finished trials: too few to tell the settings apart"
     best = study.best_trial
     rows = []
     for t in study.trials:
@@ -64,8 +68,6 @@ def write_page(study, plan, confirmation: dict[str, Any] | None, preset: Path) -
     figures = "".join(f"<figure><img src='{name}' alt='{html.escape(c)}'><figcaption>{html.escape(c)}</figcaption></figure>"
                       if (plan.out / name).exists() and "not drawn" not in c else f"<p>{html.escape(c)}</p>"
                       for name, c in plots.items())
-    complete = len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
-    pruned = len(study.get_trials(deepcopy=False, states=(TrialState.PRUNED,)))
     body = f"""<!doctype html><html><head><meta charset=utf-8><title>rlpipe tune: {html.escape(plan.env)}</title>
 <style>body{{font-family:sans-serif;max-width:60em;margin:auto}} td,th{{padding:2px 8px;text-align:left}}
 tr.best{{background:#e8f4e8}} img{{max-width:100%}}</style></head><body>
