@@ -16,6 +16,7 @@ rlpipe call an arbitrary function of an installed package with keywords of its c
 
 from __future__ import annotations
 
+import difflib
 import functools
 import importlib
 import inspect
@@ -54,8 +55,10 @@ def resolve(env: str, error: type[Exception]) -> str:
         return name  # gymnasium's own reading of `module:id`
     target = getattr(module, name, None)
     if target is None:
-        raise error(f"env {env!r}: {module_name} has no attribute {name!r} and registers no gymnasium id {name!r}; "
-                    f"expected {EXPECTED}, or an id the module registers")
+        close = difflib.get_close_matches(name, [*dir(module), *gymnasium.registry], n=3, cutoff=0.6)
+        hint = f" (did you mean {', '.join(repr(c) for c in close)}?)" if close else ""
+        raise error(f"env {env!r}: {module_name} has no attribute {name!r} and registers no gymnasium id {name!r}"
+                    f"{hint}; expected {EXPECTED}, or an id the module registers")
     _check_target(env, target, error)
     gym_id = f"{NAMESPACE}/{module_name}.{name}"
     if gym_id not in gymnasium.registry:

@@ -194,7 +194,8 @@ def test_a_function_annotated_to_return_an_env(package, monkeypatch):
      "unexpected keyword argument 'horizn'"),
     ([f"env={PACKAGE}.nowhere:TinyArm"], f"cannot import {PACKAGE}.nowhere (ModuleNotFoundError"),
     (["env=no_such_package_here:Arm-v0"], "cannot import no_such_package_here (ModuleNotFoundError"),
-    ([f"env={PACKAGE}.envs:TinyArn"], f"{PACKAGE}.envs has no attribute 'TinyArn' and registers no gymnasium id"),
+    ([f"env={PACKAGE}.envs:TinyArn"], f"{PACKAGE}.envs has no attribute 'TinyArn' and registers no gymnasium id "
+                                       "'TinyArn' (did you mean 'TinyArm'"),
     ([f"env={PACKAGE}.envs:NotAnEnv"], "is the class NotAnEnv, not a gymnasium.Env subclass; expected"),
     ([f"env={PACKAGE}.envs:unannotated"], "is a function with no return annotation; expected"),
     ([f"env={PACKAGE}.envs:not_an_env"], "not_an_env() returned a dict; expected a gymnasium.Env"),
