@@ -47,7 +47,7 @@ class CrossQConfig(TrainConfig):
 
     # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
     env: str = "MinitaurBulletEnv-v0"
-    """gymnasium env id with a continuous (Box) action space"""
+    """gymnasium env id, or your own env (`my_package.envs:MyArm`, `my_package:MyArm-v0`; see `env_kwargs`), with a continuous (Box) action space"""
     initial_collect_steps: int = 5000
     replay_buffer_capacity: int = 1_000_000
     """transitions kept; the oldest are evicted first"""

@@ -77,7 +77,7 @@ class TD3Config(TrainConfig):
 
     # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
     env: str = "Pendulum-v1"
-    """gymnasium env id with a continuous (Box) action space"""
+    """gymnasium env id, or your own env (`my_package.envs:MyArm`, `my_package:MyArm-v0`; see `env_kwargs`), with a continuous (Box) action space"""
     num_iterations: int = 90_000
     """iterations after the start-up steps (tutorial: MAX_STEPS=100,000 env steps in all, start-up included)"""
     initial_collect_steps: int = 10_000
