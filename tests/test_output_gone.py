@@ -27,6 +27,7 @@ import torch
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.files import FileWriteError
+from rlpipe.pipelines.system.runtime import DroppingStream
 
 ENTRY_POINT = str(Path(sys.executable).parent / "rlpipe")
 N = 400
@@ -144,6 +145,21 @@ def test_a_finished_run_whose_stdout_is_gone_exits_0_with_no_logging_errors(tmp_
     assert status == 0, f"exit {status}; stderr:\n{stderr[-3000:]}"
     assert "Logging error" not in stderr and "Traceback" not in stderr and "rlpipe: error" not in stderr, stderr[-3000:]
     assert_finished(run)
+
+
+@pytest.mark.unit
+def test_a_stream_whose_reader_is_gone_drops_writes_and_its_descriptor_goes_to_dev_null():
+    """What ``rlpipe`` and a run write through: once the reader has gone, writes are dropped, and the descriptor
+    is /dev/null, so that the stream's own flush (at the interpreter's exit) and C code writing there cannot fail."""
+    read, write = os.pipe()
+    stream = open(write, "w", buffering=1)  # line-buffered, as a terminal's stderr
+    os.close(read)
+    dropped = DroppingStream(stream)
+    dropped.write("a line no one reads\n")
+    dropped.flush()
+    assert dropped.gone and os.readlink(f"/proc/self/fd/{write}") == os.devnull
+    stream.write("more\n")
+    stream.close()  # flushes: no BrokenPipeError any more
 
 
 # --- the terminal closed, the descriptors closed ----------------------------------------------------------------

@@ -174,6 +174,8 @@ class DroppingStream:
                     os.close(null)
 
     def __getattr__(self, name: str):
+        if name == "stream":  # not set yet (a copy being made): not the stream's own attribute either
+            raise AttributeError(name)
         return getattr(self.stream, name)
 
 
