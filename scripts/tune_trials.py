@@ -24,7 +24,9 @@ import optuna
 
 from rlpipe.scripts.bench.time_to_return import Launch, timed_result
 
-STOP_TIMEOUT_S = 30.0
+STOP_TIMEOUT_S = 10.0
+"""a run stopped (pruned, past its cap, Ctrl-C) has this long to end on SIGTERM before SIGKILL: enough to write
+the files of a run that met its target just before its cap; the checkpoint a SIGTERM saves is never resumed"""
 PR_SET_PDEATHSIG = 1
 
 
@@ -171,18 +173,21 @@ class TrialRuns:
             run.begin()
 
     def poll(self) -> bool:
-        """Report the curve's new point; True once every run has ended or the trial is pruned (its runs ended)."""
-        finished = [run.done() for run in self.runs]
+        """Report the curve's new point; True once every run has ended or the trial is pruned (its runs ended).
+        The curve is the mean of the latest returns of the runs that have logged one (a run still in its start-up
+        or random steps has none yet)."""
+        if all([run.done() for run in self.runs]):
+            return True
         step = int(time.time() - self.start)
-        latest = [run.latest_return() for run in self.runs]
-        if step > self.reported and all(v is not None for v in latest):
+        latest = [v for v in (run.latest_return() for run in self.runs) if v is not None]
+        if step > self.reported and latest:
             self.trial.report(statistics.fmean(latest), step)
             self.reported = step
-            if not all(finished) and self.trial.should_prune():
+            if self.trial.should_prune():
                 self.pruned = True
                 self.stop()
                 return True
-        return all(finished)
+        return False
 
     def stop(self, sig: int = signal.SIGTERM) -> None:
         for run in self.runs:
