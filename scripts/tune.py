@@ -108,6 +108,10 @@ def make_plan(args) -> Plan:
     from rlpipe.pipelines.errors import InputError
     from rlpipe.scripts.output_paths import check_output_dir
 
+    try:
+        import optuna  # noqa: F401
+    except ImportError:
+        raise InputError("rlpipe tune needs Optuna, which is not installed; expected `pip install 'rlpipe[tune]'`") from None
     algos = [a.strip() for a in args.algo.split(",") if a.strip()]
     for algo in algos or [args.algo]:
         if algo not in ALGOS:
