@@ -30,7 +30,7 @@ from rlpipe.pipelines.artifacts.files import FileWriteError
 from rlpipe.pipelines.system.runtime import DroppingStream
 
 ENTRY_POINT = str(Path(sys.executable).parent / "rlpipe")
-N = 400
+N = 200
 # td3-pendulum saves only at its start and end (checkpoint_interval = its num_iterations): a stop that does not
 # save loses the whole run. 100 random steps, then blocks of 50 iterations; held after iteration 100's block.
 RUN = ["train", "td3-pendulum", f"num_iterations={N}", "initial_collect_steps=100", "learning_starts=100",
