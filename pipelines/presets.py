@@ -32,13 +32,13 @@ import functools
 import importlib.resources
 import os
 import re
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from rlpipe.pipelines.artifacts.files import write_text_atomic
 from rlpipe.pipelines.config import PresetInfo, TrainConfig, apply_mapping, flat_keys
 from rlpipe.pipelines.errors import InputError
 
@@ -196,15 +196,7 @@ def save(path: str | os.PathLike, algo: str, config: TrainConfig, info: PresetIn
     if written.config != config or written.info != (_as_info(info) if info is not None else None):
         raise ValueError(f"{path}: the preset does not read back as the config given")  # a value YAML cannot hold
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(body)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_text_atomic(path, body)  # readable as any other file (0o644), replaced whole, fsynced
 
 
 # --- reading and checking a file ------------------------------------------------------------------
