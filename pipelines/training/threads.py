@@ -44,9 +44,9 @@ def threads_rule(cfg: TrainConfig) -> tuple[int, str]:
     least one; every core where the env steps in the learner's own process, taking turns with the updates).
     It takes half of those, at most ``MAX_LEARNER_THREADS``: a learner holding every core stalls whenever
     anything else wants one (torch's threads wait on each other at every operation), and on a shared or
-    desktop machine something always does. On 2 cores that is one thread: a SAC update on 256x256 networks
-    took 9.1 ms on 1 thread and 6.6 ms at best on 2 on a quiet moment, but with one busy process beside it
-    2 threads' passes ranged up to 47-59 ms (BENCHMARKS.md, "The learner's threads on a busy machine").
+    desktop machine something always does. On 2 cores that is one thread: `rlpipe train td3
+    collector.sync=true` made 432 updates/s alone on 1 thread and 433 on 2, and beside one busy process 365
+    on 1 and 28 on 2 (BENCHMARKS.md, "The learner's threads on a busy machine", `rlpipe bench threads`).
     ``OMP_NUM_THREADS``, where it is set, caps the count: a user (or a test suite, or a study running several
     runs at once) who gave torch that many threads keeps them.
     """
