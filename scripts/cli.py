@@ -10,7 +10,7 @@
     rlpipe presets [--show NAME|FILE.yaml]
     rlpipe ablate td3 --envs A,B --seeds N --steps S [--workers W] [--out DIR]
     rlpipe tune ALGO[,ALGO] env=ID --target R [--budget 30m] [--workers N] [--seeds 2] [--out DIR]   (scripts/tune.py)
-    rlpipe bench {dqn,td3,sac,minitaur,floor,cleanrl,gpu,profile,collect,ray,time-to-return} [...]   (scripts/bench/)
+    rlpipe bench {dqn,td3,sac,minitaur,floor,cleanrl,gpu,profile,collect,ray,time-to-return,threads} [...]   (scripts/bench/)
 
 Bad input ends with one line on stderr naming what is wrong and what is expected, and exit status 2.
 Any other failure ends with one line naming the error and the file holding its full traceback
