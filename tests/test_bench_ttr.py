@@ -270,3 +270,13 @@ def test_the_torchrl_peer_runs_torchrls_script_and_is_timed_by_the_rule(dqn_chec
     assert not (work / ".hydra").exists()  # Hydra's run folder is the run's own, its config copy not written
     row = {**result, "task": "cartpole-v0-dqn", "side": "torchrl", "seed": 0}
     assert ttr.summarise([row])["cartpole-v0-dqn"]["torchrl"]["reached"] == 1
+
+
+def test_a_run_started_in_its_own_folder_finds_the_users_modules_on_a_relative_pythonpath(monkeypatch, tmp_path):
+    """`PYTHONPATH=. rlpipe tune sac env=my_package:MyArm`: each trial's run starts in its own folder, where `.`
+    would name another place."""
+    from rlpipe.scripts.bench.time_to_return import _here_environ
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([".", "", "/opt/abs"]))
+    assert _here_environ()["PYTHONPATH"].split(os.pathsep) == [str(tmp_path.resolve())] * 2 + ["/opt/abs"]

@@ -292,7 +292,18 @@ def rlpipe_launch(task: Task, side: str, seed: int, target: float, cap: int, run
         keys.append(f"num_threads={threads}")
     cmd = [*_rlpipe_exe(), "train", name, *keys, "--out", str(run_dir), "--no-progress"]
     settings = f"`rlpipe train {name}{''.join(' ' + k for k in [*extra, *overrides])}`{note}"
-    return Launch(cmd, dict(os.environ), run_dir.parent, settings, _read_summary(run_dir), {"rlpipe": _version()})
+    return Launch(cmd, _here_environ(), run_dir.parent, settings, _read_summary(run_dir), {"rlpipe": _version()})
+
+
+def _here_environ() -> dict[str, str]:
+    """This process's environment for a run started in another folder: PYTHONPATH's relative entries (``.``, an
+    empty one) made absolute from here, so that a user's own env (``PYTHONPATH=. rlpipe tune sac
+    env=my_package:MyArm``) imports in the run as it did here."""
+    env = dict(os.environ)
+    if env.get("PYTHONPATH") is not None:
+        env["PYTHONPATH"] = os.pathsep.join(str(Path(entry or ".").resolve())
+                                            for entry in env["PYTHONPATH"].split(os.pathsep))
+    return env
 
 
 def _version() -> str:
