@@ -9,17 +9,13 @@ it comes from a rule over facts that do not move while a machine is busy (its co
 from __future__ import annotations
 
 import contextlib
-import math
 import os
-import time
 
 import torch
-from tensordict import TensorDictBase
-from torchrl.objectives import LossModule
 
 from rlpipe.pipelines.config import TrainConfig, steps_in_learner
 
-__all__ = ["MAX_LEARNER_THREADS", "choose_threads", "cores", "loss_pass_seconds", "omp_threads", "threads_rule",
+__all__ = ["MAX_LEARNER_THREADS", "choose_threads", "cores", "omp_threads", "threads_rule",
            "torch_threads"]
 
 MAX_LEARNER_THREADS = 4
@@ -81,18 +77,3 @@ def torch_threads(n: int):
         yield
     finally:
         torch.set_num_threads(before)
-
-
-def loss_pass_seconds(loss: LossModule, batch: TensorDictBase, repeats: int = 5) -> float:
-    """Best time of a forward and backward pass of ``loss`` on ``batch`` (its gradients are left for
-    the caller to clear; no optimiser steps, so no parameter changes)."""
-    best = math.inf
-    for i in range(repeats + 2):
-        t0 = time.perf_counter()
-        out = loss(batch.clone())
-        losses = [v for k, v in out.items() if (k == "loss" or k.startswith("loss_")) and v.requires_grad]
-        if losses:
-            sum(losses).backward()
-        if i >= 2:  # the first passes warm up
-            best = min(best, time.perf_counter() - t0)
-    return best
