@@ -31,6 +31,28 @@ if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) is signal.SIG_I
 
 
 @pytest.fixture
+def tmpfs(tmp_path):
+    """``tmpfs(size)``: a file system of its own of ``size`` ('4m', '32m'), to fill; the test is skipped where
+    mounting is not allowed. Unmounted at the test's end."""
+    import subprocess
+
+    mounts = []
+
+    def make(size: str):
+        mount = tmp_path / f"disk{len(mounts)}"
+        mount.mkdir()
+        made = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mount)], capture_output=True)
+        if made.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {made.stderr.decode().strip()}")
+        mounts.append(mount)
+        return mount
+
+    yield make
+    for mount in mounts:
+        subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+@pytest.fixture
 def run_dir(tmp_path):
     """A path for a run directory that does not exist yet."""
     return tmp_path / "run"
