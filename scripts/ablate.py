@@ -120,16 +120,10 @@ class StudyEnv:
     overrides: tuple[str, ...]
 
 
-# The default study. Pendulum: 2x64 layers at lr 1e-3, batch 256, 1,000 random steps: -146 (seeds 0
-# and 1: -156, -136) after 20,000 steps, where the tutorial's agent (1x256, lr 3e-4) reached -187 at
-# 9,500, fell back to -1295 and ended at -668 (seed 0, the same 1,000 random steps). InvertedPendulum:
-# small nets are enough, but TD3 takes its time: 64 at 15,000 steps; 1,000 from 17,400 to 30,000
-# (seed 0). Hopper: where the TD3 paper's ingredients matter (its Table 2), with the paper's lr 1e-3
-# and batch 100, and 128-unit layers instead of (400, 300), which learn ~2.3x as many steps per second
-# here. 10,000 random steps (updates from 1,000 on, as the paper's): 1043 at 50,000 steps (seed 0),
-# where the paper's 1,000 random steps gave 317 (the random agent: 28). These seed-0 figures predate issue
-# 23's collector seeding; the study itself (2026-11-25, scripts/results/ablation-td3): full agent -154, 1000
-# and 309, means over 5 seeds.
+# The default study: networks, learning rate and batch per env that learn it within its steps on 2 cores
+# (Pendulum and InvertedPendulum: 2x64, lr 1e-3, batch 256; Hopper, where the TD3 paper's ingredients matter: its
+# lr 1e-3 and batch 100 on 128-unit layers, ~2.3x the steps per second of (400, 300), and 10,000 random steps).
+# The one-seed tries that chose them: BENCHMARKS.md, "The TD3 ablation study".
 STUDY_ENVS = {
     "Pendulum-v1": StudyEnv(20_000, 1000, 10, ("actor_fc_layer_params=[64,64]", "critic_fc_layer_params=[64,64]",
                                                 "batch_size=256", "learning_rate=1e-3")),

@@ -12,8 +12,8 @@ interquartile mean is :func:`scipy.stats.trim_mean` with 25% cut from each end.
 
 SciPy is imported by the functions that use it, not with this module: a run's own ``report.html``
 (written by the run, through :mod:`~rlpipe.pipelines.analysis.pages`) needs none of it, and
-``import scipy.stats`` cost each run 0.6-1.0 s on the project's 2-core machine (2026-11-28: importing
-``pages`` after torch took 1.2 s without it, 1.8-2.2 s with it).
+``import scipy.stats`` costs a run 0.6-1.0 s on a 2-core machine (importing ``pages`` after torch: 1.2 s
+without it, 1.8-2.2 s with it).
 """
 
 from __future__ import annotations

@@ -288,8 +288,8 @@ def start_fork_server(preload: tuple[str, ...] = WORKER_MODULES) -> None:
 
     Why: TorchRL starts its collector processes with ``spawn``, a fresh interpreter each that imports torch,
     tensordict, TorchRL and rlpipe again before its first env step: 4.0-4.3 s for the collector process of
-    ``rlpipe train sac env=Pendulum-v1`` (from the start asked to its first block, 2026-11-28, this 2-core machine;
-    BENCHMARKS.md, "The fixed cost of a run"), each time a worker starts or restarts. Forked from a server that
+    ``rlpipe train sac env=Pendulum-v1`` (from the start asked to its first block, on a 2-core machine;
+    BENCHMARKS.md, "The fixed cost of a run, per part"), each time a worker starts or restarts. Forked from a server that
     has them imported, 0.5-0.7 s; the whole one-iteration run ends in 11.1-12.5 s instead of 17.2-17.8. And the
     server's own imports run beside the learner's start-up (the pipeline built, the random baseline), not
     before the first worker. Workers inherit the server's blocked stop signals (``stop_signals_blocked``), as
@@ -309,9 +309,9 @@ def start_fork_server(preload: tuple[str, ...] = WORKER_MODULES) -> None:
     multiprocessing.set_start_method("forkserver", force=True)  # TorchRL set "spawn" at its import
     multiprocessing.set_forkserver_preload(list(preload))
     # The server starts the resource tracker first if it does not run, and Python's start of the tracker
-    # *unblocks* SIGINT and SIGTERM after it (CPython 3.11's resource_tracker.ensure_running): the server then
-    # inherited SIGHUP blocked alone, and a Ctrl-C to the group ended its workers (seen 2026-11-28 in
-    # tests/test_resume_exact.py: "collector worker 0 died: exited with status 0"). So the tracker first.
+    # *unblocks* SIGINT and SIGTERM after it (CPython 3.11's resource_tracker.ensure_running): the server
+    # would then inherit SIGHUP blocked alone, and a Ctrl-C to the group would end its workers ("collector worker 0
+    # died: exited with status 0"; tests/test_resume_exact.py). So the tracker first.
     start_resource_tracker()
     with stop_signals_blocked():  # the server's children inherit its signal mask
         forkserver.ensure_running()

@@ -230,12 +230,12 @@ class BackgroundEvaluator(AsyncEvaluator):
     The same weights at the same step give the same episodes wherever they are played, so a run
     resumed from a checkpoint evaluates as the uninterrupted one did.
 
-    Why not TorchRL's ``Evaluator(backend="process")``, used here until issue 23: in 0.14 it takes no
+    Why not TorchRL's ``Evaluator(backend="process")``: in 0.14 it takes no
     seed per request (each evaluation plays on from where the last one left the env, so a resumed
     run's evaluations differ from the uninterrupted run's), returns the mean return only (not the
     episodes' returns), loses a request queued while another finishes, starts its worker only at the
     first request, from a thread, and its shutdown leaves that thread running (aborting the
-    interpreter at exit); the four workarounds that took (``compat.torchrl``) went with it.
+    interpreter at exit).
 
     The process starts with the stop signals blocked and ignores them (the learner stops it);
     ``check`` finds it dead, ``close`` kills it (an evaluation has nothing to save).

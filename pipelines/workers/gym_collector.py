@@ -1,6 +1,6 @@
 """``GymCollector``: blocks of env steps from a gymnasium env stepped directly, as TorchRL's ``Collector`` gives them.
 
-Why it exists (issue 22): with one env in the learner's process, TorchRL's ``Collector`` over
+Why it exists: with one env in the learner's process, TorchRL's ``Collector`` over
 ``GymEnv`` and the standard transforms (``StepCounter``, ``RewardSum``, ``InitTracker``) costs
 ~600-700 us a step on this 2-core CPU (CartPole 1,478 steps/s against ~120,000 for the raw env; a
 cProfile of 2,000 steps: 72% in ``step_and_maybe_reset`` through the transforms and ``GymEnv``'s
@@ -14,10 +14,9 @@ TensorDict with exactly the keys, shapes and dtypes TorchRL's ``Collector`` give
 (``observation``, ``action``, the policy's outputs, ``step_count``, ``episode_reward``, ``is_init``,
 ``done``/``terminated``/``truncated``, the same under ``next`` with ``reward``, and
 ``("collector", "traj_ids")``), so a TorchRL replay buffer and loss take them unchanged.
-Figures (``rlpipe bench collect``, 2026-11-27, one env, 50-frame blocks): in-process CartPole 10,600-11,000
-steps/s and Pendulum ~8,700, 0.65 and 0.77 of the plain loop with the same network, ~7x TorchRL's
-``Collector`` (1,500-1,700); in one collector process ~0.6 and 0.69. BENCHMARKS.md, "A collection path
-worth its cost".
+With it, one env with 50-frame blocks steps at 0.75-0.80 of the plain loop with the same network in the
+learner's process (CartPole ~13,000 steps/s, Pendulum ~11,000: ~9x TorchRL's ``Collector``) and 0.58-0.65 in one
+collector process (BENCHMARKS.md, "Collection only: `rlpipe bench collect`").
 
 Semantics kept from TorchRL's path: ``set_seed(s)`` resets the env with ``seed=s`` (later resets
 unseeded, as ``GymEnv`` does); a block is random (the action spec's ``rand()``, torch's global

@@ -56,10 +56,10 @@ class AsyncCollector(MultiAsyncCollector):
     TorchRL's queue holds one block (``_queue_len`` 1, TorchRL 0.14). A worker whose block finds it full for
     1 s (``_TIMEOUT``: the learner evaluating, checkpointing, or slower than the workers) collects another one
     over it in its shared buffer: that block is lost, its env steps thrown away and a hole left in its env's
-    trajectory in the replay buffer. Seen on this machine (2026-11-28): a td3 run with two workers and
-    evaluations in the learner lost 1 block of 18 (tests/test_collectors.py's check of whole trajectories
-    failed in each of 4 runs that day). A worker has at most one block waiting (it collects again only when told
-    to go on), so a queue of ``num_workers`` never turns one away."""
+    trajectory in the replay buffer: a td3 run with two workers and evaluations in the learner lost 1 block of
+    18 on a 2-core machine (``tests/test_collectors.py`` checks that trajectories arrive whole). A worker has at
+    most one block waiting (it collects again only when told to go on), so a queue of ``num_workers`` never turns
+    one away."""
 
     @property
     def _queue_len(self) -> int:

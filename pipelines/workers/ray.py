@@ -326,8 +326,8 @@ class StridedTrajectoryPool(_TrajectoryPool):
 
     Why: each of ``RayCollector``'s actors numbers its trajectories with a pool of its own (TorchRL's
     multi-process collectors share one across processes), so two actors' first trajectories were both 1 and a
-    user's ``SliceSampler`` on ``("collector", "traj_ids")`` merged them (seen 2026-11-28: two actors' 10 blocks
-    as trajectories 1, 1, 1, 1, 1, 2, 2). Its state (``state_dict``) is the actor's own count, as TorchRL's.
+    user's ``SliceSampler`` on ``("collector", "traj_ids")`` merged them (two actors' 10 blocks came
+    out as trajectories 1, 1, 1, 1, 1, 2, 2). Its state (``state_dict``) is the actor's own count, as TorchRL's.
     It can go when TorchRL's ``RayCollector`` numbers trajectories across its actors itself (here, not in
     ``compat.torchrl``: that module is imported where TorchRL is not, and this class needs TorchRL's at import)."""
 

@@ -72,7 +72,7 @@ class WorkerFailure(RuntimeError):
 
 
 class NoRestartLeft(RuntimeError):
-    """A worker failed with no restart left: the run saved a checkpoint and stopped (was ``WorkersLost``).
+    """A worker failed with no restart left: the run saved a checkpoint and stopped.
 
     ``exit_status`` 75 is sysexits' EX_TEMPFAIL ("try again later"): the run can be resumed.
     """

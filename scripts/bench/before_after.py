@@ -1,7 +1,7 @@
 """Before against after, alternated in one command, with CleanRL beside where it runs (``python -m``).
 
     git worktree add --detach /tmp/before COMMIT
-    python -m rlpipe.scripts.bench.before_after --before /tmp/before dqn          # issue 22's DQN one-env case
+    python -m rlpipe.scripts.bench.before_after --before /tmp/before dqn          # DQN with CleanRL's settings, one env
     python -m rlpipe.scripts.bench.before_after --before /tmp/before whole dqn    # whole `rlpipe train dqn` runs
 
 "After" is the installed rlpipe; "before" is the tree at ``--before``, imported in its runs' processes

@@ -1,4 +1,4 @@
-"""``rlpipe bench collect``: collection against the env's own speed and CleanRL's loop (issues 9, 22).
+"""``rlpipe bench collect``: collection against the env's own speed and CleanRL's loop.
 
 For each env (default CartPole-v1, Pendulum-v1, MinitaurBulletEnv-v0): the raw env's steps/s (the
 gymnasium env stepped with random actions in a plain loop, resets included; Minitaur: our own env,
@@ -14,7 +14,8 @@ policy in this process on one torch thread (``num_threads=N`` to change). The cl
 first block (process start-up, first env reset, first policy call) and runs until ``--frames`` more
 frames (at least 3 blocks) have arrived.
 
-Target (issue 22): one env per collector at >= half the plain loop's steps/s.
+The target: one env per collector at >= half the plain loop's steps/s (BENCHMARKS.md, "Collection only: `rlpipe
+bench collect`").
 """
 
 from __future__ import annotations
@@ -33,10 +34,10 @@ PRESETS = {
     "MinitaurBulletEnv-v0": ("sac", []),
 }
 DEFAULT_ENVS = ("CartPole-v1", "Pendulum-v1", "MinitaurBulletEnv-v0")
-"""issue 22's envs"""
+"""the envs of the three tutorials' presets"""
 ENVS_PER_WORKER = (1,)
 TARGET_FRACTION = 0.5
-"""issue 22: one env per collector at least half the plain loop's steps/s (same env, same policy network)"""
+"""the target: one env per collector at least half the plain loop's steps/s (same env, same policy network)"""
 
 
 def check_args(args) -> None:

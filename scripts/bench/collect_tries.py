@@ -1,9 +1,9 @@
-"""TorchRL's own faster collector settings against ``GymCollector`` (issue 22), run with ``python -m``.
+"""TorchRL's own faster collector settings against ``GymCollector``, run with ``python -m``.
 
 CartPole-v1, one env, in-process, the ``dqn-cartpole-v1`` collect policy at its final epsilon (0.04):
-steps/s of TorchRL's ``Collector`` over ``make_env`` (today's path), over a bare ``GymEnv``, with
-``trust_policy`` and no buffers, with ``compile_policy``, and rlpipe's ``GymCollector``, each after its
-first block. Figures: BENCHMARKS.md, "Issue 22".
+steps/s of TorchRL's ``Collector`` over ``make_env`` (rlpipe's path with ``collector.direct=false``), over a
+bare ``GymEnv``, with ``trust_policy`` and no buffers, with ``compile_policy``, and rlpipe's ``GymCollector``,
+each after its first block. Figures: BENCHMARKS.md, "Where TorchRL's ~700 us a step go".
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""DQN with CleanRL's settings and one env in the learner's process against CleanRL's ``dqn.py`` (issue 22),
+"""DQN with CleanRL's settings and one env in the learner's process against CleanRL's ``dqn.py``,
 run with ``python -m``: runs alternated, each side timed as ``rlpipe bench cleanrl`` times it (two lengths
 after the random start-up, one torch thread), rlpipe on ``GymCollector`` and, with ``--torchrl``, on TorchRL's
-``Collector`` too. Figures: BENCHMARKS.md, "Issue 22".
+``Collector`` too. Figures: BENCHMARKS.md, "DQN with CleanRL's settings, one env, in-process".
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@
 Each round times the plain loop on its best thread setting (``dqn.plain_dqn_best_threads``) and then one
 ``rlpipe train dqn`` per variant (in this process, evaluations off; the run's own ``updates_per_s``,
 training time only), so each ratio compares two figures taken seconds apart under the same load.
-Prints a Markdown table of the rounds' median ratios (issue 9's DQN target: ratio >= 1).
+Prints a Markdown table of the rounds' median ratios (the target: a ratio of at least 1).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``rlpipe bench ray``: collectors as Ray actors against local collector processes (issue 10).
+"""``rlpipe bench ray``: collectors as Ray actors against local collector processes.
 
 Three parts, all on this machine, Ray on a local instance the bench starts and shuts down
 (``ray.address`` empty):

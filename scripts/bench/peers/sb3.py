@@ -3,8 +3,8 @@ RL-Zoo's tuned hyperparameters, each in a venv of its own built on first use (``
 
 Both venvs hold ``rl_zoo3`` for its hyperparameter files (``rl_zoo3/hyperparams/ALGO.yml``), read here
 with PyYAML (``zoo_hyperparams``). ``torch==2.13.0`` goes in first (``cleanrl.TORCH_PINS``): SB3 pulls
-torch in, and any other torch spec would download a multi-GB CUDA build. The rest are the ``pip freeze``
-of a working install (2026-11-25), pinned.
+torch in, and any other torch spec would download a multi-GB CUDA build. The rest are pinned to the ``pip freeze``
+of an install that works.
 
 The runner, ``ttr_sb3.py`` beside this file, runs with the venv's python.
 """
