@@ -50,7 +50,7 @@ class EGreedyQPolicy(TensorDictSequential):
     tutorial: one env step per update), and the stock sequence (the MLP through a
     ``TensorDictModule``, ``QValueModule``'s dispatch and spec checks, ``EGreedyModule``'s spec
     expansion) costs ~0.3 ms per call on this 2-core CPU for a few microseconds of arithmetic: 18% of
-    an iteration of the ``dqn`` preset (BENCHMARKS.md, "Where the time goes"). TorchRL has no
+    an iteration of the ``dqn`` preset (BENCHMARKS.md, "Collection: env steps per second"). TorchRL has no
     tensor-level epsilon-greedy policy, hence this class.
 
     The tensor path is taken when the actor is a ``QValueActor`` over a plain module (the Q-network

@@ -6,7 +6,7 @@ small networks of the tutorials (TD3 on Pendulum: ~3,600 critic and ~1,300 actor
 ``Adam.step`` spends far longer in Python (profiler ``record_function``, hooks, ``_init_group``,
 grouping tensors by device and dtype) than in its one fused kernel. Measured on this 2-core CPU:
 one step of the TD3 critics' optimiser ~47 us with ``Adam(fused=True)``, ~28 us with this class;
-a whole TD3 update ~1.49 -> ~1.40 ms (BENCHMARKS.md, "TD3 on Pendulum", has the run-level figures).
+a whole TD3 update ~1.49 -> ~1.40 ms (BENCHMARKS.md, "Pendulum-v1 TD3 to -200", has the run-level figures).
 
 ``LeanAdam`` *is* a ``torch.optim.Adam``: its state, ``state_dict``/``load_state_dict``, param
 groups and learning-rate schedulers are Adam's own. ``step`` calls the same kernel that
