@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 
 __all__ = [
-    "STOP_SIGNALS", "DeferredInterrupt", "DroppingStream", "Interrupted", "Stopped", "dropping", "fault_point",
+    "STOP_SIGNALS", "DeferredInterrupt", "DroppingStream", "Interrupted", "Stopped", "dropping", "fault_point", "fault_set",
     "gc_frozen", "keep_freed_memory", "open_closed_descriptors", "output_dropped_when_gone", "say",
     "WORKER_MODULES", "start_fork_server", "start_resource_tracker", "stop_signals_blocked",
 ]
@@ -346,10 +346,16 @@ def stop_signals_blocked():
 # gets SIGCONT), or to the one process the point is about (a worker), or, with a third field "self"
 # ("NAME@STEP:SIGTERM:self"), to itself alone. "NAME@STEP:ENOSPC" (any errno name) raises that
 # OSError there instead, as a full disk (or a refused write) would. "NAME@STEP:NAN" sends nothing:
-# fault_point returns True and the caller poisons its state (the loop: a parameter becomes NaN).
+# fault_point returns True and the caller poisons its state (after an update: a parameter becomes NaN,
+# ``training.divergence.with_nan_fault``).
 # RLPIPE_FAULT_ONCE=PATH: only the first process to get there (it creates PATH and writes its command
 # line into it), so a study's other runs reaching the same point later do not press again.
 _FAULTS = [f for f in os.environ.get("RLPIPE_FAULT", "").split(";") if f]
+
+
+def fault_set(name: str) -> bool:
+    """Whether ``RLPIPE_FAULT`` names point ``name``: a point inside a hot loop is put there only then."""
+    return any(fault.partition(":")[0].partition("@")[0] == name for fault in _FAULTS)
 
 
 def fault_point(name: str, step: int, worker: Callable[[], int | None] | None = None) -> bool:

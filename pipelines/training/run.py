@@ -7,8 +7,10 @@ refuses a write (disk full, permissions), after saving what can be saved.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import logging
 import random
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -17,13 +19,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 from torchrl.record.loggers import Logger, TensorboardLogger
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.files import STORAGE_ERRNOS, FileWriteError, write_json_atomic
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_dir, notice
 from rlpipe.pipelines.config import config_to_dict
 from rlpipe.pipelines.errors import InputError
+from rlpipe.pipelines.system.runtime import DeferredInterrupt, gc_frozen, keep_freed_memory
 from rlpipe.pipelines.training.arithmetic import NOT_ARITHMETIC, arithmetic_record, changed_arithmetic
+from rlpipe.pipelines.training.context import LIVE_LOG
 from rlpipe.pipelines.training.loop import Loop, TrainResult
 from rlpipe.pipelines.training.meters import Clock
 from rlpipe.pipelines.training.page import ReportPage
@@ -77,7 +82,7 @@ class Run:
                 logger = logger or TensorboardLogger(exp_name="tb", log_dir=str(run.path))
             loop = Loop(pipeline, run, metrics, fresh=fresh, evaluations=evaluations, triggers=triggers,
                         logger=logger, callbacks=callbacks, progress=progress)
-            with torch_threads(pipeline.config.num_threads), loop.running():
+            with torch_threads(pipeline.config.num_threads), running(loop.stop):
                 loop.run()
                 return self.finish(loop)
         except OSError as exc:  # a write the storage refused, outside rlpipe's own (TensorBoard's writer)
@@ -186,8 +191,7 @@ class Run:
         if differences:
             why = f"resumed at iteration {state.iteration:,} with {', '.join(differences)}"
             notice(f"{why}: the run is no longer exact (it cannot equal an uninterrupted run of its seed)")
-            if state.inexact is None:
-                state.inexact = why
+            state.not_exact(why)
 
     def _nothing_owed(self, run: RunDir) -> bool:
         """Whether the run as loaded is finished (its summary is of this checkpoint's iteration) and owes
@@ -247,6 +251,17 @@ class Run:
             "arithmetic": state.arithmetic,
             **({"config_changes": state.config_changes} if state.config_changes else {}),
         }
+
+
+@contextlib.contextmanager
+def running(stop: DeferredInterrupt):
+    """What the loop and the run's last writes happen in: stop signals deferred to safe points (``stop``),
+    the garbage collector off what exists now, console log lines above the progress bar."""
+    keep_freed_memory()
+    # The deferred stop-signal handler stays on through the checkpoint saved on an interrupt: a
+    # SIGINT delivered twice (the terminal's and a parent's) must not cut that save short.
+    with stop, gc_frozen(), logging_redirect_tqdm([logging.root, LIVE_LOG.parent]):
+        yield
 
 
 def _opened(run: RunDir, then: Callable[[RunDir], tuple]) -> tuple:

@@ -19,7 +19,7 @@ from rlpipe.pipelines.training.rate_limiter import SampleToInsertRatio
 __all__ = ["EVAL", "EXPORT", "LOG", "SAVE", "TARGET", "VIDEO", "RunState"]
 
 # The built-in triggers' names. Checkpoints record the triggers an iteration still owes by name
-# (``counters.triggers``), so these never change: a run directory saved by an older rlpipe resumes.
+# (``counters.triggers``): these names are part of the checkpoint format, and never change.
 LOG = "log"
 EVAL = "eval"
 EXPORT = "export"
@@ -88,6 +88,11 @@ class RunState:
         self.iteration = max(0, self.frames - cfg.initial_collect_steps) // cfg.collect_steps_per_iteration
         return before, self.iteration
 
+    def not_exact(self, why: str) -> None:
+        """Record (once: the first reason) that the run no longer equals an uninterrupted one (``inexact``)."""
+        if self.inexact is None:
+            self.inexact = why
+
     def updated(self) -> int:
         """Count one update made; return its number (1, 2, ...)."""
         self.updates += 1
@@ -127,21 +132,21 @@ class RunState:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         counters = state["counters"]
         self.frames, self.updates, self.iteration = (int(counters[k]) for k in ("frames", "updates", "iteration"))
-        self.episodes = int(counters.get("episodes", 0))  # a checkpoint from before it was counted: 0
-        # a checkpoint from before the times were kept: the run's figures count from this stretch
+        self.episodes = int(counters.get("episodes", 0))  # a checkpoint without it: 0
+        # a checkpoint without the times: the run's figures count from this stretch
         self.wall_time_s = float(counters.get("wall_time_s", 0.0))
         self.train_time_s = float(counters.get("train_time_s", 0.0))
         self.owed = list(counters.get("triggers", []))
         self.limiter.load_state_dict(state["limiter"])
         self.pending_evals = deque((dict(e["at"]), TensorDict(e["weights"]).unflatten_keys("/"))
                                    for e in state.get("background_evals", []))
-        self.envs = state.get("envs")  # a checkpoint from before envs were kept: None, new episodes
+        self.envs = state.get("envs")  # a checkpoint without envs: None, new episodes
         self.inexact = state.get("inexact")
-        self.arithmetic = state.get("arithmetic")  # a checkpoint from before it was kept: None
+        self.arithmetic = state.get("arithmetic")  # a checkpoint without it: None (a resume says it is not exact)
         self.config_changes = list(state.get("config_changes", []))
         self.interval = state.get("interval")
         self.workers = state.get("workers")
         self.backend_metrics = state.get("backend_metrics")
-        # a checkpoint from before the offset was kept: ids from 0, as that rlpipe numbered them
+        # a checkpoint without trajectories: ids from 0, as its collector numbered them
         trajectories = state.get("trajectories", {})
         self.traj_offset, self.traj_next = int(trajectories.get("offset", 0)), int(trajectories.get("next", 0))

@@ -13,12 +13,13 @@ that work themselves; add your own by passing them to ``train(triggers=[...])``:
 
     pipeline.train("runs/x", triggers=[IntervalTrigger(1000, print_return, name="print")])
 
-What a trigger may use of the loop: ``pipeline``, ``config``, ``state`` (counters), ``run_dir`` (the
-``RunDir``), ``evaluations`` (results so far, oldest first), ``last_return``, ``clock``,
-``interval_stats``, ``supervisor`` (workers alive, restarts), ``collector`` (the collector backend
-collecting now, or None: a ``workers.backend.CollectorBackend``, whose ``.collector`` is TorchRL's), ``triggers`` (the run's triggers by name), and the methods ``log(row)``
-(a metrics row: CSV, where a key new to metrics.csv gets a column; logger; callbacks), ``echo(line)``
-(the live log), ``speeds()``, ``evaluate()``, ``export()``, ``save()``.
+What a trigger may use of the loop is ``context.LoopContext``: ``pipeline``, ``config``, ``state``
+(counters), ``run_dir`` (the ``RunDir``), ``evaluations`` (results so far, oldest first), ``last_return``,
+``clock``, ``interval_stats``, ``supervisor`` (workers alive, restarts), ``collector`` (the collector
+backend collecting now, or None: a ``workers.backend.CollectorBackend``, whose ``.collector`` is
+TorchRL's), ``triggers`` (the run's triggers by name), and the methods ``log(row)`` (a metrics row: CSV,
+where a key new to metrics.csv gets a column; logger; callbacks), ``echo(line)`` (the live log),
+``speeds()``, ``evaluate()``, ``export()``, ``save()``.
 
 Besides ``__call__``, a trigger may define the run's other moments (each does nothing unless
 overridden), called on every trigger in the order given to ``train``:
@@ -235,7 +236,7 @@ class CheckpointTrigger(Trigger):
         loop.state.wall_time_s, loop.state.train_time_s = loop.clock.wall(), loop.clock.train_seconds()
         with loop.clock.paused():
             loop.metrics.sync()  # the rows this checkpoint counts reach the disk before it does
-            loop.capture_envs()
+            loop.resume.capture(loop.collection)
             ckpt.save_checkpoint(loop.run_dir.checkpoints, loop.state.iteration, loop.pipeline.state_dict(),
                                  keep=loop.config.checkpoint_keep)
 
