@@ -49,7 +49,7 @@ def arithmetic_record(cfg: TrainConfig) -> dict[str, Any]:
 
 def changed_arithmetic(saved: dict[str, Any] | None, now: dict[str, Any]) -> list[str]:
     """What differs between the record a checkpoint saved and ``now``'s, as ``'threads 1 -> 2'``; a checkpoint
-    that holds no record: ``['its arithmetic record (saved by an older rlpipe)']``."""
+    that holds no record: ``['its arithmetic record (the checkpoint holds none)']``."""
     if saved is None:
         return ["its arithmetic record (the checkpoint holds none)"]
     return [f"{key} {saved.get(key)} -> {value}" for key, value in now.items() if saved.get(key) != value]

@@ -1,10 +1,10 @@
 """The run's ``report.html`` and ``returns.png`` as the run writes them: at evaluations and log rows at a bounded
 cost, at the end, and when the run stops early (saying so, and how to continue).
 
-A page costs about 0.55 s to write on this 2-core machine and ``returns.png`` 0.13 s more (three SVG figures
+A page costs about 0.55 s to write on a 2-core machine and ``returns.png`` 0.13 s more (three SVG figures
 and the tables; 1.7 s with 10,000 log rows, measured with ``write_run_report`` on a DQN run directory): too much
 for every log row of a fast run, and for every evaluation of one (the DQN tutorial evaluates 21 times in a
-~30-s run: 14 s of it went to drawing, 2026-11-28). With ``live_report`` the first log row and the first
+~30-s run, and drawing at each would take ~14 s more: BENCHMARKS.md, "Evaluations on the same path"). With ``live_report`` the first log row and the first
 evaluation of a run (or of its resumed stretch) write them at once, so that its losses, speeds and first
 return show from the start; a later one only when ``MIN_INTERVAL_S`` have passed since they were last written
 and at least ``COST_RATIO`` times the last write's cost, so they never take more than about 2% of the run's
