@@ -427,13 +427,3 @@ def test_the_page_and_plot_follow_evaluations_at_a_bounded_cost(trained, tmp_pat
     assert not page.evaluated() and (run / "returns.png").read_bytes() == first  # within the bound: not drawn
     page.write(running=False)
     assert (run / "returns.png").read_bytes() != first  # the end: both points
-
-
-def test_the_old_write_report_still_writes_the_page_with_a_deprecation_warning(trained, tmp_path):
-    from rlpipe.pipelines.training.evaluations import write_report
-
-    run = copy_of(trained, tmp_path / "run")
-    (run / "report.html").unlink()
-    with pytest.warns(DeprecationWarning, match="write_run_report"):
-        write_report(run)
-    assert facts_of((run / "report.html").read_text())["status"] == "finished"

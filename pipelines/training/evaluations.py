@@ -27,7 +27,7 @@ from rlpipe.pipelines.workers.supervision import WorkerFailure
 if TYPE_CHECKING:
     from rlpipe.pipelines.training.loop import Loop
 
-__all__ = ["Evaluations", "eval_line", "write_report"]
+__all__ = ["Evaluations", "eval_line"]
 
 
 class Evaluations:
@@ -168,18 +168,6 @@ class Evaluations:
         loop.echo(f"random agent: AverageReturn = {result['average_return']:.6f}, "
                   f"AverageEpisodeLength = {result['average_episode_length']:.6f} "
                   f"({episodes} episodes)")
-
-
-def write_report(path, running: bool | None = None) -> None:
-    """Deprecated (the run writes its page through ``page.ReportPage`` now): ``analysis.pages.write_run_report``."""
-    import warnings
-
-    from rlpipe.pipelines.analysis.pages import write_run_report
-
-    warnings.warn("rlpipe.pipelines.training.evaluations.write_report is deprecated: call "
-                  "rlpipe.pipelines.analysis.pages.write_run_report; the old name goes in the next release",
-                  DeprecationWarning, stacklevel=2)
-    write_run_report(path, running=running)
 
 
 def eval_line(step: int, result: Mapping[str, Any], steps_per_s: float, updates_per_s: float) -> str:
