@@ -76,11 +76,11 @@ TIME_TO_TARGET = [
          "cartpole-v0-dqn", "tfagents"),
     Pair("HalfCheetah-v5 SAC to 3,000", "HalfCheetah-v5 SAC to 3,000", "2026-11-29-8fe68e7-halfcheetah-heldout.json",
          "halfcheetah-sac", "sbx"),
-    Pair("MinitaurBulletEnv-v0 SAC to 1.0", "Minitaur SAC to 1.0, against SBX", "2026-11-29-a13faf7-minitaur-1.json",
+    Pair("Minitaur SAC to 1.0", "Minitaur SAC to 1.0, against SBX", "2026-11-29-a13faf7-minitaur-1.json",
          "minitaur-sac-1", "sbx"),
-    Pair("MinitaurBulletEnv-v0 SAC to 1.0", "Minitaur SAC to 1.0, against TF-Agents' own tutorial",
+    Pair("Minitaur SAC to 1.0", "Minitaur SAC to 1.0, against TF-Agents' own tutorial",
          "2026-11-29-5e02349-minitaur-1-tfagents.json", "minitaur-sac-1", "tfagents"),
-    Pair("MinitaurBulletEnv-v0 CrossQ to 5", "Minitaur to 5, SAC against CrossQ",
+    Pair("Minitaur to 5", "Minitaur to 5, SAC against CrossQ",
          "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json", "minitaur-sac-5", None, side="crossq"),
 ]
 
