@@ -195,8 +195,7 @@ def _flat_observations(env: gymnasium.Env, gym_id: str) -> gymnasium.Env:
     """
     action, obs = env.action_space, env.observation_space
     if not isinstance(action, (spaces.Box, spaces.Discrete)) or isinstance(action, spaces.Box) and len(action.shape) != 1:
-        raise EnvError(f"env {gym_id!r} has a {action} action space; expected a Discrete one (dqn) or a "
-                       "one-dimensional Box (td3, sac, crossq)")
+        raise EnvError(f"env {gym_id!r} has a {action} action space; expected a Discrete one or a one-dimensional Box")
     if isinstance(obs, spaces.Dict) or isinstance(obs, spaces.Box) and len(obs.shape) == 1 and np.issubdtype(
             obs.dtype, np.floating):
         return env  # TorchRL gives a Dict's entries keys of their own: the pipeline reads `observation_key`

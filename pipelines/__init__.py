@@ -1,4 +1,4 @@
-"""Pipelines: one module per algorithm (``dqn``, ``td3``, ``sac``) on one shared loop.
+"""Pipelines: one module per algorithm (``dqn``, ``td3``, ``sac``, ``crossq``) on one shared loop.
 
     from rlpipe.pipelines import dqn
     result = dqn.DQN(dqn.preset("dqn")).train("runs/dqn")
@@ -9,7 +9,8 @@ The map of this package (each room's ``__init__`` maps its own modules):
                  actor, qvalue, loss_module, observation_key) and its assembly (device, optimisers,
                  replay buffer, collector backend); ``train`` hands the run to ``training.run.Run``
     plugins      what a user's own env, eval env and modules must be, checked before anything is built
-    dqn, td3, sac  the algorithms: each a config, presets, its modules and loss, one ``update``
+    algos        ALGOS: each algorithm's name -> its pipeline class (``pipeline_class``)
+    dqn, td3, sac, crossq  the algorithms: each a config, its modules and loss, one ``update``
     config       the shared keys (``TrainConfig``), each key's rule declared with its field, overrides
     errors       InputError (one line, exit 2), TrainingDiverged
     training/    the loop and what runs inside it: the run's lifecycle, Loop, the triggers (log, eval,
@@ -30,33 +31,13 @@ instead when a preset meets another env.
 
 from __future__ import annotations
 
-import importlib
-
-from rlpipe.pipelines import _moved, presets
+from rlpipe.pipelines import presets
+from rlpipe.pipelines.algos import ALGOS, pipeline_class
 from rlpipe.pipelines.config import PresetInfo, layer_sizes
 from rlpipe.pipelines.errors import InputError
 
-_moved.install()  # the module paths from before the rooms (``rlpipe.pipelines.loop``, ...), with a DeprecationWarning
-
 __all__ = ["ALGOS", "InputError", "PresetInfo", "device_hint", "pipeline_class", "preset_info", "presets",
            "resolve_preset", "size_hint", "sized_presets"]
-
-# algorithm -> "module:class"; a fourth algorithm is one new module and one line here.
-ALGOS = {
-    "dqn": "rlpipe.pipelines.dqn:DQN",
-    "td3": "rlpipe.pipelines.td3:TD3",
-    "sac": "rlpipe.pipelines.sac:SAC",
-    "crossq": "rlpipe.pipelines.crossq:CrossQ",
-}
-
-
-def pipeline_class(algo: str):
-    """The pipeline class of ``algo`` (it holds ``Config``, ``presets``, ``preset()``)."""
-    if algo not in ALGOS:
-        raise InputError(f"unknown algorithm {algo!r}; expected one of {', '.join(ALGOS)}")
-    module, name = ALGOS[algo].split(":")
-    return getattr(importlib.import_module(module), name)
-
 
 def resolve_preset(name: str):
     """(algo, config) for a preset's name such as 'dqn' or 'td3-hopper', or a preset file's path (``presets.load``)."""

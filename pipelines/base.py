@@ -20,7 +20,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,7 +51,6 @@ from rlpipe.pipelines.plugins import (
 from rlpipe.pipelines.system.memory import check_memory
 from rlpipe.pipelines.system.runtime import start_resource_tracker
 from rlpipe.pipelines.training.loop import TrainResult
-from rlpipe.pipelines.training.meters import Clock
 from rlpipe.pipelines.training.nstep import STEPS_KEY
 from rlpipe.pipelines.training.run import Run, seed_everything
 from rlpipe.pipelines.training.state import RunState
@@ -340,12 +338,6 @@ class OffPolicyPipeline:
     def choose_threads(self) -> int:
         """The learner's torch threads for this machine and collector layout: ``training.threads.choose_threads``."""
         return choose_threads(self.config)
-
-    def summary(self, state: RunState, evaluations: list[dict], clock: Clock) -> dict[str, Any]:
-        """Deprecated: ``training.run.Run(pipeline).summary``."""
-        warnings.warn("OffPolicyPipeline.summary moved to rlpipe.pipelines.training.run.Run.summary",
-                      DeprecationWarning, stacklevel=2)
-        return Run(self).summary(state, evaluations, clock)
 
 
 def _fraction_done(frames: int, window: list[int]) -> float:

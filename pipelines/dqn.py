@@ -14,7 +14,6 @@ them instead (``DQN(config, env=..., actor=..., loss_module=...)``).
 from __future__ import annotations
 
 import copy
-import warnings
 from dataclasses import dataclass
 
 import torch
@@ -114,14 +113,7 @@ class DQN(OffPolicyPipeline):
     loss_names = ("loss",)
 
     def __init__(self, config: DQNConfig | None = None, *, env=None, eval_env=None, actor: nn.Module | None = None,
-                 qvalue: nn.Module | None = None, loss_module: DQNLoss | None = None, observation_key: str | None = None,
-                 qvalue_actor: nn.Module | None = None):
-        if qvalue_actor is not None:  # the keyword before the redesign of 2026-11 (issue 8): kept for one release
-            warnings.warn("DQN(qvalue_actor=...) is now DQN(actor=...); the old keyword goes in the next release",
-                          DeprecationWarning, stacklevel=2)
-            if actor is not None:
-                raise InputError("pass the Q-value actor once: actor=... (qvalue_actor= is its old name)")
-            actor = qvalue_actor
+                 qvalue: nn.Module | None = None, loss_module: DQNLoss | None = None, observation_key: str | None = None):
         super().__init__(config, env=env, eval_env=eval_env,
                          observation_key=observation_key or observation_key_of(actor, loss_module))
         self.assemble(lambda: self.build(actor=actor, qvalue=qvalue, loss_module=loss_module))

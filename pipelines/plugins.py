@@ -14,6 +14,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rlpipe.envs import EnvError, describe_action_space, is_discrete, make_env, with_episode_return
+from rlpipe.pipelines.algos import ALGOS, pipeline_class
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
 
@@ -77,8 +78,11 @@ def check_action_space(algo: str, action_space: str, spec, env_label: str) -> No
     if is_discrete(spec) == (action_space == "discrete"):
         return
     needs = "discrete action space" if action_space == "discrete" else "continuous (Box) action space"
-    other = "td3, sac or crossq for continuous actions" if action_space == "discrete" else "dqn for discrete actions"
-    raise InputError(f"{algo.upper()} needs a {needs}; env {env_label!r} has a {describe_action_space(spec)} (use {other})")
+    other = "continuous" if action_space == "discrete" else "discrete"
+    learners = [name for name in ALGOS if pipeline_class(name).action_space == other]
+    names = f"{', '.join(learners[:-1])} or {learners[-1]}" if len(learners) > 1 else learners[0]
+    raise InputError(f"{algo.upper()} needs a {needs}; env {env_label!r} has a {describe_action_space(spec)} "
+                     f"(use {names} for {other} actions)")
 
 
 def observation_key_in(env: EnvBase, given: str | None, env_label: str) -> str:

@@ -12,7 +12,6 @@ with a soft target update; its Learner and triggers are the shared loop.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import torch
@@ -189,13 +188,3 @@ class SAC(TanhNormalPipeline):
 
 
 preset = SAC.preset
-
-
-def __getattr__(name: str):
-    # clip_gradient_norms moved to rlpipe.modules.optim (DQN clips with it too); the old name goes
-    # in the release after 0.2.
-    if name == "clip_gradient_norms":
-        warnings.warn("rlpipe.pipelines.sac.clip_gradient_norms moved to rlpipe.modules.optim.clip_gradient_norms; "
-                      "the old name goes in the next release", DeprecationWarning, stacklevel=2)
-        return optim.clip_gradient_norms
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

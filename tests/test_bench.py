@@ -63,45 +63,8 @@ def test_bad_options_are_refused_before_anything_runs(options, message):
         check_args(args)
 
 
-def test_the_old_benchmark_import_paths_give_the_new_modules_with_a_deprecation_warning():
-    # a fresh interpreter: the old paths must warn on their first import, which this session may have done
-    import subprocess
-    import sys
-
-    code = """
-import importlib, warnings
-pairs = [("rlpipe.scripts.bench_collect", "rlpipe.scripts.bench.collect"),
-         ("rlpipe.scripts.bench_profile", "rlpipe.scripts.bench.profile"),
-         ("rlpipe.scripts.peers", "rlpipe.scripts.bench.peers"),
-         ("rlpipe.scripts.peers.tfagents", "rlpipe.scripts.bench.peers.tfagents")]
-for old, new in pairs:
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        assert importlib.import_module(old) is importlib.import_module(new), old
-    assert [str(w.message) for w in caught if w.category is DeprecationWarning and new in str(w.message)], old
-with warnings.catch_warnings(record=True) as caught:
-    warnings.simplefilter("always")
-    from rlpipe.scripts.bench import plain_dqn_best_threads
-from rlpipe.scripts.bench.dqn import plain_dqn_best_threads as now
-assert plain_dqn_best_threads is now and caught and caught[0].category is DeprecationWarning
-"""
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-
-
 def test_the_tfagents_peer_finds_its_tutorial_scripts_in_a_checkout():
     from rlpipe.scripts.bench.peers import tfagents
 
     assert tfagents.SCRIPT.is_file() and tfagents.DQN_SCRIPT.is_file()
     assert "tf_agents" in tfagents.DQN_SCRIPT.read_text()
-
-
-def test_python_dash_m_of_an_old_benchmark_path_still_runs_it_with_a_warning():
-    import subprocess
-    import sys
-
-    proc = subprocess.run([sys.executable, "-m", "rlpipe.scripts.bench_dqn_tries", "--help"], capture_output=True,
-                          text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "--rounds" in proc.stdout
-    assert "moved to rlpipe.scripts.bench.dqn_tries" in proc.stderr

@@ -441,9 +441,6 @@ def test_gradient_clipping_clips_each_tensor_as_tf_agents_does():
 
     from rlpipe.modules.optim import clip_gradient_norms
 
-    with pytest.warns(DeprecationWarning, match="rlpipe.modules.optim.clip_gradient_norms"):
-        from rlpipe.pipelines.sac import clip_gradient_norms as old_name
-    assert old_name is clip_gradient_norms
     a, b = torch.nn.Parameter(torch.zeros(2, 3)), torch.nn.Parameter(torch.zeros(4))
     a.grad, b.grad = torch.tensor([[3.0, 4.0, 0.0], [0.0, 0.0, 0.1]]), torch.full((4,), 10.0)
     clip_gradient_norms([a], 1.0, stacked=True)  # each stacked network's tensor on its own

@@ -207,15 +207,6 @@ def test_dqn_takes_a_bare_q_network(tmp_path):
     assert changed(before, qnet)
 
 
-def test_dqns_old_qvalue_actor_keyword_still_builds_with_the_users_actor_and_warns():
-    actor = users_actor("dqn")
-    with pytest.warns(DeprecationWarning, match="actor="):
-        pipeline = dqn.DQN(config("dqn"), qvalue_actor=actor)
-    assert pipeline.policy is actor or any(m is actor for m in pipeline.policy.modules())
-    with pytest.raises(InputError, match="once"), pytest.warns(DeprecationWarning):
-        dqn.DQN(config("dqn"), actor=users_actor("dqn"), qvalue_actor=actor)
-
-
 def users_loss(algo: str):
     spec = make_plain(algo).action_spec
     if algo == "dqn":
@@ -347,13 +338,8 @@ def test_a_users_trigger_is_fired_at_the_start_on_schedule_and_once_more_at_the_
     assert moments.seen == [("start", 0), ("interval", 50), ("interval", 100), ("final", 100, 100), ("close",)]
 
 
-def test_the_pipelines_summary_and_thread_choice_still_answer_where_they_were():
-    from rlpipe.pipelines.training.meters import Clock
-
+def test_the_pipelines_thread_choice_answers():
     pipeline = dqn.DQN(config("dqn"))
-    with pytest.warns(DeprecationWarning, match="Run.summary"):
-        summary = pipeline.summary(pipeline.state, [{"average_return": 9.0, "average_episode_length": 9.0}], Clock())
-    assert (summary["algo"], summary["final_average_return"]) == ("dqn", 9.0)
     assert pipeline.choose_threads() >= 1
 
 

@@ -236,21 +236,6 @@ def test_a_non_positive_ratio_is_refused():
         SampleToInsertRatio(0)
 
 
-# --- the module paths from before the rooms still import, warned ---------------------------------------
-
-
-@pytest.mark.parametrize("old, new", [("loop", "training.loop"), ("ray_backend", "workers.ray"),
-                                      ("checkpoint", "artifacts.checkpoint"), ("runtime", "system.runtime")])
-def test_an_old_module_path_gives_the_moved_module_with_a_deprecation_warning(old, new):
-    import importlib
-    import sys
-
-    sys.modules.pop(f"rlpipe.pipelines.{old}", None)  # an earlier test may have imported it already
-    with pytest.warns(DeprecationWarning, match=f"rlpipe.pipelines.{new}"):
-        module = importlib.import_module(f"rlpipe.pipelines.{old}")
-    assert module is importlib.import_module(f"rlpipe.pipelines.{new}")
-
-
 @pytest.mark.parametrize("init,end,steps", [(1.0, 0.05, 250_000), (1.0, 0.04, 5000), (0.1, 0.1, 1), (1.0, 0.01, 7),
                                             (0.9, 0.013, 33_333_337)])
 def test_epsilon_is_annealed_to_egreedymodules_own_values(init, end, steps):

@@ -138,26 +138,3 @@ def run(args) -> int:
         return 128 + int(signum)
     return 0
 
-
-# names this module held before the benchmarks became one module each -> their module now (for one release)
-_MOVED = {
-    "plain_pytorch_dqn_iterations_per_s": "dqn",
-    "plain_dqn_best_threads": "dqn",
-    "bench_dqn": "dqn",
-    "bench_td3": "td3",
-    "bench_minitaur": "minitaur",
-    "_train_seeds": "runs",
-    "_first_reaching": "runs",
-}
-
-
-def __getattr__(name: str):
-    if name not in _MOVED:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import warnings
-
-    module = f"{__name__}.{_MOVED[name]}"
-    new = {"_train_seeds": "train_seeds", "_first_reaching": "first_reaching"}.get(name, name)
-    warnings.warn(f"{__name__}.{name} moved to {module}.{new}; the old name goes in the next release",
-                  DeprecationWarning, stacklevel=2)
-    return getattr(importlib.import_module(module), new)
