@@ -1,5 +1,5 @@
 """The exported policy: ONNX (data only) beside the .pt2, its history, rlpipe's loader, `rlpipe eval/video`
-on it (a crafted .pt2 refused without --trust), the random baseline, and the README's snippets run as
+on it (a crafted .pt2 refused without --trust), the random baseline, and the exported-policy page's snippets run as
 written on a CartPole and a Pendulum run."""
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from rlpipe.pipelines.artifacts.export import OnnxExportWarning, available_steps
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.errors import InputError
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+POLICY_PAGE = Path(__file__).resolve().parents[1] / "docs" / "guides" / "exported-policy.md"
 RLPIPE = [sys.executable, "-m", "rlpipe.scripts.cli"]
 SHORT = ["num_iterations=300", "initial_collect_steps=100", "eval_interval=0", "num_eval_episodes=1",
          "log_interval=100", "checkpoint_interval=300", "policy_save_interval=100", "collector.sync=true"]
@@ -435,19 +435,20 @@ def test_bad_policy_choices_are_one_line(runs, capfd, argv, words):
     assert out == "" and sorted(p.name for p in (runs / "cartpole").rglob("*")) == before
 
 
-# --- the README's snippets, run as written ------------------------------------------------------------
+# --- the exported-policy page's snippets, run as written ---------------------------------------------
 
 
-def readme_snippet(name: str) -> str:
-    found = re.search(rf"<!-- snippet: {name} -->\n```python\n(.*?)```\n<!-- /snippet -->", README.read_text(), re.S)
-    assert found, f"README.md has no snippet {name!r}"
+def page_snippet(name: str) -> str:
+    found = re.search(rf"<!-- snippet: {name} -->\n(?:<!-- no-run: .*? -->\n)?```python\n(.*?)```\n<!-- /snippet -->",
+                      POLICY_PAGE.read_text(), re.S)
+    assert found, f"docs/guides/exported-policy.md has no snippet {name!r}"
     return found.group(1)
 
 
 @pytest.mark.parametrize("env", ["cartpole", "pendulum"])
-def test_the_readmes_policy_snippets_run_as_written(runs, env):
+def test_the_policy_pages_snippets_run_as_written(runs, env):
     run = runs / env
-    code = "\n".join(readme_snippet(name).replace("RUN_DIR", str(run)) for name in ("load-policy", "load-policy-standalone"))
+    code = "\n".join(page_snippet(name).replace("RUN_DIR", str(run)) for name in ("load-policy", "load-policy-standalone"))
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=runs)
     assert proc.returncode == 0, proc.stderr[-3000:]
     episode_return, onnx_shape, pt2 = proc.stdout.strip().splitlines()[-3:]
