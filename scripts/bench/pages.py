@@ -148,8 +148,7 @@ def _preset(data: dict, task: str, side: str) -> str:
 
 def _peer_name(data: dict, task: str, peer: str) -> str:
     settings = data["tasks"][task]["settings"][peer]
-    return PEER_NAMES[peer] + (" (SB3's defaults: no RL-Zoo entry)" if "RL-Zoo" in settings and "default (no" in settings
-                               else "")
+    return "SBX, SB3's defaults (no RL-Zoo entry)" if peer == "sbx" and "default (no" in settings else PEER_NAMES[peer]
 
 
 def _time(side: dict) -> str:
@@ -179,26 +178,27 @@ def time_to_target(link: str | None) -> tuple[list[str], list[dict]]:
     """The summary table (task links to ``link``'s headings, or the headings named in quotes), its commands, and
     the figures to plot."""
     files = list(dict.fromkeys(pair.json for pair in TIME_TO_TARGET))
-    lines = ["| task | rlpipe (preset) | peer | rlpipe median | peer median | rlpipe sooner | seeds | measured |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| task | rlpipe (preset) | peer | rlpipe median | peer median | rlpipe sooner | seeds, date |",
+             "|---|---|---|---|---|---|---|"]
     plotted, last = [], None
     for pair in TIME_TO_TARGET:
         data = _load("time-to-return", pair.json)
         ours = data["summary"][pair.task][pair.side]
         task = f"[{pair.label}]({link}#{slug(pair.heading)})" if link else pair.label
         preset = f"`{_preset(data, pair.task, pair.side)}`"
-        if last is not None and pair.label == last.label and (pair.heading == last.heading or not link):
-            task = ""
+        if last is not None and pair.label == last.label:
+            preset = "" if pair.side == last.side else preset
+            task = "" if pair.heading == last.heading or not link else task
         last = pair
         note = f"[{files.index(pair.json) + 1}]"
         if pair.peer is None:
-            lines.append(f"| {task} | {preset} | none timed | **{_time(ours)}** | — | — | {_seeds(data, ours)} | "
-                         f"{_when(pair.json)} {note} |")
+            lines.append(f"| {task} | {preset} | none timed | **{_time(ours)}** | — | — | {_seeds(data, ours)}, "
+                         f"{pair.json[:10]} {note} |")
             continue
         theirs = data["summary"][pair.task][pair.peer]
         ratio, shown = _ratio(data, pair)
         lines.append(f"| {task} | {preset} | {_peer_name(data, pair.task, pair.peer)} | **{_time(ours)}** | "
-                     f"{_time(theirs)} | {shown} | {_seeds(data, ours)} | {_when(pair.json)} {note} |")
+                     f"{_time(theirs)} | {shown} | {_seeds(data, ours)}, {pair.json[:10]} {note} |")
         plotted.append({"label": f"{pair.label}: {PEER_NAMES[pair.peer]}", "rlpipe": ours["median_s"],
                         "peer": theirs["median_s"], "bound": ratio if theirs["median_s"] is None else None})
     lines += ["", "The commands (each JSON under `scripts/results/time-to-return/`, with a PNG of every seed beside it):", ""]
