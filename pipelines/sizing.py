@@ -27,7 +27,10 @@ a task"), written once for every env:
   there are two CPUs or more, with the HalfCheetah preset's learning rates 1e-3, tau 0.005 and (SAC)
   target entropy -|A|;
 - DQN as the sized CartPole presets: learning rate 2.3e-3, gamma 0.99, epsilon 1.0 -> 0.04, the target
-  network copied every 20 updates, the env in the learner's process;
+  network copied every 20 updates, the env in the learner's process; one update per 4 env steps (Nature DQN's
+  and SB3's train_freq): a classic-control step costs ~0.1 ms in the learner's process and an update ~0.7, so the
+  updates are the run's time (Acrobot-v1, seeds 0-4: ~4,000 updates to -100 against ~8,000 at one a step, for
+  ~1.7x the env steps; BENCHMARKS.md, "The sized default and the development suite");
 - a budget of 100 episodes of the time limit (of the random agent's episodes where the env has none), at
   least 50,000 and at most 1,000,000 env steps, with a replay buffer that keeps them all.
 
@@ -177,7 +180,8 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     budget = min(1_000_000, max(50_000, 100 * episode))
     big_body = not facts.discrete and facts.action_size >= 3
     in_process = not big_body or facts.cpus < 2
-    iterations = budget - random_steps
+    per_update = 4 if facts.discrete else 1  # env steps per update (collect_steps_per_iteration)
+    iterations = (budget - random_steps) // per_update
     keys = dict(
         env=facts.env, num_iterations=iterations, initial_collect_steps=random_steps, replay_buffer_capacity=budget,
         initial_eval=False, baseline_episodes=0, live_report=not in_process, num_threads=1, num_eval_episodes=10,
@@ -206,8 +210,8 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     else:
         decay = max(5000, _round_up(budget / 10, 1000))
         keys.update(fc_layer_params=net, learning_rate=2.3e-3, gamma=0.99, epsilon_greedy=1.0, epsilon_greedy_end=0.04,
-                    epsilon_decay_steps=decay, target_update_period=20)
-        chosen += ["lr 0.0023", f"epsilon 1 -> 0.04 over {decay:,} steps"]
+                    epsilon_decay_steps=decay, target_update_period=20, collect_steps_per_iteration=per_update)
+        chosen += ["lr 0.0023", f"epsilon 1 -> 0.04 over {decay:,} steps", f"an update every {per_update} env steps"]
     chosen += [f"{random_steps:,} random steps", f"{budget:,} env steps"]
     where = ("env in the learner's process" if in_process else
              f"env in a collector process ({facts.action_size} actuators; {facts.cpus} CPUs)")

@@ -56,6 +56,7 @@ def test_the_rule_is_a_function_of_the_facts_alone():
     assert (dqn.fc_layer_params, dqn.learning_rate, dqn.epsilon_greedy_end, dqn.target_update_period) == (
         [64, 64], 2.3e-3, 0.04, 20)
     assert dqn.initial_collect_steps == 2500 and "3 actions" in line
+    assert dqn.collect_steps_per_iteration == 4 and dqn.num_iterations * 4 + 2500 <= 50_000
 
 
 def test_the_facts_are_measured_the_same_way_every_time():
