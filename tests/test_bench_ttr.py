@@ -70,12 +70,12 @@ def test_no_crossq_leaves_out_only_the_crossq_side():
 
 def test_a_side_with_its_own_seed_count_runs_its_first_seeds_and_the_others_every_seed():
     # --side-seeds tfagents=1: the Minitaur tutorial's ~35-minute run timed once, rlpipe and SBX on every seed
-    plan = list(ttr._plan(["minitaur-sac-1"], ["sbx", "tfagents"], False, 3, {"tfagents": 1}))
+    plan = list(ttr._plan({"minitaur-sac-1": ttr.TASKS["minitaur-sac-1"]}, ["sbx", "tfagents"], False, 3, {"tfagents": 1}))
     assert plan == [("minitaur-sac-1", 0, "rlpipe"), ("minitaur-sac-1", 0, "sbx"), ("minitaur-sac-1", 0, "tfagents"),
                     ("minitaur-sac-1", 1, "rlpipe"), ("minitaur-sac-1", 1, "sbx"),
                     ("minitaur-sac-1", 2, "rlpipe"), ("minitaur-sac-1", 2, "sbx")]
     # --seed 100: seeds the presets were not tuned on, 100 to 102; "its first seed" is then seed 100
-    plan = list(ttr._plan(["minitaur-sac-1"], ["tfagents"], False, 3, {"tfagents": 1}, first=100))
+    plan = list(ttr._plan({"minitaur-sac-1": ttr.TASKS["minitaur-sac-1"]}, ["tfagents"], False, 3, {"tfagents": 1}, first=100))
     assert plan == [("minitaur-sac-1", 100, "rlpipe"), ("minitaur-sac-1", 100, "tfagents"),
                     ("minitaur-sac-1", 101, "rlpipe"), ("minitaur-sac-1", 102, "rlpipe")]
 

@@ -212,3 +212,37 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(package, tmp_path, mon
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("rlpipe: error: ") and expected in lines[0], err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_bench_times_the_users_env_and_the_peers_make_it_with_its_kwargs(package, tmp_path):
+    """`rlpipe bench time-to-return --envs PKG.envs:TinyArm`: the user's env is a task of its own (the sized default,
+    its kwargs, the run's whole budget as the cap), and the SB3/SBX runner makes the same env with the same kwargs."""
+    refused = rlpipe(package, "bench", "time-to-return", "--envs", f"{PACKAGE}.envs:TinyArm", "--peers", "none",
+                     cwd=tmp_path)
+    assert refused.returncode == 2 and "expected --target-return" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1 and not list(tmp_path.iterdir())
+    proc = rlpipe(package, "bench", "time-to-return", f"env_kwargs.horizon={HORIZON}", "--envs", f"{PACKAGE}.envs:TinyArm",
+                  "--target-return", "-2", "--seeds", "1", "--peers", "none", "--cap-scale", "0.02", "--out", "out",
+                  "--json", "ttr.json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    figures = json.loads((tmp_path / "ttr.json").read_text())
+    task = figures["tasks"][f"{PACKAGE}.envs:TinyArm"]
+    assert (task["algo"], task["target"]) == ("sac", -2.0)
+    assert task["cap"] == int(50_000 * 0.02)  # the sized budget (at least 50,000 env steps), scaled
+    (run,) = figures["runs"]
+    assert run["side"] == "rlpipe" and run["env_steps"] > 0 and not run["failed"]
+    config = json.loads(next((tmp_path / "out").rglob("config.json")).read_text())["config"]
+    assert config["env_kwargs"] == {"horizon": HORIZON}
+
+    from rlpipe.scripts.bench import time_to_return as ttr
+
+    runner = Path(ttr.__file__).with_name("peers")  # on the path as the peer's venv runs ttr_sb3.py from there
+    code = (f"import sys; sys.path[:0] = [{str(runner)!r}, {str(package)!r}]\n"
+            "from ttr_sb3 import env_maker\n"
+            f"env = env_maker('{PACKAGE}.envs:TinyArm', {{'horizon': {HORIZON}}})()\n"
+            "env.reset(seed=0); n = 0; done = False\n"
+            "while not done:\n    done = env.step(env.action_space.sample())[3]; n += 1\n"
+            f"made = env_maker('{PACKAGE}:TinyArm-v0', {{}})()\n"
+            "print(type(env).__name__, n, made.spec.id)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+    assert out.stdout.split() == ["TinyArm", str(HORIZON), "TinyArm-v0"], out.stderr[-2000:]

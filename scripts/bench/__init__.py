@@ -64,10 +64,14 @@ def add_parser(sub) -> None:
     bench.add_argument("--out", type=Path, help="keep the runs here (default: a temporary folder)")
     bench.add_argument("--json", type=Path, help="also write the figures as JSON here")
     bench.add_argument("--peer-iterations", type=int, default=3000, help="iterations timed for the plain-PyTorch peer")
-    bench.add_argument("--algos", nargs="+", choices=["sac", "td3", "dqn"], help="cleanrl: algorithms to compare (default: all)")
+    bench.add_argument("--algos", nargs="+", choices=["sac", "td3", "dqn"], help="cleanrl: algorithms to compare (default: "
+                       "all); time-to-return with --envs: the one algorithm (default: SAC for a Box action space, DQN for "
+                       "a Discrete one)")
     bench.add_argument("--envs", nargs="+", help="cleanrl: env ids (default: Pendulum-v1 and HalfCheetah-v5; CartPole-v1 for "
                        "dqn); collect: default CartPole-v1 Pendulum-v1 MinitaurBulletEnv-v0; ray: "
-                       "the one env (default MinitaurBulletEnv-v0)")
+                       "the one env (default MinitaurBulletEnv-v0); time-to-return: your own envs, each a task (an id, "
+                       "my_package.envs:MyArm or my_package:MyArm-v0; env_kwargs.KEY=VALUE for its constructor), rlpipe's "
+                       "sized default (or --preset) against SB3/SBX, with --target-return")
     bench.add_argument("--envs-per-worker", nargs="+", type=int, help="collect: collector.envs_per_worker values (default: 1)")
     bench.add_argument("--workers", nargs="+", type=int, help="ray: collector workers (default: 1 2 4)")
     bench.add_argument("--frames", type=int, help="collect, ray: collect-only frames timed per measurement "
@@ -90,7 +94,7 @@ def add_parser(sub) -> None:
     bench.add_argument("--threads", nargs="+", metavar="SIDE=N", help="time-to-return: a side's thread count "
                        "(default: rlpipe the preset's, cleanrl and sb3 1, sbx JAX's)")
     bench.add_argument("--target-return", type=float, help="time-to-return: one target return for every task chosen "
-                       "instead of the task's (a quick check)")
+                       "instead of the task's (a quick check); with --envs, the target on your envs")
     bench.add_argument("--cap-scale", type=float, help="time-to-return: scale every task's env-step cap")
     bench.add_argument("--cap", nargs="+", metavar="SIDE=STEPS", help="time-to-return: one side's env-step cap, "
                        "instead of the task's (e.g. tfagents=110000: the Minitaur tutorial's whole run, its 10,000 random "

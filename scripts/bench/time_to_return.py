@@ -74,6 +74,8 @@ class Task:
     peers: tuple[str, ...] = ("cleanrl", "sb3", "sbx", "torchrl")
     """the peers that play the task"""
     why: str = ""
+    env_kwargs: tuple[tuple[str, Any], ...] = ()
+    """keywords of the env's constructor (``env_kwargs``), for the peers: the rlpipe side has them as overrides"""
 
 
 # The issue's targets (issue 21). Caps: a few times what the peers need on their tuned settings, so that
@@ -152,11 +154,12 @@ def check_args(args) -> None:
         for name in args.peers or ():
             if name not in PEERS:
                 raise InputError(f"--peers: unknown peer {name!r}; expected some of {', '.join(PEERS)}, or none")
+    tasks = chosen_tasks(args)  # --envs: each env made once here, so that a bad one is refused before any run
     if "torchrl" in chosen_peers(args):  # its checkout, with the recipes of the chosen tasks it plays
         from rlpipe.scripts.bench.peers import torchrl_sota
 
         torchrl_sota.check_checkout(getattr(args, "torchrl_sota", None),
-                                    sorted({TASKS[n].algo for n in args.tasks or TASKS if "torchrl" in TASKS[n].peers}))
+                                    sorted({t.algo for t in tasks.values() if "torchrl" in t.peers}))
     _per_side(args.threads, "--threads", count="N a count (0: the side's default)", ok=lambda n: n >= 0)
     _per_side(getattr(args, "cap", None), "--cap", "SIDE=STEPS", "STEPS a positive count of env steps", lambda n: n > 0)
     _per_side(getattr(args, "side_seeds", None), "--side-seeds",
@@ -171,8 +174,42 @@ def check_args(args) -> None:
         from rlpipe.pipelines import resolve_preset
 
         resolve_preset(args.preset)  # an unknown one: its own line
-    for name in args.tasks or list(TASKS):  # the rlpipe side's overrides: a bad key is refused before any run
-        rlpipe_config(TASKS[name], list(args.overrides), args.preset)
+    for task in tasks.values():  # the rlpipe side's overrides: a bad key is refused before any run
+        rlpipe_config(task, list(args.overrides), args.preset)
+
+
+def chosen_tasks(args) -> dict[str, Task]:
+    """The tasks to run by name: ``--tasks`` (default: every task of TASKS, or none where ``--envs`` is given), then
+    one task for each of ``--envs``: the user's own envs (``own_task``)."""
+    envs = getattr(args, "envs", None) or []
+    chosen = {name: TASKS[name] for name in (args.tasks or ([] if envs else list(TASKS)))}
+    for env in envs:
+        chosen[env] = own_task(env, args)
+    return chosen
+
+
+def own_task(env: str, args) -> Task:
+    """A task on a user's env (``--envs``: a registered id, ``my_package.envs:MyArm`` or ``my_package:MyArm-v0``,
+    its constructor's keywords the ``env_kwargs.KEY=VALUE`` overrides): ``--target-return`` is the target; the
+    algorithm is ``--algos``'s one, else chosen from the action space as ``rlpipe train env=ID`` chooses it; rlpipe
+    plays the sized default (or ``--preset``), SB3 and SBX RL-Zoo's settings for the id (SB3's defaults where the zoo
+    has none); the cap is the rlpipe run's whole budget of env steps (``--cap-scale`` scales it)."""
+    import dataclasses
+
+    from rlpipe.pipelines.config import TrainConfig, apply_overrides
+    from rlpipe.pipelines.sizing import _env_overrides, measure
+
+    if args.target_return is None:
+        raise InputError(f"--envs {env}: expected --target-return R as well, the return that counts as trained there")
+    algos = getattr(args, "algos", None) or []
+    if len(algos) > 1:
+        raise InputError(f"--algos {' '.join(algos)} with --envs: expected one algorithm (sac, td3 or dqn) for the envs")
+    made = apply_overrides(TrainConfig(), [f"env={env}", *_env_overrides(list(args.overrides))])
+    algo = algos[0] if algos else ("dqn" if measure(made, play=False).discrete else "sac")
+    task = Task(env, algo, float(args.target_return), 1, "", (algo, (f"env={env}",)), peers=("sb3", "sbx"),
+                why="your env: no preset, sized from the env", env_kwargs=tuple(sorted(made.env_kwargs.items())))
+    cfg = rlpipe_config(task, list(args.overrides), args.preset)[3]
+    return dataclasses.replace(task, cap=cfg.initial_collect_steps + cfg.num_iterations * cfg.collect_steps_per_iteration)
 
 
 def chosen_peers(args) -> list[str]:
@@ -359,10 +396,13 @@ def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work:
 
         python = sb3.ensure_venv(side)
         hp, source = sb3.zoo_hyperparams(side, task.algo, task.env)
-        spec = {**rule, "lib": side, "algo": task.algo, "env": task.env, "hyperparams": hp, "hyperparams_source": source}
+        spec = {**rule, "lib": side, "algo": task.algo, "env": task.env, "hyperparams": hp, "hyperparams_source": source,
+                "env_kwargs": dict(task.env_kwargs)}
         if task.env == "MinitaurBulletEnv-v0":
             spec["minitaur_module"] = _minitaur_module()
         env = _base_env(threads if side == "sb3" else None)
+        if ":" in task.env and os.environ.get("PYTHONPATH") is not None:  # a user's env imports there as here
+            env["PYTHONPATH"] = _here_environ()["PYTHONPATH"]
         if side == "sbx" and threads:
             env["XLA_FLAGS"] = f"--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads={threads}"
         lib = "SB3 2.9.2" if side == "sb3" else "SBX 0.28.0"
@@ -464,7 +504,9 @@ def timed_result(launch: Launch, log: Path, rc: int, start: float, end: float) -
 
 def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     check_args(args)
-    tasks = args.tasks or list(TASKS)
+    out = out.resolve()  # each side runs in a folder of its own: a relative --out would name another folder there
+    catalog = chosen_tasks(args)
+    tasks = list(catalog)
     peers = chosen_peers(args)
     threads = _threads(args)
     machine = _machine()  # the load before the first run (the runs' own load shows in it at the end)
@@ -475,7 +517,7 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     crossq = not getattr(args, "no_crossq", False)
     side_seeds = _side_seeds(args)
     first = getattr(args, "seed", 0)
-    plan = list(_plan(tasks, peers, crossq, args.seeds, side_seeds, first))
+    plan = list(_plan(catalog, peers, crossq, args.seeds, side_seeds, first))
     total = len(plan)
     n = 0
     interrupted: dict[str, Any] | None = None
@@ -486,7 +528,7 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
             for name, seed, side in plan:
                 n += 1
                 current = f"{name} seed {seed} {side}"
-                task = TASKS[name]
+                task = catalog[name]
                 target = task.target if args.target_return is None else float(args.target_return)
                 settings.setdefault(name, {})
                 cap = side_caps.get(side, max(1, int(task.cap * scale)))
@@ -520,9 +562,10 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
               "before it are kept", flush=True)
     for name in tasks:  # every task chosen has its table, including those an interruption left unrun
         settings.setdefault(name, {})
-    figures = {"tasks": {name: {"env": TASKS[name].env, "algo": TASKS[name].algo,
-                                "target": TASKS[name].target if args.target_return is None else float(args.target_return),
-                                "cap": max(1, int(TASKS[name].cap * scale)), "settings": settings[name]}
+    figures = {"tasks": {name: {"env": catalog[name].env, "algo": catalog[name].algo,
+                                "target": catalog[name].target if args.target_return is None else float(args.target_return),
+                                "cap": max(1, int(catalog[name].cap * scale)), "settings": settings[name],
+                                **({"why": catalog[name].why} if name not in TASKS else {})}
                          for name in tasks},
                "runs": runs, "seeds": args.seeds, "first_seed": first, "threads": threads,
                "machine": {**machine, "load_avg_1min_end": os.getloadavg()[0]}}
@@ -535,14 +578,14 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     return figures
 
 
-def _plan(tasks: list[str], peers: list[str], crossq: bool, seeds: int, side_seeds: dict[str, int] | None = None,
+def _plan(tasks: dict[str, Task], peers: list[str], crossq: bool, seeds: int, side_seeds: dict[str, int] | None = None,
           first: int = 0):
     """``(task, seed, side)`` in the order they run: per task, per seed (``first`` to ``first + seeds - 1``), every
     side once (interleaved); a side in ``side_seeds`` only in its first N seeds."""
     side_seeds = side_seeds or {}
     for name in tasks:
         for seed in range(first, first + seeds):
-            for side in task_sides(TASKS[name], peers, crossq):
+            for side in task_sides(tasks[name], peers, crossq):
                 if seed - first < side_seeds.get(side, seeds):
                     yield name, seed, side
 
@@ -632,7 +675,8 @@ def tables(figures: dict[str, Any]) -> str:
         lines.append(f"**Interrupted by {i['signal']} during {i['during']}: {i['runs_done']} of {i['runs_planned']} "
                      "runs finished, and only they are below** (a side's median is over the seeds it finished).")
     for name, task in figures["tasks"].items():
-        why = f" ({TASKS[name].why})" if name in TASKS and TASKS[name].why else ""
+        why = TASKS[name].why if name in TASKS else task.get("why", "")
+        why = f" ({why})" if why else ""
         lines += ["", f"### {name}: {task['env']} {task['algo'].upper()}{why}, target {task['target']:g}, "
                       f"cap {task['cap']:,} env steps", "",
                   "| side | settings, version | median s (min–max) | reached | env steps at target | updates at target "

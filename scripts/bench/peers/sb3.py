@@ -84,7 +84,7 @@ def zoo_hyperparams(lib: str, algo: str, env_id: str) -> tuple[dict, str]:
 
     table = yaml.safe_load(zoo_file(lib, algo).read_text())
     name = env_id.rpartition("-v")[0]
-    twins = sorted((k for k in table if k.rpartition("-v")[0] == name and k != env_id), reverse=True)
+    twins = sorted((k for k in table if "-v" in k and k.rpartition("-v")[0] == name and k != env_id), reverse=True)
     twin = twins[0] if twins else None
     for key, source in ((env_id, f"RL-Zoo {algo}.yml {env_id}"),
                         (twin, f"RL-Zoo {algo}.yml {twin} (no {env_id} entry; same dynamics and reward)"),

@@ -31,6 +31,24 @@ def _policy_kwargs(text):
     return eval(text, {"dict": dict, "nn": nn, "__builtins__": {}})  # noqa: S307 - RL-Zoo's own yml strings
 
 
+def env_maker(env: str, kwargs: dict):
+    """What ``make_vec_env`` and the evaluation make ``env`` with, in rlpipe's ``env=`` forms: a registered id,
+    gymnasium's ``module:Id-v0`` (importing the module registers it), or a user's ``module:Target`` (a
+    ``gymnasium.Env`` subclass or a function returning one), constructed with ``kwargs`` (rlpipe's ``env_kwargs``)."""
+    import importlib
+
+    import gymnasium
+
+    module_name, colon, name = env.partition(":")
+    if colon:
+        module = importlib.import_module(module_name)
+        if name not in gymnasium.registry and callable(getattr(module, name, None)):
+            target = getattr(module, name)
+            return lambda: target(**kwargs)
+        env = name
+    return lambda: gymnasium.make(env, **kwargs)
+
+
 def main(spec: dict) -> None:
     launch_import = time.time()
     lib, algo = spec["lib"], spec["algo"]
@@ -52,7 +70,6 @@ def main(spec: dict) -> None:
         classes = {"sac": SAC, "td3": TD3, "dqn": DQN}
         names = ("sbx-rl", "stable-baselines3", "rl-zoo3", "jax", "jaxlib", "flax", "gymnasium", "numpy", "mujoco",
                  "pybullet")
-    import gymnasium
     from stable_baselines3.common.env_util import make_vec_env
 
     register_minitaur(spec.get("minitaur_module"))
@@ -66,13 +83,14 @@ def main(spec: dict) -> None:
     if "policy_kwargs" in hp:
         hp["policy_kwargs"] = _policy_kwargs(hp["policy_kwargs"])
     noise_type, noise_std = hp.pop("noise_type", None), hp.pop("noise_std", None)
-    env = make_vec_env(env_id, n_envs=n_envs, seed=seed)
+    make = env_maker(env_id, dict(spec.get("env_kwargs") or {}))
+    env = make_vec_env(make, n_envs=n_envs, seed=seed)
     if noise_type == "normal":
         dim = env.action_space.shape[0]
         hp["action_noise"] = NormalActionNoise(mean=np.zeros(dim), sigma=float(noise_std) * np.ones(dim))
     elif noise_type is not None:
         raise SystemExit(f"ttr_sb3: noise_type={noise_type} is not supported by this runner")
-    eval_env = gymnasium.make(env_id)
+    eval_env = make()
     eval_seed = [seed + EVAL_SEED_OFFSET]
 
     rule = Rule.from_spec(spec)
