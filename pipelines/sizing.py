@@ -20,12 +20,14 @@ a task"), written once for every env:
 - random steps enough for five random episodes, at least 1,000 and at most 5,000 (Pendulum and
   InvertedPendulum 1,000; HalfCheetah 5,000, where 2,000 was no sooner);
 - one learner thread; no untrained evaluation or random baseline; exports at the end;
-- a body of one or two actuators (the pendulums) steps in the learner's process, with the pendulum
-  presets' faster target networks and larger learning rates (SAC: tau 0.02, 2e-3, the actor on every
-  second update; TD3: tau 0.05, 2e-3), which carried over from Pendulum to InvertedPendulum; a body of
-  three or more (HalfCheetah's 6, Minitaur's 8) steps in a collector process beside the learner when
-  there are two CPUs or more, with the HalfCheetah preset's learning rates 1e-3, tau 0.005 and (SAC)
-  target entropy -|A|;
+- one actuator (the pendulums) learns with the pendulum presets' faster target networks and larger
+  learning rates (SAC: tau 0.02, 2e-3, the actor on every second update; TD3: tau 0.05, 2e-3), which
+  carried over from Pendulum to InvertedPendulum and InvertedDoublePendulum; two or more learn with the
+  HalfCheetah preset's learning rates 1e-3, tau 0.005 and (SAC) target entropy -|A| (on Reacher's two the
+  pendulum settings missed -5 within 30,000 env steps on seeds 0 and 1, these reached it at 10,500 and
+  14,800: BENCHMARKS.md, "The sized default and the development suite");
+- a body of one or two actuators steps in the learner's process; one of three or more (HalfCheetah's 6,
+  Minitaur's 8) in a collector process beside the learner when there are two CPUs or more;
 - DQN as the sized CartPole presets: learning rate 2.3e-3, gamma 0.99, epsilon 1.0 -> 0.04, the target
   network copied every 20 updates, the env in the learner's process; one update per 4 env steps (Nature DQN's
   and SB3's train_freq): a classic-control step costs ~0.1 ms in the learner's process and an update ~0.7, so the
@@ -179,6 +181,7 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     episode = facts.time_limit or max(1, round(facts.random_episode_length))  # no limit: as long as it lasts
     budget = min(1_000_000, max(50_000, 100 * episode))
     big_body = not facts.discrete and facts.action_size >= 3
+    one_actuator = not facts.discrete and facts.action_size == 1
     in_process = not big_body or facts.cpus < 2
     per_update = 4 if facts.discrete else 1  # env steps per update (collect_steps_per_iteration)
     iterations = (budget - random_steps) // per_update
@@ -193,7 +196,7 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     chosen = [f"{width}x{width}"]
     if algo == "sac":
         keys.update(actor_fc_layer_params=net, critic_joint_fc_layer_params=list(net))
-        if big_body:
+        if not one_actuator:
             rate, tau = 1e-3, 0.005
             keys.update(target_entropy=-float(facts.action_size))
             chosen += [f"lr {rate:g}", f"tau {tau:g}", f"target entropy -{facts.action_size}"]
@@ -203,7 +206,7 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
             chosen += [f"lr {rate:g}", f"tau {tau:g}", "the actor on every 2nd update"]
         keys.update(actor_learning_rate=rate, critic_learning_rate=rate, alpha_learning_rate=rate, target_update_tau=tau)
     elif algo == "td3":
-        rate, tau = (1e-3, 0.005) if big_body else (2e-3, 0.05)
+        rate, tau = (2e-3, 0.05) if one_actuator else (1e-3, 0.005)
         keys.update(actor_fc_layer_params=net, critic_fc_layer_params=list(net), learning_rate=rate,
                     target_update_tau=tau, learning_starts=random_steps)
         chosen += [f"lr {rate:g}", f"tau {tau:g}"]

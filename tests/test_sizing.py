@@ -16,6 +16,7 @@ from rlpipe.scripts.bench import time_to_return as ttr
 
 REACHER = EnvFacts("Reacher-v5", False, 10, 2, (-1.0, -1.0), (1.0, 1.0), 50, -42.7, 50.0, 2)
 CHEETAH = EnvFacts("HalfCheetah-v5", False, 17, 6, (-1.0,) * 6, (1.0,) * 6, 1000, -300.0, 1000.0, 2)
+IDP = EnvFacts("InvertedDoublePendulum-v5", False, 9, 1, (-1.0,), (1.0,), 1000, 70.0, 7.0, 2)
 ACROBOT = EnvFacts("Acrobot-v1", True, 6, 3, (), (), 500, -500.0, 500.0, 2)
 # what `rlpipe train` runs in these tests: a few updates, nothing else
 TINY = ["num_iterations=20", "initial_collect_steps=50", "num_eval_episodes=1", "eval_interval=0", "log_interval=10",
@@ -23,10 +24,14 @@ TINY = ["num_iterations=20", "initial_collect_steps=50", "num_eval_episodes=1", 
 
 
 @pytest.mark.unit
-def test_the_rule_sizes_a_small_body_in_the_learners_process_with_the_pendulum_presets_rates():
+def test_the_rule_sizes_a_small_body_in_the_learners_process_with_the_pendulum_presets_rates_for_one_actuator():
+    pendulum, _ = sized_config("sac", IDP)
+    assert (pendulum.actor_learning_rate, pendulum.target_update_tau, pendulum.policy_delay) == (2e-3, 0.02, 2)
+    assert (sized_config("td3", IDP)[0].learning_rate, sized_config("td3", REACHER)[0].learning_rate) == (2e-3, 1e-3)
     cfg, line = sized_config("sac", REACHER)
     assert cfg.actor_fc_layer_params == cfg.critic_joint_fc_layer_params == [64, 64]
-    assert (cfg.actor_learning_rate, cfg.target_update_tau, cfg.policy_delay) == (2e-3, 0.02, 2)
+    # two actuators: HalfCheetah's learning settings, in the learner's process
+    assert (cfg.actor_learning_rate, cfg.target_update_tau, cfg.policy_delay, cfg.target_entropy) == (1e-3, 0.005, 1, -2.0)
     assert cfg.initial_collect_steps == 1000  # five random episodes are 250 steps: at least 1,000
     assert cfg.initial_collect_steps + cfg.num_iterations == cfg.replay_buffer_capacity == 50_000
     assert (cfg.collector.workers, cfg.collector.sync, cfg.num_threads) == (1, True, 1)
