@@ -13,7 +13,6 @@ from __future__ import annotations
 import os
 import signal
 import time
-import warnings
 
 import psutil
 import pytest
@@ -25,7 +24,7 @@ from rlpipe.pipelines import td3
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
 from rlpipe.pipelines.workers.factory import backend_class
-from rlpipe.pipelines.workers.supervision import NoRestartLeft, WorkerFailure
+from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -251,7 +250,7 @@ def test_the_background_evaluator_beside_the_backend_evaluates_the_snapshot_it_i
     assert worker != os.getpid() and wait_until(lambda: not _running(worker), 120)
 
 
-# --- the factory and the old names ----------------------------------------------------------------------
+# --- the factory ----------------------------------------------------------------------------------------
 
 
 @pytest.mark.unit
@@ -266,18 +265,3 @@ def test_the_factory_picks_the_backend_the_config_names():
         ray_cfg = apply_overrides(td3.preset("td3"), ["collector.backend=ray"])
         assert backend_class(ray_cfg) is RayBackend and list(RayBackend.metric_columns) == METRIC_COLUMNS
 
-
-@pytest.mark.unit
-def test_old_names_still_import_with_a_deprecation_warning():
-    from rlpipe.pipelines.workers import ray as ray_backend
-    from rlpipe.pipelines.workers import supervision
-
-    with pytest.warns(DeprecationWarning, match="NoRestartLeft"):
-        assert supervision.WorkersLost is NoRestartLeft
-    with pytest.warns(DeprecationWarning, match="WorkerFailure"):
-        assert ray_backend.WorkerLost is WorkerFailure
-    with pytest.warns(DeprecationWarning, match="RayBackend"):
-        assert callable(ray_backend.RayCollectors)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert supervision.NoRestartLeft.exit_status == 75  # the new names warn of nothing

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 from pathlib import Path
 
 import torch
@@ -92,7 +91,7 @@ _WORKER_PROCESS_BYTES = 350 << 20
 
 
 def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, device: torch.device, *,
-                 stored: list | None = None, networks: dict[str, list[int]] | None = None) -> None:
+                 stored: list | None, networks: dict[str, list[int]]) -> None:
     """Raise ``InputError`` if the run ``cfg`` describes cannot fit in this machine's memory.
 
     ``stored``: the keys the replay buffer keeps of each transition (None: all); ``networks``: the
@@ -100,11 +99,6 @@ def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, devic
     takes the most, what the run would need, what the machine has available, and the largest value
     that would fit where that is one number.
     """
-    if networks is None:
-        warnings.warn("check_memory without stored= and networks= (the pipeline's replay keys, config.layer_sizes(cfg)) "
-                      "counts every key stored and no network; the old call goes in the next release",
-                      DeprecationWarning, stacklevel=2)
-        networks = {}
     available = available_bytes(device)
     if available is None:
         return

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import torch
@@ -298,27 +298,6 @@ def _death_cause(info: dict) -> str:
         return ""
     text = " ".join(str(cause).split())  # a protobuf message: its fields on one line
     return text[:200]
-
-
-def __getattr__(name: str):
-    """Old names, kept for one release with a ``DeprecationWarning``."""
-    if name == "WorkerLost":
-        warnings.warn("rlpipe.pipelines.workers.ray.WorkerLost: a lost actor is a supervision.WorkerFailure of the "
-                      "collector; the old name goes in the next release", DeprecationWarning, stacklevel=2)
-        return WorkerFailure
-    if name == "RayCollectors":
-        warnings.warn("rlpipe.pipelines.workers.ray.RayCollectors is now RayBackend (made by "
-                      "workers.factory.make_backend, then start()); the old name goes in the next release",
-                      DeprecationWarning, stacklevel=2)
-        return _ray_collectors
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def _ray_collectors(env_fn, policy, config: TrainConfig, *, total_frames: int, init_random_frames: int,
-                    learner_version: Callable[[], int]) -> RayBackend:
-    """``RayCollectors(...)`` as it was called: a started ``RayBackend``."""
-    backend = RayBackend(config, policy=policy, env_fn=env_fn, learner_version=learner_version)
-    return backend.start(total_frames, init_random_frames)
 
 
 class StridedTrajectoryPool(_TrajectoryPool):

@@ -24,7 +24,6 @@ import contextlib
 import signal
 import threading
 import time
-import warnings
 from collections import Counter
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
@@ -235,7 +234,6 @@ class Supervisor:
     """
 
     ROLES = ("collector", "evaluator")
-    MIN_START_TIMEOUT = MIN_START_TIMEOUT_S  # the old name (kept: a public class attribute)
 
     def __init__(self, max_restarts: int, timeout: float, *, log: Callable[[str], None] | None = None):
         self.max_restarts, self.timeout = int(max_restarts), float(timeout)
@@ -304,18 +302,13 @@ class SupervisedCollector:
             finally:
                 self._stop()
 
-    def push_weights(self, push: Callable[[Any], None] | None = None) -> None:
-        """The backend's ``push_weights`` within the deadline; a failure is kept for the next block to act on.
-
-        ``push``: the old way of calling this, ``push(backend)`` in place of the backend's own push (deprecated)."""
+    def push_weights(self) -> None:
+        """The backend's ``push_weights`` within the deadline; a failure is kept for the next block to act on."""
         if self.collector is None or self._failure is not None:
             return
-        if push is not None:
-            warnings.warn("SupervisedCollector.push_weights(push): the backend pushes its own weights; "
-                          "call push_weights()", DeprecationWarning, stacklevel=2)
         try:
             with self.watchdog.limit(self.supervisor.timeout + 5.0, self._kill_on_timeout("a weight push")):
-                self.collector.push_weights() if push is None else push(self.collector)
+                self.collector.push_weights()
         except WorkerFailure as failure:
             self._failure = failure
 
@@ -411,15 +404,3 @@ def _cmdline(proc) -> list[str]:
         return proc.cmdline()
     except psutil.Error:
         return []
-
-
-_RENAMED = {"WorkersLost": "NoRestartLeft"}
-
-
-def __getattr__(name: str):
-    """Old names, kept for one release with a ``DeprecationWarning``."""
-    if name in _RENAMED:
-        warnings.warn(f"rlpipe.pipelines.workers.supervision.{name} is now {_RENAMED[name]}; the old name goes in "
-                      "the next release", DeprecationWarning, stacklevel=2)
-        return globals()[_RENAMED[name]]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
