@@ -205,9 +205,15 @@ def own_task(env: str, args) -> Task:
     if len(algos) > 1:
         raise InputError(f"--algos {' '.join(algos)} with --envs: expected one algorithm (sac, td3 or dqn) for the envs")
     made = apply_overrides(TrainConfig(), [f"env={env}", *_env_overrides(list(args.overrides))])
-    algo = algos[0] if algos else ("dqn" if measure(made, play=False).discrete else "sac")
+    if args.preset is not None:  # a preset of the user's (`rlpipe tune`'s file): its algorithm
+        from rlpipe.pipelines import resolve_preset
+
+        algo, why = resolve_preset(args.preset)[0], f"your env: preset {args.preset}"
+    else:
+        algo = algos[0] if algos else ("dqn" if measure(made, play=False).discrete else "sac")
+        why = "your env: no preset, sized from the env"
     task = Task(env, algo, float(args.target_return), 1, "", (algo, (f"env={env}",)), peers=("sb3", "sbx"),
-                why="your env: no preset, sized from the env", env_kwargs=tuple(sorted(made.env_kwargs.items())))
+                why=why, env_kwargs=tuple(sorted(made.env_kwargs.items())))
     cfg = rlpipe_config(task, list(args.overrides), args.preset)[3]
     return dataclasses.replace(task, cap=cfg.initial_collect_steps + cfg.num_iterations * cfg.collect_steps_per_iteration)
 
