@@ -1,8 +1,8 @@
 """SAC's loss on tensors: TorchRL's ``SACLoss`` with the same numbers at a fraction of the overhead.
 
 ``LeanSACLoss`` subclasses TorchRL's ``SACLoss`` (v2: twin critics, learned temperature, no value
-network) and keeps its parameters, target parameters, keys, temperature, value estimator and
-``forward``. What it replaces is how the networks are called: the stock loss builds, selects,
+network) and keeps its parameters, target parameters, keys, temperature and value estimator; its
+``forward`` and ``qvalue_v2_loss`` return what ``SACLoss``'s do. What it replaces is how the networks are called: the stock loss builds, selects,
 copies and vmaps TensorDicts around every network call (~18 ms per update at batch 256 with
 (256, 256) networks on one core of this machine, for ~6 ms of matmuls). Here
 
@@ -18,7 +18,7 @@ copies and vmaps TensorDicts around every network call (~18 ms per update at bat
 
 The random draws come in the stock loss's order (next action for the target first, then the
 action for the actor loss), so with the same generator state both losses return the same values
-and gradients (``tests/test_units.py`` checks it). Anything else (another actor or critic
+and gradients (``tests/test_sac_loss.py`` checks it). Anything else (another actor or critic
 structure, ``reduction != "mean"``, ``skip_done_states``, a value estimator other than TD0, SAC
 v1 with a value network) goes through ``SACLoss`` unchanged.
 """
@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential
 from torch.func import functional_call
 from torchrl.modules import TanhNormal
@@ -166,8 +166,10 @@ class LeanTanhNormalActor:
 class LeanSACLoss(LeanTanhNormalActor, SACLoss):
     """TorchRL's ``SACLoss`` whose losses are computed on tensors when the networks allow it.
 
-    Same arguments as ``SACLoss``. ``lean`` says whether the fast path is taken; ``losses`` is
-    the tensor-level entry point (``forward``, ``qvalue_v2_loss`` and ``actor_loss`` use it too).
+    Same arguments as ``SACLoss``; ``lean`` says whether the fast path is taken. Its TorchRL entry points
+    are ``forward`` (every loss) and ``qvalue_v2_loss`` (the critics' loss alone, what a delayed policy
+    update's other steps need); on the fast path each computes its terms itself with ``losses``, the
+    tensor-level entry point, and off it each is ``SACLoss``'s own.
     """
 
     def __init__(self, actor_network, qvalue_network, *args, **kwargs):
@@ -242,37 +244,33 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
             "alpha": alpha,
             "entropy": -log_prob_detached.mean(),
             "td_error": td_error,
-            "log_prob": log_prob_detached,
         }
 
     def tensors_from(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, ...]:
         """(observation, action, next observation, next reward, next terminated) of a batch."""
         return transition_tensors(tensordict, self._actor_parts[3], self.tensor_keys)
 
-    # -- TorchRL's TensorDict interface (SACLoss.forward calls these) ---------------------------
+    def losses_of(self, tensordict: TensorDictBase, actor: bool = True) -> dict[str, torch.Tensor]:
+        """``losses`` of a replay batch, weighed by its importance weights and discounted by its steps to the
+        next observation where it holds them, as ``SACLoss`` reads them."""
+        tensors = self.tensors_from(tensordict)
+        return self.losses(*tensors, weights=self._maybe_get_priority_weight(tensordict), actor=actor,
+                           discount=bootstrap_discount(self, tensordict, tensors[3].squeeze(-1)))
+
+    # -- TorchRL's TensorDict entry points ------------------------------------------------------
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """``SACLoss.forward``: every loss (``out_keys``), the samples' TD errors written to the batch's
+        ``priority`` key for a prioritized buffer."""
         if not self.lean:
             return super().forward(tensordict)
-        # SACLoss.forward calls qvalue_v2_loss, then actor_loss: one pass of `losses` serves both.
-        tensors = self.tensors_from(tensordict)
-        self.__dict__["_pending_losses"] = self.losses(
-            *tensors, weights=self._maybe_get_priority_weight(tensordict),
-            discount=bootstrap_discount(self, tensordict, tensors[3].squeeze(-1)),
-        )
-        try:
-            return super().forward(tensordict)
-        finally:
-            self.__dict__.pop("_pending_losses", None)
+        out = self.losses_of(tensordict)
+        tensordict.set(self.tensor_keys.priority, out["td_error"])
+        return TensorDict({key: out[key] for key in self.out_keys}, batch_size=[])
 
-    def qvalue_v2_loss(self, tensordict: TensorDictBase):
-        out = self.__dict__.get("_pending_losses")
-        if out is None:
+    def qvalue_v2_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``SACLoss.qvalue_v2_loss``: the critics' loss and the samples' TD errors."""
+        if not self.lean:
             return super().qvalue_v2_loss(tensordict)
+        out = self.losses_of(tensordict, actor=False)
         return out["loss_qvalue"], {"td_error": out["td_error"]}
-
-    def actor_loss(self, tensordict: TensorDictBase):
-        out = self.__dict__.get("_pending_losses")
-        if out is None:
-            return super().actor_loss(tensordict)
-        return out["loss_actor"], {"log_prob": out["log_prob"]}

@@ -1,6 +1,7 @@
 """What every pipeline is: the algorithm contract, the plug-in surface, and the parts they share.
 
-A pipeline (``dqn.DQN``, ``td3.TD3``, ``sac.SAC``) subclasses ``OffPolicyPipeline`` and declares:
+A pipeline (``dqn.DQN``, ``td3.TD3``, ``sac.SAC``, ``crossq.CrossQ``) subclasses ``OffPolicyPipeline``
+(SAC and CrossQ through ``sac_family.SACFamilyPipeline``) and declares:
 
 * ``algo``, ``Config`` (its typed config), ``action_space`` (``"discrete"`` or ``"continuous"``) and
   ``loss_names`` (the losses ``update`` returns); its presets are files (``presets/``, whose ``algo`` names it);
@@ -9,15 +10,15 @@ A pipeline (``dqn.DQN``, ``td3.TD3``, ``sac.SAC``) subclasses ``OffPolicyPipelin
   constructor never calls ``build``: a subclass has its whole state before it runs);
 * ``build(actor=, qvalue=, loss_module=) -> Agent``: the policy, the exploring policy and the loss;
 * ``make_optimizers()``, ``make_target_updater()``: made after the loss is on its device;
-* ``update(batch, update_index) -> losses``: one gradient step (target updates included);
+* ``update(batch, update_index) -> losses``: one update, its losses from the loss module's entry point and
+  its optimisers stepped by ``gradient_step`` (target updates included);
 * ``export_module()``: the deterministic policy as a plain ``nn.Module`` on observation tensors.
 
-Adding an algorithm is one new module with such a class and one line in ``pipelines.ALGOS``.
+Adding an algorithm is one new module with such a class and one line in ``pipelines.algos.ALGOS``.
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 from collections.abc import Callable, Sequence
@@ -34,8 +35,8 @@ from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 
 from rlpipe.envs import EnvError, env_id_of, env_label, is_discrete, make_env, observation_rescaling, resolve_env_id
-from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
-from rlpipe.modules.plain_policy import OnRescaledObservations, TensorDictPolicy
+from rlpipe.modules.optim import clip_gradient_norms
+from rlpipe.modules.plain_policy import OnRescaledObservations
 from rlpipe.pipelines import presets as preset_files
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, PresetInfo, TrainConfig, layer_sizes, validate
@@ -61,8 +62,7 @@ from rlpipe.pipelines.workers.backend import CollectorBackend
 from rlpipe.pipelines.workers.factory import backend_class, make_backend
 from rlpipe.pipelines.workers.local import push_weights as push_collector_weights
 
-__all__ = ["Agent", "OffPolicyPipeline", "TanhNormalPipeline", "observation_key_of", "own_env_label", "scale_rewards",
-           "seed_everything"]
+__all__ = ["Agent", "OffPolicyPipeline", "observation_key_of", "own_env_label", "seed_everything"]
 
 
 def own_env_label(env: EnvBase, configured: str) -> str:
@@ -77,14 +77,6 @@ def own_env_label(env: EnvBase, configured: str) -> str:
     except EnvError:
         return configured if configured else env_label(env)
     return env_label(env)
-
-
-def scale_rewards(batch: TensorDictBase, factor: float) -> TensorDictBase:
-    """Multiply the batch's ``("next", "reward")`` by ``factor`` in place (a ``reward_scale_factor``
-    key's update: only the learning sees it; the returns a run reports stay the env's)."""
-    if factor != 1.0:
-        batch.set(("next", "reward"), batch.get(("next", "reward")) * factor)
-    return batch
 
 
 @dataclass
@@ -181,6 +173,25 @@ class OffPolicyPipeline:
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         """Update ``update_index`` (1, 2, ...) on ``batch``; returns detached losses named as in ``loss_names``."""
         raise NotImplementedError
+
+    def gradient_step(self, losses: dict[str, torch.Tensor], clip: float | None = None,
+                      stacked: Sequence[str] = ()) -> dict[str, torch.Tensor]:
+        """One gradient step of the optimisers that ``losses`` names (``optimizers``' keys): their sum's
+        gradients, each gradient tensor's norm clipped to ``clip`` if given (the twin critics of an optimiser
+        named in ``stacked``, stacked [2, ...], one critic at a time), then each optimiser's step. Returns the
+        losses, detached (no host sync)."""
+        total, *rest = losses.values()
+        for loss in rest:
+            total = total + loss
+        total.backward()
+        for name in losses:
+            optimizer = self.optimizers[name]
+            if clip is not None:
+                params = [p for group in optimizer.param_groups for p in group["params"]]
+                clip_gradient_norms(params, clip, stacked=name in stacked)
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        return {name: loss.detach() for name, loss in losses.items()}
 
     def on_frames(self, frames: int) -> None:
         """Called after each collected block with its frame count (exploration schedules go here)."""
@@ -338,104 +349,6 @@ class OffPolicyPipeline:
     def choose_threads(self) -> int:
         """The learner's torch threads for this machine and collector layout: ``training.threads.choose_threads``."""
         return choose_threads(self.config)
-
-
-def _fraction_done(frames: int, window: list[int]) -> float:
-    """How far ``frames`` is through a schedule's ``[start, end]`` window of env steps, in [0, 1]."""
-    start, end = window
-    return min(1.0, max(0.0, (frames - start) / (end - start)))
-
-
-class TanhNormalPipeline(OffPolicyPipeline):
-    """SAC's and CrossQ's shared shape: a tanh-normal actor that explores by sampling (collection) and acts
-    by its mode (evaluation, export), and a TorchRL loss that holds the actor and its twin critics."""
-
-    _export_network_only = False
-    """the actor is the one ``build_agent`` made, so its export is ``TanhNormalMode`` of its MLP alone"""
-    _target_entropy_start: float | None = None
-    _learning_rates: dict[str, list[float]] | None = None
-
-    def _option(self, key: str):
-        """A schedule or averaging key of SAC's and CrossQ's configs; None for a config without it (a subclass's own)."""
-        return getattr(self.config, key, None)
-
-    def assemble(self, build: Callable[[], Agent]) -> None:
-        super().assemble(build)
-        # Where the config's schedules start: the loss's entropy target and the optimisers' learning
-        # rates as built, before any resume loads moved ones (a user's own loss may carry its own target).
-        if self._option("target_entropy_final") is not None:
-            self._target_entropy_start = float(self.loss_module.target_entropy)
-        if self._option("learning_rate_final_fraction") is not None:
-            self._learning_rates = {name: [group["lr"] for group in opt.param_groups]
-                                    for name, opt in self.optimizers.items()}
-        if self._option("policy_average_tau") is not None:
-            # The greedy policy (evaluation, export, a target's confirmation) becomes a copy of the actor
-            # whose weights follow the actor's as a Polyak average; collection still samples the actor.
-            self.policy = copy.deepcopy(self.collect_policy)
-            self._averaged = (list(self.policy.parameters()), list(self.collect_policy.parameters()))
-
-    def average_policy(self) -> None:
-        """Move the averaged greedy policy's weights ``policy_average_tau`` of the way to the actor's
-        (the updates call it after each actor step; nothing without ``policy_average_tau``)."""
-        if self._option("policy_average_tau") is not None:
-            with torch.no_grad():
-                torch._foreach_lerp_(self._averaged[0], self._averaged[1], self.config.policy_average_tau)
-
-    def state_dict(self) -> dict[str, Any]:
-        state = super().state_dict()
-        if self._option("policy_average_tau") is not None:
-            state["policy_average"] = self.policy.state_dict()
-        return state
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        super().load_state_dict(state)
-        if self._option("policy_average_tau") is not None:
-            if "policy_average" not in state:
-                raise InputError(f"checkpoint does not fit this {self.algo} pipeline and config: it has no averaged "
-                                 "policy (policy_average_tau was null when it was written); expected one")
-            self.policy.load_state_dict(state["policy_average"])
-
-    def on_frames(self, frames: int) -> None:
-        # The schedules, functions of the frames collected (so a resumed run sets the same values), set
-        # between updates: outside the update, so that a compiled or graphed update reads the entropy
-        # target's buffer rather than baking it in (the learning rates are Python floats the optimiser
-        # step reads each time).
-        cfg, now = self.config, self.state.frames + frames
-        if self._option("target_entropy_final") is not None:
-            done = _fraction_done(now, cfg.target_entropy_anneal)
-            start = self._target_entropy_start
-            self.loss_module.target_entropy.fill_(start + done * (cfg.target_entropy_final - start))
-        if self._option("learning_rate_final_fraction") is not None:
-            scale = 1.0 + _fraction_done(now, cfg.learning_rate_anneal) * (cfg.learning_rate_final_fraction - 1.0)
-            for name, opt in self.optimizers.items():
-                for group, lr in zip(opt.param_groups, self._learning_rates[name]):
-                    group["lr"] = lr * scale
-
-    def build_agent(self, *, actor: nn.Module | None, qvalue: nn.Module | None, loss_module: LossModule | None,
-                    make_qvalue: Callable[[], nn.Module],
-                    make_loss: Callable[[nn.Module, nn.Module], LossModule]) -> Agent:
-        """The agent from a user's ``loss_module`` (its actor, unless ``actor`` names another), or from
-        ``actor`` and ``qvalue`` (each made here when not given: ``make_qvalue()``), in ``make_loss(actor,
-        qvalue)`` with the config's discount."""
-        cfg = self.config
-        if loss_module is not None:
-            if qvalue is not None:
-                raise InputError("qvalue is unused when loss_module is given (the loss holds its critics); pass one of them")
-            # The same module explores (samples) in collection and acts deterministically in evaluation.
-            actor = actor if actor is not None else loss_module.actor_network
-            return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
-        if actor is None:
-            actor = make_tanh_normal_actor(self.observation_dim, self.action_spec, cfg.actor_fc_layer_params,
-                                           observation_key=self.observation_key)
-            self._export_network_only = True
-        loss_module = make_loss(actor, qvalue if qvalue is not None else make_qvalue())
-        loss_module.make_value_estimator(gamma=cfg.gamma)
-        return Agent(policy=actor, collect_policy=actor, loss_module=loss_module)
-
-    def export_module(self) -> nn.Module:
-        if self._export_network_only:
-            return TanhNormalMode.from_actor(self.policy, self.action_spec)
-        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
 
 
 def _value_estimator(loss: nn.Module):

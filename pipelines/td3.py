@@ -47,7 +47,7 @@ from rlpipe.modules.critics import make_qvalue_critic
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.target_updates import make_target_updater
-from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
+from rlpipe.modules.td3_loss import TD3AblationLoss
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import (
     LAYER_SIZES,
@@ -197,13 +197,17 @@ class TD3(OffPolicyPipeline):
         return [actor_every, actor_every * self.config.target_update_period]
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
-        cfg = self.config
-        out = td3_update(
-            self.loss_module, batch, self.optimizers["qvalue"], self.optimizers["actor"], self.target_updater,
-            update_index=update_index, policy_delay=cfg.policy_delay,
-            delayed_policy_updates=cfg.delayed_policy_updates, target_update_period=cfg.target_update_period,
-        )
-        return {name.removeprefix("loss_"): value for name, value in out.items()}
+        """The tutorial's ``TD3.train`` step: the critics on every update; the actor on every
+        ``policy_delay``-th (every one with ``delayed_policy_updates`` off), its loss read from the critics
+        just stepped; the targets on every ``target_update_period``-th actor step."""
+        cfg, loss = self.config, self.loss_module
+        stepped = self.gradient_step({"qvalue": loss.value_loss(batch)[0]})
+        actor_every = cfg.policy_delay if cfg.delayed_policy_updates else 1
+        if update_index % actor_every == 0:  # a Python int: a compiled update picks one of two graphs
+            stepped.update(self.gradient_step({"actor": loss.actor_loss(batch)[0]}))
+            if update_index % (actor_every * cfg.target_update_period) == 0:
+                self.target_updater.step()
+        return stepped
 
     _gaussian_actor_made = False
 
