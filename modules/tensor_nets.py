@@ -169,7 +169,7 @@ def run_stacked_mlp(layers: Layers, params: dict[str, torch.Tensor], x: torch.Te
             elif _is_plain_layer_norm(layer):
                 # normalised over the features where they lie (dim -2): layer(x.mT).mT hands the norm and
                 # the ReLU after it transposed activations, copied forward and backward (`rlpipe bench floor`,
-                # sac-minitaur's update with LayerNorm critics, 2026-11-29: 6.10 ms that way, 4.61 ms this
+                # sac-minitaur's update with LayerNorm critics: 6.10 ms that way, 4.61 ms this
                 # way, 3.3 ms without the norm)
                 x = _ColumnLayerNorm.apply(x, layer.eps)
             else:
