@@ -5,7 +5,8 @@ Keys keep the TF-Agents tutorials' names where they mean the same thing (``num_i
 reader of the tutorials finds them. Each field's docstring is its help text (``rlpipe train X --help``).
 
 ``TrainConfig`` holds the keys every algorithm shares, with neutral defaults; each algorithm's config
-(``DQN.Config``, ``TD3.Config``, ``SAC.Config``) adds its own keys and sets the defaults of its tutorial.
+(``DQN.Config``, ``TD3.Config``, ``SAC.Config``, ``CrossQ.Config``; the last two on the SAC family's
+``sac_family.SACFamilyConfig``) adds its own keys and sets the defaults of its tutorial.
 
 Overrides are parsed and type-checked by OmegaConf's structured configs. What OmegaConf cannot know
 is checked in ``validate``: a rule on one key's value (positive, a choice, a range) is declared with
