@@ -215,12 +215,23 @@ def open_study(plan: Plan):
     saved = study.user_attrs.get("settings")
     if saved is None:
         study.set_user_attr("settings", settings)
+        study.enqueue_trial(first_params(plan))
     elif saved != settings:
         changed = next(k for k in settings if saved.get(k) != settings[k])
         raise InputError(f"{plan.out} holds a study with {changed}={saved.get(changed)!r}, not {settings[changed]!r}; "
                          "expected the same algorithm, env, target, overrides, --seeds, --cap and --penalty to continue "
                          "it, or another --out")
     return study
+
+
+def first_params(plan: Plan) -> dict[str, Any]:
+    """The first trial of a new study: what ``rlpipe train ALGO env=ENV`` trains (the first algorithm's), as far as
+    the search space holds it (``tune_space.params_of``)."""
+    from rlpipe.scripts import tune_space
+
+    algo = plan.algos[0]
+    params = tune_space.params_of(algo, base_config(algo, plan.env, plan.overrides))
+    return {"algo": algo, **params} if len(plan.algos) > 1 else params
 
 
 def requeue_cut_short(study) -> list[int]:

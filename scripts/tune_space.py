@@ -56,6 +56,36 @@ def suggest(trial, algos: list[str]) -> tuple[str, list[str]]:
     return algo, overrides(algo, {d.name: d.suggest(trial, d.name) for d in dims(algo)})
 
 
+CHOICES: dict[str, tuple[Any, ...]] = {
+    "width": (64, 128, 256), "collect_steps_per_iteration": (1, 2, 4), "n_step": (1, 2, 3, 5),
+    "batch_size": (64, 128, 256), "collector.workers": (1, 2), "collector.sync": (True, False)}
+"""the categorical dimensions' choices (as DIMS draws them)"""
+RANGES: dict[str, tuple[float, float]] = {"learning_rate": (1e-4, 3e-3), "initial_collect_steps": (100, 10_000),
+                                          "policy_delay": (1, 3)}
+"""the numeric dimensions' bounds (as DIMS draws them)"""
+
+
+def params_of(algo: str, cfg) -> dict[str, Any]:
+    """The parameters that give ``cfg`` back, as far as the search space holds its values: the study's first trial
+    is the config ``rlpipe train ALGO env=ENV`` trains (the sized default), so that the best setting found is never
+    slower than where the search started, and TPE starts from it. A value the space does not hold is left to Optuna."""
+    import functools
+
+    values = {key: functools.reduce(getattr, key.split("."), cfg) for key in flat_keys(type(cfg))}
+    found: dict[str, Any] = {}
+    for d in dims(algo):
+        key = next(k for k in d.keys if k in values)
+        value = values[key]
+        if d.name == "width":
+            value = value[0] if isinstance(value, list) and value and len(set(value)) == 1 else None
+        if d.name in CHOICES and value in CHOICES[d.name] and type(value) is type(CHOICES[d.name][0]):
+            found[d.name] = value
+        elif d.name in RANGES and isinstance(value, (int, float)) and not isinstance(value, bool) \
+                and RANGES[d.name][0] <= value <= RANGES[d.name][1]:
+            found[d.name] = value
+    return found
+
+
 def dims(algo: str) -> list[Dim]:
     """The dimensions ``algo``'s config has keys for."""
     have = set(flat_keys(pipeline_class(algo).Config))
