@@ -46,6 +46,7 @@ def test_the_rule_counts_cores_not_time(monkeypatch):
     assert threads_rule(in_learner)[0] == threads_rule(beside)[0] == 1
 
 
+@pytest.mark.slow
 def test_the_same_command_and_seed_is_the_same_run_beside_a_busy_process(quiet_run, tmp_path):
     """A CPU hog of ours beside the run (bounded: killed when the run ends, or after five minutes of its own):
     the run chooses the threads the quiet one chose and computes the same numbers."""
@@ -72,6 +73,7 @@ def _resumed(quiet_run: Path, tmp_path: Path, *overrides: str) -> tuple[subproce
     return done, json.loads((run / "summary.json").read_text())
 
 
+@pytest.mark.slow
 def test_a_resume_that_only_trains_longer_stays_exact(quiet_run, tmp_path):
     done, summary = _resumed(quiet_run, tmp_path)
     assert summary["exact"] is True and "no longer exact" not in done.stderr
@@ -79,6 +81,7 @@ def test_a_resume_that_only_trains_longer_stays_exact(quiet_run, tmp_path):
     assert _rows(tmp_path / "run")[-1]["step"] == "300"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", ["batch_size", "num_threads"])
 def test_a_resume_that_changes_the_arithmetic_says_so_and_is_not_exact(quiet_run, tmp_path, key):
     before = json.loads((quiet_run / "config.json").read_text())["config"][key]
