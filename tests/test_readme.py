@@ -21,7 +21,7 @@ def _python_blocks() -> list[str]:
 def test_the_python_example_prints_the_runs_own_final_return(tmp_path):
     blocks = _python_blocks()
     assert len(blocks) == 1
-    proc = subprocess.run([sys.executable, "-c", blocks[0]], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([sys.executable, "-c", blocks[0]], cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     # TorchRL logs INFO lines to stdout too; the example's own lines are the unadorned ones.
     lines = [line for line in proc.stdout.strip().splitlines() if not line.startswith("\x1b")]
