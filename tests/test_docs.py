@@ -230,6 +230,7 @@ def check_command(argv: list[str]) -> None:
     elif args.command == "tune":
         tune.make_plan(args)
     elif args.command == "ablate":
+        args.seeds = min(args.seeds, 1)  # the plan's checks (envs, steps, keys) are the same for every seed
         ablate.plan(args)
     elif args.command == "eval" and args.env is not None:
         resolve_env_id(args.env)
