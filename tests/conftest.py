@@ -82,20 +82,47 @@ def ctrl_c_on_call():
     return make
 
 
+# --- the order of the files, and which worker runs what ----------------------------------------------------------
+
 # Ray's tests start a Ray instance each (a dozen processes, a cluster of two nodes): one at a time on the machine
 # (test_backends.py runs its contract on a local Ray too).
-RAY_FILES = ("tests/test_backends.py", "tests/test_ray.py", "tests/test_ray_faults.py")
+RAY_FILES = ("tests/test_backends.py", "tests/test_ray.py", "tests/test_ray_faults.py", "tests/test_tune_ray.py")
+
+
+def _unit(item: pytest.Item) -> str:
+    """The part of the suite one pytest-xdist worker runs whole: the item's file, the Ray files as one."""
+    path = item.nodeid.split("::", 1)[0]
+    return "ray" if path in RAY_FILES else path
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """The units longest first: those with the most long tests (marked slow), then by their number of tests. A
+    worker that takes a long file last keeps the run going while the other has nothing left to do; begun first, the
+    long files share the two workers and the short ones fill in at the end."""
+    units: dict[str, list[pytest.Item]] = {}
+    for item in items:
+        units.setdefault(_unit(item), []).append(item)
+
+    def longest_first(unit: list[pytest.Item]) -> tuple[int, int]:
+        return -sum(item.get_closest_marker("slow") is not None for item in unit), -len(unit)
+
+    order = sorted(units.values(), key=longest_first)
+    items[:] = [item for unit in order for item in unit]
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """pyproject's addopts run the tests on pytest-xdist workers, a test file at a time (``--dist loadfile``):
     a file's tests share its module fixtures (a trained run that many checks read), made once on one worker.
-    The Ray files go to one worker as one unit. (``--dist loadgroup`` with ``xdist_group`` marks would be
-    finer, but with pytest 9.2 xdist 3.8 silently ignores the marks: pytest-dev/pytest-xdist#1386.)"""
+    The Ray files go to one worker as one unit. The units are handed out in the order above, not xdist's own (by
+    number of tests). (``--dist loadgroup`` with ``xdist_group`` marks would be finer, but with pytest 9.2 xdist
+    3.8 silently ignores the marks: pytest-dev/pytest-xdist#1386.)"""
     if config.getvalue("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadFileScheduling
+
+    config.option.loadscopereorder = False  # xdist's ``--no-loadscope-reorder``: the units in collection order
 
     class RayFilesTogether(LoadFileScheduling):
         def _split_scope(self, nodeid: str) -> str:
@@ -103,3 +130,40 @@ def pytest_xdist_make_scheduler(config, log):
             return "ray" if scope in RAY_FILES else scope
 
     return RayFilesTogether(config, log)
+
+
+# --- a Ray cluster for the tests that join one --------------------------------------------------------------------
+
+_cluster = None  # the cluster while it is up
+
+
+@pytest.fixture
+def ray_cluster():
+    """A Ray cluster of two nodes on this machine, a head and one more, a CPU each (test_ray, test_ray_faults,
+    test_tune_ray). Tests of one file that join one in a row share it (test_ray_faults' last two): it is shut down
+    after a test whose next test is in another file or does not join one. Each of them checks that its runs left it
+    up and without their actors."""
+    global _cluster
+    if _cluster is None:
+        pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'` (scripts/setup.sh does)")
+        from ray.cluster_utils import Cluster
+
+        cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+        try:
+            cluster.add_node(num_cpus=1)
+            cluster.wait_for_nodes()
+        except BaseException:
+            cluster.shutdown()
+            raise
+        _cluster = cluster
+    return _cluster
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item, nextitem):
+    """After a test's own teardown: the cluster shut down unless the next test, in the same file, joins it too."""
+    global _cluster
+    if _cluster is not None and (nextitem is None or nextitem.path != item.path
+                                 or "ray_cluster" not in nextitem.fixturenames):
+        cluster, _cluster = _cluster, None
+        cluster.shutdown()

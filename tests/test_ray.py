@@ -101,20 +101,6 @@ def assert_finished(run: Path, proc: subprocess.CompletedProcess) -> list[dict[s
     return rows
 
 
-@pytest.fixture
-def cluster():
-    """A Ray cluster of two nodes on this machine: a head and one more, a CPU each."""
-    from ray.cluster_utils import Cluster
-
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
-    try:
-        c.add_node(num_cpus=1)
-        c.wait_for_nodes()
-        yield c
-    finally:
-        c.shutdown()
-
-
 @pytest.mark.slow
 def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
     """Also with the evaluation in the background, which runs on a Ray actor (a Ray worker process,
@@ -242,20 +228,20 @@ RESUME_ARGS = ["td3", "num_iterations=200", "initial_collect_steps=100", "eval_i
 
 @pytest.mark.slow
 def test_ray_collectors_on_a_two_node_cluster_stopped_by_ctrl_c_and_resumed_there_equal_the_uninterrupted_run(
-        cluster, tmp_path):
+        ray_cluster, tmp_path):
     """A run joins the cluster, is stopped by Ctrl-C (a checkpoint, no summary) and resumed there (the address kept in
     its config); it equals the uninterrupted run (tests/test_resume_exact.py does the processes): the actors'
     generators are seeded (TorchRL's Ray set_seed seeds the env alone) and their envs' episodes go through
     checkpoints as the processes' do. The cluster stays up throughout and keeps no actor of the runs."""
-    args = [*RESUME_ARGS, f"ray.address={cluster.address}"]
+    args = [*RESUME_ARGS, f"ray.address={ray_cluster.address}"]
     reference = tmp_path / "uninterrupted" / "run"
     reference.parent.mkdir()
     done = _train(args, reference)
     assert done.returncode == 0, done.stderr[-3000:]
     run = _stopped_and_resumed(args, "SIGINT", 150, tmp_path)
     _assert_same_run(reference, run)
-    assert json.loads((run / "config.json").read_text())["config"]["ray"]["address"] == cluster.address
-    assert cluster.remaining_processes_alive()
+    assert json.loads((run / "config.json").read_text())["config"]["ray"]["address"] == ray_cluster.address
+    assert ray_cluster.remaining_processes_alive()
     def actors() -> list[str]:
         return [_cmdline(p) for p in Path("/proc").glob("[0-9]*") if _is_collector_actor(p)]
 

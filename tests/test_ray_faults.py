@@ -4,8 +4,8 @@ processes outlive a killed learner; then SAC and TD3 learning Pendulum with Ray 
 
 Runs are real ``rlpipe train`` processes, each in a session of its own: what a run's local Ray
 instance started is found by that session (other Ray instances may run on this machine at the
-same time), and a joined cluster's actors by their node's raylet (the cluster is this file's own, shared by
-its last two tests, which run after the local-Ray ones).
+same time), and a joined cluster's actors by their node's raylet (the cluster, conftest's ``ray_cluster``, is
+this file's own, shared by its last two tests, which run after the local-Ray ones).
 Faults come at exact points (``RLPIPE_FAULT``): a node is removed while the learner holds itself
 stopped (SIGSTOP) right after a block, never after a sleep.
 """
@@ -174,21 +174,6 @@ def log_rows(rows):
 # --- clusters ------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    """A Ray cluster of two nodes on this machine, a CPU each (as tests/test_ray.py's), shared by this file's tests:
-    each checks that its runs left it up and without their actors."""
-    from ray.cluster_utils import Cluster
-
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
-    try:
-        c.add_node(num_cpus=1)
-        c.wait_for_nodes()
-        yield c
-    finally:
-        c.shutdown()
-
-
 @pytest.fixture
 def spare_nodes():
     """A cluster whose head takes no actor (no CPU) and two worker nodes of one CPU each: a collector
@@ -331,17 +316,17 @@ def test_learns_pendulum_with_ray_collectors(run_dir, pipeline, overrides, itera
     assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
 
 
-# --- on a cluster the file's tests share (its fixture): SIGTERM, kill -9, then --resume --------------------
+# --- on a cluster the file's tests share (conftest's ray_cluster): SIGTERM, kill -9, then --resume --------
 
 
 @pytest.mark.slow
-def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(cluster, tmp_path):
+def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(ray_cluster, tmp_path):
     """SIGTERM to the learner alone right after the block of iteration 100: it saves a checkpoint at its
     next safe point and exits 143, leaving the cluster up and no process of its own; ``--resume`` joins the same
     cluster and finishes; the counters go on from the checkpoint (frames and updates exactly the
     run's), and no metrics row is lost or written twice."""
     run = tmp_path / "run"
-    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={cluster.address}",
+    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={ray_cluster.address}",
                             "--out", "run"], tmp_path, fault="collected@100:SIGTERM:self")
     assert code == 143, err[-3000:]
     last = [line for line in err.splitlines() if line.startswith("rlpipe:")][-1]
@@ -351,8 +336,8 @@ def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(clus
     assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000150"
     assert [int(r["step"]) for r in log_rows(metrics_rows(run))] == [50, 100]
     assert_no_leftovers(sid)
-    poll_until(lambda: not collector_actors(cluster), "the stopped run's actors are still there")
-    assert cluster.remaining_processes_alive()
+    poll_until(lambda: not collector_actors(ray_cluster), "the stopped run's actors are still there")
+    assert ray_cluster.remaining_processes_alive()
 
     code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
     assert code == 0, err[-3000:]
@@ -363,28 +348,29 @@ def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(clus
     # the weights' version goes on from the checkpoint's update count
     assert [int(r["weight_version"]) for r in logged] == [int(r["updates"]) for r in logged]
     assert_no_leftovers(sid)
-    assert cluster.remaining_processes_alive()
+    assert ray_cluster.remaining_processes_alive()
 
 
 @pytest.mark.slow
-def test_kill_9_of_a_learner_inside_a_checkpoint_write_on_a_cluster_ends_its_actors_and_resumes(cluster, tmp_path):
+def test_kill_9_of_a_learner_inside_a_checkpoint_write_on_a_cluster_ends_its_actors_and_resumes(ray_cluster,
+                                                                                                 tmp_path):
     """kill -9 of a learner that joined a cluster, halfway through writing the checkpoint of iteration
     200: Ray ends the dead driver's actors (they are not detached), the cluster stays up, and
     ``--resume`` there goes on from the checkpoint before (100) and finishes, whole: no corrupt file,
     no row lost or doubled."""
     run = tmp_path / "run"
-    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={cluster.address}",
+    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={ray_cluster.address}",
                             "--out", "run"], tmp_path, fault="checkpoint.write@200:SIGKILL:self")
     assert code == -signal.SIGKILL, err[-3000:]
     assert [p.name.split("-")[0] for p in (run / "checkpoints").glob(".tmp-*")] == [".tmp"], "the kill left no trace?"
     assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000100"
     assert_no_leftovers(sid)
-    poll_until(lambda: not collector_actors(cluster), f"the dead learner's actors live on: {collector_actors(cluster)}",
-               timeout=120)
-    assert cluster.remaining_processes_alive()
+    poll_until(lambda: not collector_actors(ray_cluster),
+               f"the dead learner's actors live on: {collector_actors(ray_cluster)}", timeout=120)
+    assert ray_cluster.remaining_processes_alive()
 
     code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
     assert code == 0, err[-3000:]
     assert_whole_run(run)
     assert_no_leftovers(sid)
-    assert cluster.remaining_processes_alive()
+    assert ray_cluster.remaining_processes_alive()

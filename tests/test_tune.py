@@ -64,7 +64,8 @@ def processes_under(path: Path) -> list[str]:
 
 
 @pytest.mark.slow
-def test_a_study_stopped_by_ctrl_c_continues_on_rerun_and_writes_the_preset_page_and_fresh_seed_time(tmp_path):
+def test_a_study_stopped_by_ctrl_c_continues_on_rerun_and_writes_the_preset_page_and_fresh_seed_time(tmp_path,
+                                                                                                    capsys):
     out = tmp_path / "study"
     first = tune([*STUDY, "--out", str(out)], tmp_path, env={"RLPIPE_FAULT": "tune_trial@1"})
     assert first.returncode == 130, first.stderr[-3000:]
@@ -102,12 +103,13 @@ def test_a_study_stopped_by_ctrl_c_continues_on_rerun_and_writes_the_preset_page
 
     preset = Path(results["preset"])
     assert preset == out / "dqn-cartpole-v1-tuned.yaml" and preset.exists()
-    keys = subprocess.run([*CLI, "train", str(preset), "--keys"], capture_output=True, text=True, timeout=120)
-    assert keys.returncode == 0, keys.stderr
+    capsys.readouterr()
+    assert main(["train", str(preset), "--keys"]) == 0  # `rlpipe train PRESET --keys`, in this process
+    keys = capsys.readouterr().out
     best = study.best_trial.params
-    assert f"initial_collect_steps={best['initial_collect_steps']}\n" in keys.stdout
-    assert f"fc_layer_params=[{best['width']}, {best['width']}]\n" in keys.stdout
-    assert "env=\"CartPole-v1\"\n" in keys.stdout
+    assert f"initial_collect_steps={best['initial_collect_steps']}\n" in keys
+    assert f"fc_layer_params=[{best['width']}, {best['width']}]\n" in keys
+    assert "env=\"CartPole-v1\"\n" in keys
 
     page = (out / "tune.html").read_text()
     assert "history.png" in page and (out / "history.png").stat().st_size > 0
@@ -188,33 +190,3 @@ def test_no_target_is_one_line_and_exit_2(capsys):
     assert stopped.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["rlpipe: error: the following arguments are required: --target (see `rlpipe tune --help`)"]
-
-
-@pytest.fixture
-def cluster():
-    """A Ray cluster of two nodes on this machine, a CPU each: one seed's run per node."""
-    ray = pytest.importorskip("ray", reason="Ray is not installed: `pip install -e '.[ray]'`")
-    from ray.cluster_utils import Cluster
-
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
-    try:
-        c.add_node(num_cpus=1)
-        c.wait_for_nodes()
-        yield c
-    finally:
-        c.shutdown()
-        ray.shutdown()
-
-
-@pytest.mark.slow
-def test_trials_run_on_a_ray_cluster_one_seed_per_node(tmp_path, cluster):
-    out = tmp_path / "study"
-    done = tune(["tune", "dqn", "env=CartPole-v1", "--target", "8", "--budget", "10m", "--trials", "1",
-                 "--cap", "90", "--confirm-seeds", "0", f"ray.address={cluster.address}", *TINY, "--out", str(out)],
-                tmp_path)
-    assert done.returncode == 0, done.stderr[-3000:]
-    (trial,) = load(out).trials
-    assert trial.state.name == "COMPLETE" and len(trial.user_attrs["seconds"]) == 2
-    nodes = trial.user_attrs["nodes"]
-    assert None not in nodes and len(set(nodes)) == 2  # each seed's run on a node of its own
-    assert (out / "dqn-cartpole-v1-tuned.yaml").exists()
