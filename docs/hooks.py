@@ -22,6 +22,8 @@ import re
 import tomllib
 from pathlib import Path
 
+from mkdocs.plugins import event_priority
+
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE_TREE = ROOT / "build" / "griffe-src"
 """``rlpipe/<package>`` links to the code folders, for mkdocstrings (its ``paths`` in mkdocs.yml): the folders
@@ -146,6 +148,7 @@ def link_source_tree() -> None:
         os.replace(tmp, link)
 
 
+@event_priority(100)  # before mkdocstrings reads its paths: a fresh clone has no SOURCE_TREE yet
 def on_config(config):
     link_source_tree()
     return config

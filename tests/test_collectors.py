@@ -469,7 +469,7 @@ def test_trajectory_ids_are_not_reused_after_a_resume(interrupted):
 @pytest.mark.parametrize("where, call", [
     # where a Ctrl-C lands most of the time: in the updates a block pays for (the 75th critic step,
     # paid by the block that takes iteration 50 -> 100)
-    ("td3_update", 75),
+    ("update", 75),
     # in the evaluation at iteration 100 (50 steps into it; the one at 0 took 200 actor calls)
     ("evaluate", 250),
 ])
