@@ -80,6 +80,8 @@ TIME_TO_TARGET = [
          "minitaur-sac-1", "sbx"),
     Pair("Minitaur SAC to 1.0", "Minitaur SAC to 1.0, against TF-Agents' own tutorial",
          "2026-11-29-5e02349-minitaur-1-tfagents.json", "minitaur-sac-1", "tfagents"),
+    Pair("Acrobot-v1 DQN to -100, tuned 30 min", "The sized default and the development suite",
+         "2026-12-02-d36e01a-acrobot-tuned-sbx.json", "acrobot-dqn", "sbx"),
     Pair("Minitaur to 5", "Minitaur to 5, SAC against CrossQ",
          "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json", "minitaur-sac-5", None, side="crossq"),
 ]
@@ -103,6 +105,9 @@ COMMANDS = {
     "2026-11-29-5e02349-minitaur-1-tfagents.json":
         "rlpipe bench time-to-return --tasks minitaur-sac-1 --seeds 5 --peers tfagents --side-seeds tfagents=1 "
         "--no-crossq --cap-scale 0.3 --cap tfagents=110000",
+    "2026-12-02-d36e01a-acrobot-tuned-sbx.json":
+        "rlpipe bench time-to-return --tasks acrobot-dqn --preset scripts/results/tune/2026-12-02-335b2a4-acrobot-dqn/"
+        "dqn-acrobot-v1-tuned.yaml --seeds 5 --seed 100 --peers sbx",
     "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json":
         "rlpipe bench time-to-return --tasks minitaur-sac-5 --seeds 5 --peers none --cap-scale 0.1",
 }
@@ -142,8 +147,12 @@ def _seeds(data: dict, side: dict) -> str:
 
 
 def _preset(data: dict, task: str, side: str) -> str:
-    found = re.search(r"rlpipe train (\S+?)`", data["tasks"][task]["settings"][side])
-    return found.group(1) if found else "?"
+    """What the rlpipe side trained: a preset's name, a preset file's name, or the sized default's ``ALGO env=ID``."""
+    found = re.search(r"rlpipe train ([^`]+)`", data["tasks"][task]["settings"][side])
+    if not found:
+        return "?"
+    first, _, rest = found.group(1).partition(" ")
+    return f"{Path(first).name} {rest}".strip() if first.endswith((".yaml", ".yml")) else found.group(1)
 
 
 def _peer_name(data: dict, task: str, peer: str) -> str:
