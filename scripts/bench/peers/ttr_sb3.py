@@ -34,7 +34,8 @@ def _policy_kwargs(text):
 def env_maker(env: str, kwargs: dict):
     """What ``make_vec_env`` and the evaluation make ``env`` with, in rlpipe's ``env=`` forms: a registered id,
     gymnasium's ``module:Id-v0`` (importing the module registers it), or a user's ``module:Target`` (a
-    ``gymnasium.Env`` subclass or a function returning one), constructed with ``kwargs`` (rlpipe's ``env_kwargs``)."""
+    ``gymnasium.Env`` subclass or a function returning one), constructed with ``kwargs`` (rlpipe's ``env_kwargs``).
+    ``rlpipe.envs.user.resolve``'s reading, again: this runs in the peer's venv, where rlpipe is not installed."""
     import importlib
 
     import gymnasium
