@@ -280,3 +280,14 @@ def test_a_run_started_in_its_own_folder_finds_the_users_modules_on_a_relative_p
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([".", "", "/opt/abs"]))
     assert _here_environ()["PYTHONPATH"].split(os.pathsep) == [str(tmp_path.resolve())] * 2 + ["/opt/abs"]
+
+
+def test_a_preset_file_named_from_here_is_found_by_the_run_in_its_own_folder(tmp_path, monkeypatch):
+    """`--preset my.yaml` (a path relative to where the bench was started): each run starts in a folder of its own,
+    so the command it gets names the file absolutely."""
+    mine = tmp_path / "my.yaml"
+    mine.write_text((Path(ttr.__file__).resolve().parents[2] / "presets" / "sac-pendulum.yaml").read_text())
+    monkeypatch.chdir(tmp_path)
+    launch = ttr.rlpipe_launch(ttr.TASKS["pendulum-sac"], "rlpipe", 0, -200.0, 2000, tmp_path / "out" / "run", None, [],
+                               "my.yaml")
+    assert launch.cmd[launch.cmd.index("train") + 1] == str(mine)

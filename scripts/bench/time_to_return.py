@@ -333,6 +333,8 @@ def rlpipe_launch(task: Task, side: str, seed: int, target: float, cap: int, run
     keys = [*extra, *overrides, f"target_return={target:g}", f"num_iterations={iterations}", f"seed={seed}"]
     if threads:
         keys.append(f"num_threads={threads}")
+    if presets.is_file(name):  # the run starts in a folder of its own: a preset file named from here, absolute
+        name = str(Path(name).resolve())
     cmd = [*_rlpipe_exe(), "train", name, *keys, "--out", str(run_dir), "--no-progress"]
     settings = f"`rlpipe train {name}{''.join(' ' + k for k in [*extra, *overrides])}`{note}"
     return Launch(cmd, _here_environ(), run_dir.parent, settings, _read_summary(run_dir), {"rlpipe": _version()})
