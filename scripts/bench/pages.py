@@ -80,6 +80,8 @@ TIME_TO_TARGET = [
          "minitaur-sac-1", "sbx"),
     Pair("Minitaur SAC to 1.0", "Minitaur SAC to 1.0, against TF-Agents' own tutorial",
          "2026-11-29-5e02349-minitaur-1-tfagents.json", "minitaur-sac-1", "tfagents"),
+    Pair("Acrobot-v1 DQN to -100, sized default", "The sized default and the development suite",
+         "2026-12-02-6184a1a-acrobot-sized-sbx.json", "acrobot-dqn", "sbx"),
     Pair("Acrobot-v1 DQN to -100, tuned 30 min", "The sized default and the development suite",
          "2026-12-02-d36e01a-acrobot-tuned-sbx.json", "acrobot-dqn", "sbx"),
     Pair("Minitaur to 5", "Minitaur to 5, SAC against CrossQ",
@@ -105,6 +107,8 @@ COMMANDS = {
     "2026-11-29-5e02349-minitaur-1-tfagents.json":
         "rlpipe bench time-to-return --tasks minitaur-sac-1 --seeds 5 --peers tfagents --side-seeds tfagents=1 "
         "--no-crossq --cap-scale 0.3 --cap tfagents=110000",
+    "2026-12-02-6184a1a-acrobot-sized-sbx.json":
+        "rlpipe bench time-to-return --tasks acrobot-dqn --seeds 5 --seed 100 --peers sbx",
     "2026-12-02-d36e01a-acrobot-tuned-sbx.json":
         "rlpipe bench time-to-return --tasks acrobot-dqn --preset scripts/results/tune/2026-12-02-335b2a4-acrobot-dqn/"
         "dqn-acrobot-v1-tuned.yaml --seeds 5 --seed 100 --peers sbx",
