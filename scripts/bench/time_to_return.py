@@ -78,6 +78,9 @@ class Task:
     """keywords of the env's constructor (``env_kwargs``), for the peers: the rlpipe side has them as overrides"""
 
 
+DEV_PEERS = ("sb3", "sbx", "torchrl")
+"""the development suite's peers: TorchRL's SAC and DQN recipes take any gymnasium id (``env.name``)"""
+
 # The issue's targets (issue 21). Caps: a few times what the peers need on their tuned settings, so that
 # a slow side is shown slow rather than cut off early; --cap-scale scales them.
 TASKS: dict[str, Task] = {
@@ -113,23 +116,23 @@ TASKS: dict[str, Task] = {
     # Reacher-v5 to -5: gymnasium's reward_threshold -3.75; the TD3 paper's Table 1 (Fujimoto et al. 2018) puts
     # TD3 at -3.6 on Reacher-v1 (max average return over 1M steps). The paper figures here and below are as
     # remembered from its table and Spinning Up's plot: re-read them before publishing.
-    "reacher-sac": Task("Reacher-v5", "sac", -5.0, 100_000, "", ("sac", ("env=Reacher-v5",)), peers=("sb3", "sbx"),
+    "reacher-sac": Task("Reacher-v5", "sac", -5.0, 100_000, "", ("sac", ("env=Reacher-v5",)), peers=DEV_PEERS,
                         why="development suite: no sized preset"),
     # Swimmer-v5 to 40: RL-Zoo's SAC Swimmer-v3 345.6 and TD3 359.1 after 1M steps (with its gamma 0.9999); with
     # gamma 0.99 SAC's curves level off near 40-50 (Spinning Up's SAC benchmark on Swimmer, as read off its plot).
-    "swimmer-sac": Task("Swimmer-v5", "sac", 40.0, 200_000, "", ("sac", ("env=Swimmer-v5",)), peers=("sb3", "sbx"),
+    "swimmer-sac": Task("Swimmer-v5", "sac", 40.0, 200_000, "", ("sac", ("env=Swimmer-v5",)), peers=DEV_PEERS,
                         why="development suite: no sized preset"),
     # InvertedDoublePendulum-v5 to 9,000 (9,350 is about the most a 1,000-step episode pays): gymnasium's
     # reward_threshold 9,100; the TD3 paper's Table 1 has TD3 at 9,337 on v1 within 1M steps.
     "invdoublependulum-sac": Task("InvertedDoublePendulum-v5", "sac", 9000.0, 100_000, "",
-                                  ("sac", ("env=InvertedDoublePendulum-v5",)), peers=("sb3", "sbx"),
+                                  ("sac", ("env=InvertedDoublePendulum-v5",)), peers=DEV_PEERS,
                                   why="development suite: no sized preset"),
     # LunarLanderContinuous-v3 to 200 ("solved", gymnasium's reward_threshold): RL-Zoo's SAC 260.4 on v2 after 500k.
     "lunarlandercontinuous-sac": Task("LunarLanderContinuous-v3", "sac", 200.0, 300_000, "",
-                                      ("sac", ("env=LunarLanderContinuous-v3",)), peers=("sb3", "sbx"),
+                                      ("sac", ("env=LunarLanderContinuous-v3",)), peers=DEV_PEERS,
                                       why="development suite: no sized preset"),
     # Acrobot-v1 to -100 (gymnasium's reward_threshold): RL-Zoo's DQN -76.6 after 100k env steps.
-    "acrobot-dqn": Task("Acrobot-v1", "dqn", -100.0, 150_000, "", ("dqn", ("env=Acrobot-v1",)), peers=("sb3", "sbx"),
+    "acrobot-dqn": Task("Acrobot-v1", "dqn", -100.0, 150_000, "", ("dqn", ("env=Acrobot-v1",)), peers=DEV_PEERS,
                         why="development suite: no sized preset"),
 }
 DEV_SUITE = ("reacher-sac", "swimmer-sac", "invdoublependulum-sac", "lunarlandercontinuous-sac", "acrobot-dqn")
