@@ -119,7 +119,7 @@ def test_the_bench_takes_the_development_suite_and_plays_the_sized_default_there
     for name in ttr.DEV_SUITE:
         task = ttr.TASKS[name]
         assert not task.preset and task.fallback == (task.algo, (f"env={task.env}",)), name
-        assert set(task.peers) == {"sb3", "sbx"}
+        assert set(task.peers) == {"sb3", "sbx", "torchrl"}
     assert {ttr.TASKS[n].env for n in ttr.DEV_SUITE} == {"Reacher-v5", "Swimmer-v5", "InvertedDoublePendulum-v5",
                                                          "LunarLanderContinuous-v3", "Acrobot-v1"}
 
