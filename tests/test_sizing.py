@@ -54,6 +54,19 @@ def test_the_rule_puts_a_many_jointed_body_in_a_collector_process_only_where_the
 
 
 @pytest.mark.unit
+def test_the_rule_discounts_by_0999_only_where_the_random_agent_plays_long_episodes_to_their_limit():
+    swimmer = EnvFacts("Swimmer-v5", False, 8, 2, (-1.0, -1.0), (1.0, 1.0), 1000, -3.4, 1000.0, 2)
+    for algo in ("sac", "td3"):
+        cfg, line = sized_config(algo, swimmer)
+        assert cfg.gamma == 0.999 and "gamma 0.999 (random episodes run to the 1,000-step limit)" in line
+        # an episode the random agent ends early (it falls), a short time limit: the usual 0.99, not said
+        for facts in (IDP, REACHER, dataclasses.replace(swimmer, random_episode_length=950.0)):
+            cfg, line = sized_config(algo, facts)
+            assert cfg.gamma == 0.99 and "gamma" not in line, facts.env
+    assert sized_config("dqn", dataclasses.replace(ACROBOT, time_limit=1000, random_episode_length=1000.0))[0].gamma == 0.99
+
+
+@pytest.mark.unit
 def test_the_rule_is_a_function_of_the_facts_alone():
     for algo, facts in (("sac", REACHER), ("td3", REACHER), ("sac", CHEETAH), ("dqn", ACROBOT)):
         assert sized_config(algo, facts) == sized_config(algo, facts)
