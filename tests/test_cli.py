@@ -276,6 +276,8 @@ BAD_INPUTS = {
     "ttr-unknown-task": (["bench", "time-to-return", "--tasks", "pendulum-sax", "--peers", "none"],
                          ["pendulum-sax", "pendulum-sac"], None),
     "ttr-unknown-peer": (["bench", "time-to-return", "--peers", "stable"], ["stable", "sb3"], None),
+    "ttr-override-after-peers": (["bench", "time-to-return", "--peers", "none", "gamma=0.99"],
+                                 ["'gamma=0.99'", "key=value overrides go before the options"], None),
     "ttr-bad-threads": (["bench", "time-to-return", "--threads", "sb3=x"], ["--threads sb3=x", "SIDE=N"], None),
     "ttr-bad-cap": (["bench", "time-to-return", "--cap", "tfagent=30000"], ["--cap tfagent=30000", "SIDE=STEPS"], None),
     "ttr-too-many-side-seeds": (["bench", "time-to-return", "--seeds", "2", "--side-seeds", "tfagents=3"],

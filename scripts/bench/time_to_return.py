@@ -154,9 +154,11 @@ def check_args(args) -> None:
                 hint = "key=value overrides go before the options; "
             raise InputError(f"--tasks: unknown task {name!r}; {hint}expected some of {', '.join(TASKS)}")
     if args.peers != ["none"]:
-        for name in args.peers or ():
+        for name in sorted(args.peers or (), key=lambda n: "=" not in n):  # a stray key=value is named first
             if name not in PEERS:
-                raise InputError(f"--peers: unknown peer {name!r}; expected some of {', '.join(PEERS)}, or none")
+                hint = ("key=value overrides go before the options; " if "=" in name else
+                        "none stands alone; " if name == "none" else "")
+                raise InputError(f"--peers: unknown peer {name!r}; {hint}expected some of {', '.join(PEERS)}, or none")
     tasks = chosen_tasks(args)  # --envs: each env made once here, so that a bad one is refused before any run
     if "torchrl" in chosen_peers(args):  # its checkout, with the recipes of the chosen tasks it plays
         from rlpipe.scripts.bench.peers import torchrl_sota
