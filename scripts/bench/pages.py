@@ -86,6 +86,8 @@ TIME_TO_TARGET = [
          "2026-12-02-35a110f-idp-sized-sbx.json", "invdoublependulum-sac", "sbx"),
     Pair("Reacher-v5 SAC to -5, sized default", "The sized default and the development suite",
          "2026-12-02-73d9857-reacher-sized-sbx.json", "reacher-sac", "sbx"),
+    Pair("Swimmer-v5 SAC to 40, sized default", "The sized default and the development suite",
+         "2026-12-02-5485d13-swimmer-sized-sbx.json", "swimmer-sac", "sbx"),
     Pair("Acrobot-v1 DQN to -100, tuned 30 min", "The sized default and the development suite",
          "2026-12-02-d36e01a-acrobot-tuned-sbx.json", "acrobot-dqn", "sbx"),
     Pair("Minitaur to 5", "Minitaur to 5, SAC against CrossQ",
@@ -117,6 +119,8 @@ COMMANDS = {
         "rlpipe bench time-to-return --tasks invdoublependulum-sac --seeds 5 --seed 100 --peers sbx",
     "2026-12-02-73d9857-reacher-sized-sbx.json":
         "rlpipe bench time-to-return --tasks reacher-sac --seeds 5 --seed 100 --peers sbx",
+    "2026-12-02-5485d13-swimmer-sized-sbx.json":
+        "rlpipe bench time-to-return --tasks swimmer-sac --seeds 5 --seed 100 --peers sbx --cap-scale 0.4",
     "2026-12-02-d36e01a-acrobot-tuned-sbx.json":
         "rlpipe bench time-to-return --tasks acrobot-dqn --preset scripts/results/tune/2026-12-02-335b2a4-acrobot-dqn/"
         "dqn-acrobot-v1-tuned.yaml --seeds 5 --seed 100 --peers sbx",
