@@ -79,7 +79,7 @@ class Task:
 
 
 DEV_PEERS = ("sb3", "sbx", "torchrl")
-"""the development suite's peers: TorchRL's SAC and DQN recipes take any gymnasium id (``env.name``)"""
+"""the development suite's peers: TorchRL's SAC and DQN recipes take any gymnasium id (``env.name``, ``env.env_name``)"""
 
 # The issue's targets (issue 21). Caps: a few times what the peers need on their tuned settings, so that
 # a slow side is shown slow rather than cut off early; --cap-scale scales them.
