@@ -91,8 +91,12 @@ TIME_TO_TARGET = [
     Pair("Acrobot-v1 DQN to -100, sized default", "TorchRL's own recipes against rlpipe", "2026-12-02-91840b3-torchrl-short.json", "acrobot-dqn", "torchrl"),
     Pair("InvertedDoublePendulum-v5 SAC to 9,000, sized default", "The sized default and the development suite",
          "2026-12-02-35a110f-idp-sized-sbx.json", "invdoublependulum-sac", "sbx"),
+    Pair("InvertedDoublePendulum-v5 SAC to 9,000, sized default", "TorchRL's own recipes against rlpipe",
+         "2026-12-02-01cc2df-torchrl-dev.json", "invdoublependulum-sac", "torchrl"),
     Pair("Reacher-v5 SAC to -5, sized default", "The sized default and the development suite",
          "2026-12-02-73d9857-reacher-sized-sbx.json", "reacher-sac", "sbx"),
+    Pair("Reacher-v5 SAC to -5, sized default", "TorchRL's own recipes against rlpipe",
+         "2026-12-02-01cc2df-torchrl-dev.json", "reacher-sac", "torchrl"),
     Pair("Swimmer-v5 SAC to 40, sized default", "The sized default and the development suite",
          "2026-12-02-5485d13-swimmer-sized-sbx.json", "swimmer-sac", "sbx"),
     Pair("Acrobot-v1 DQN to -100, tuned 30 min", "The sized default and the development suite",
@@ -131,6 +135,9 @@ COMMANDS = {
     "2026-12-02-91840b3-torchrl-short.json":
         "rlpipe bench time-to-return --tasks pendulum-sac pendulum-td3 cartpole-v0-dqn cartpole-v1-dqn acrobot-dqn "
         "invpendulum-sac invpendulum-td3 --seeds 1 --seed 100 --peers torchrl --torchrl-sota DIR --no-crossq",
+    "2026-12-02-01cc2df-torchrl-dev.json":
+        "rlpipe bench time-to-return --tasks invdoublependulum-sac reacher-sac --seeds 1 --seed 100 --peers torchrl "
+        "--torchrl-sota DIR --cap torchrl=50000",
     "2026-12-02-d36e01a-acrobot-tuned-sbx.json":
         "rlpipe bench time-to-return --tasks acrobot-dqn --preset scripts/results/tune/2026-12-02-335b2a4-acrobot-dqn/"
         "dqn-acrobot-v1-tuned.yaml --seeds 5 --seed 100 --peers sbx",
