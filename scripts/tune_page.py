@@ -12,6 +12,8 @@ PLOTS = {
     "importances.png": ("plot_param_importances", "Which settings mattered (parameter importances, fANOVA)"),
     "curves.png": ("plot_intermediate_values", "Training return over elapsed seconds (the curves pruning compares)"),
 }
+MAX_LEGEND = 12
+"""the most trials the curves' plot names in its legend"""
 
 
 def write_plots(study, out: Path) -> dict[str, str]:
@@ -30,7 +32,13 @@ def write_plots(study, out: Path) -> dict[str, str]:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Optuna marks its matplotlib plots experimental
                 ax = getattr(ovm, function)(study)
-            fig = (ax.flat[0] if hasattr(ax, "flat") else ax).figure
+            first = ax.flat[0] if hasattr(ax, "flat") else ax
+            fig = first.figure
+            if name == "curves.png":  # the trials report their curve once a second from launch (tune_trials.py)
+                first.set_xlabel("seconds since the trial's launch")
+                first.set_ylabel("training return, mean of its seeds")
+                if first.get_legend() is not None and len(study.trials) > MAX_LEGEND:
+                    first.get_legend().remove()  # one entry per trial: past a dozen it hides the plot
             fig.set_size_inches(7, 4)
             fig.tight_layout()
             fig.savefig(out / name, dpi=100)
