@@ -103,6 +103,8 @@ TIME_TO_TARGET = [
          "2026-12-02-d36e01a-acrobot-tuned-sbx.json", "acrobot-dqn", "sbx"),
     Pair("InvertedDoublePendulum-v5 SAC to 9,000, tuned 30 min", "The sized default and the development suite",
          "2026-12-02-246967f-idp-tuned-sbx.json", "invdoublependulum-sac", "sbx"),
+    Pair("Reacher-v5 SAC to -5, tuned 30 min", "The sized default and the development suite",
+         "2026-12-02-e78301c-reacher-tuned-sbx.json", "reacher-sac", "sbx"),
     Pair("Minitaur to 5", "Minitaur to 5, SAC against CrossQ",
          "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json", "minitaur-sac-5", None, side="crossq"),
 ]
@@ -146,6 +148,9 @@ COMMANDS = {
     "2026-12-02-246967f-idp-tuned-sbx.json":
         "rlpipe bench time-to-return --tasks invdoublependulum-sac --preset scripts/results/tune/"
         "2026-12-02-ff4b74f-idp-sac/sac-inverteddoublependulum-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx",
+    "2026-12-02-e78301c-reacher-tuned-sbx.json":
+        "rlpipe bench time-to-return --tasks reacher-sac --preset scripts/results/tune/"
+        "2026-12-02-246967f-reacher-sac/sac-reacher-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx",
     "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json":
         "rlpipe bench time-to-return --tasks minitaur-sac-5 --seeds 5 --peers none --cap-scale 0.1",
 }
