@@ -8,12 +8,15 @@ from pathlib import Path
 from typing import Any
 
 PLOTS = {
-    "history.png": ("plot_optimization_history", "Time to target per trial (optimization history)"),
-    "importances.png": ("plot_param_importances", "Which settings mattered (parameter importances, fANOVA)"),
-    "curves.png": ("plot_intermediate_values", "Training return over elapsed seconds (the curves pruning compares)"),
+    "history.png": ("plot_optimization_history", "Time to target per trial (optimization history)", None),
+    "importances.png": ("plot_param_importances", "Which settings mattered (parameter importances, fANOVA)", None),
+    # the trials report their curve once a second from launch (tune_trials.py), which Optuna calls "Step"
+    "curves.png": ("plot_intermediate_values", "Training return over elapsed seconds (the curves pruning compares)",
+                   ("seconds since the trial's launch", "training return, mean of its seeds")),
 }
+"""file name -> (Optuna's matplotlib plot, caption, (x label, y label) in place of Optuna's, or None)"""
 MAX_LEGEND = 12
-"""the most trials the curves' plot names in its legend"""
+"""the most entries a plot's legend keeps (one per trial: past a dozen it hides the plot)"""
 
 
 def write_plots(study, out: Path) -> dict[str, str]:
@@ -27,18 +30,19 @@ def write_plots(study, out: Path) -> dict[str, str]:
 
     optuna.logging.set_verbosity(optuna.logging.ERROR)  # a plot that cannot be drawn says so on the page instead
     shown: dict[str, str] = {}
-    for name, (function, caption) in PLOTS.items():
+    for name, (function, caption, labels) in PLOTS.items():
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Optuna marks its matplotlib plots experimental
                 ax = getattr(ovm, function)(study)
             first = ax.flat[0] if hasattr(ax, "flat") else ax
             fig = first.figure
-            if name == "curves.png":  # the trials report their curve once a second from launch (tune_trials.py)
-                first.set_xlabel("seconds since the trial's launch")
-                first.set_ylabel("training return, mean of its seeds")
-                if first.get_legend() is not None and len(study.trials) > MAX_LEGEND:
-                    first.get_legend().remove()  # one entry per trial: past a dozen it hides the plot
+            if labels:
+                first.set_xlabel(labels[0])
+                first.set_ylabel(labels[1])
+            legend = first.get_legend()
+            if legend is not None and len(legend.get_texts()) > MAX_LEGEND:
+                legend.remove()
             fig.set_size_inches(7, 4)
             fig.tight_layout()
             fig.savefig(out / name, dpi=100)
