@@ -33,7 +33,7 @@ def test_the_rule_sizes_a_small_body_in_the_learners_process_with_the_pendulum_p
     # two actuators: HalfCheetah's learning settings, in the learner's process
     assert (cfg.actor_learning_rate, cfg.target_update_tau, cfg.policy_delay, cfg.target_entropy) == (1e-3, 0.005, 1, -2.0)
     assert cfg.initial_collect_steps == 1000  # five random episodes are 250 steps: at least 1,000
-    assert cfg.initial_collect_steps + cfg.num_iterations == cfg.replay_buffer_capacity == 50_000
+    assert cfg.initial_collect_steps + 2 * cfg.num_iterations == cfg.replay_buffer_capacity == 50_000
     assert (cfg.collector.workers, cfg.collector.sync, cfg.num_threads) == (1, True, 1)
     validate(cfg)
     for said in ("Reacher-v5", "obs 10", "act 2 in [-1, 1]", "50-step episodes", "-42.7", "64x64",
@@ -64,6 +64,20 @@ def test_the_rule_discounts_by_0999_only_where_the_random_agent_plays_long_episo
             cfg, line = sized_config(algo, facts)
             assert cfg.gamma == 0.99 and "gamma" not in line, facts.env
     assert sized_config("dqn", dataclasses.replace(ACROBOT, time_limit=1000, random_episode_length=1000.0))[0].gamma == 0.99
+
+
+@pytest.mark.unit
+def test_sac_updates_every_second_env_step_unless_the_random_agent_plays_long_episodes_to_their_limit():
+    swimmer = EnvFacts("Swimmer-v5", False, 8, 2, (-1.0, -1.0), (1.0, 1.0), 1000, -3.4, 1000.0, 2)
+    for facts, per_update in ((IDP, 2), (REACHER, 2), (swimmer, 1), (CHEETAH, 1)):
+        cfg, line = sized_config("sac", facts)
+        assert cfg.collect_steps_per_iteration == per_update, facts.env
+        said = "an update every 2 env steps" if per_update == 2 else "an update every env step"
+        assert said in line, (said, line)
+        # the random steps and the budget are in env steps, whatever the ratio
+        assert cfg.initial_collect_steps + cfg.num_iterations * per_update <= cfg.replay_buffer_capacity
+        assert cfg.initial_collect_steps + (cfg.num_iterations + 1) * per_update > cfg.replay_buffer_capacity
+    assert sized_config("td3", IDP)[0].collect_steps_per_iteration == 1
 
 
 @pytest.mark.unit
@@ -146,5 +160,5 @@ def test_the_bench_launches_the_sized_default_with_a_cap_from_its_random_steps(t
     task = ttr.TASKS["reacher-sac"]
     launch = ttr.rlpipe_launch(task, "rlpipe", 100, task.target, 10_000, tmp_path / "run", None, [])
     assert launch.cmd[launch.cmd.index("train") + 1:][:2] == ["sac", "env=Reacher-v5"]
-    assert "num_iterations=9000" in launch.cmd  # 10,000 less the sized default's 1,000 random steps
+    assert "num_iterations=4500" in launch.cmd  # 10,000 less the sized default's 1,000 random steps, two env steps an update
     assert "sized from the env" in launch.settings
