@@ -90,11 +90,11 @@ TIME_TO_TARGET = [
          "2026-12-02-6184a1a-acrobot-sized-sbx.json", "acrobot-dqn", "sbx"),
     Pair("Acrobot-v1 DQN to -100, sized default", "TorchRL's own recipes against rlpipe", "2026-12-02-91840b3-torchrl-short.json", "acrobot-dqn", "torchrl"),
     Pair("InvertedDoublePendulum-v5 SAC to 9,000, sized default", "The sized default and the development suite",
-         "2026-12-02-35a110f-idp-sized-sbx.json", "invdoublependulum-sac", "sbx"),
+         "2026-12-02-efd41b6-idp-sized-sbx.json", "invdoublependulum-sac", "sbx"),
     Pair("InvertedDoublePendulum-v5 SAC to 9,000, sized default", "TorchRL's own recipes against rlpipe",
          "2026-12-02-01cc2df-torchrl-dev.json", "invdoublependulum-sac", "torchrl"),
     Pair("Reacher-v5 SAC to -5, sized default", "The sized default and the development suite",
-         "2026-12-02-73d9857-reacher-sized-sbx.json", "reacher-sac", "sbx"),
+         "2026-12-02-efd41b6-reacher-sized-sbx.json", "reacher-sac", "sbx"),
     Pair("Reacher-v5 SAC to -5, sized default", "TorchRL's own recipes against rlpipe",
          "2026-12-02-01cc2df-torchrl-dev.json", "reacher-sac", "torchrl"),
     Pair("Swimmer-v5 SAC to 40, sized default", "The sized default and the development suite",
@@ -130,9 +130,9 @@ COMMANDS = {
         "--no-crossq --cap-scale 0.3 --cap tfagents=110000",
     "2026-12-02-6184a1a-acrobot-sized-sbx.json":
         "rlpipe bench time-to-return --tasks acrobot-dqn --seeds 5 --seed 100 --peers sbx",
-    "2026-12-02-35a110f-idp-sized-sbx.json":
+    "2026-12-02-efd41b6-idp-sized-sbx.json":
         "rlpipe bench time-to-return --tasks invdoublependulum-sac --seeds 5 --seed 100 --peers sbx",
-    "2026-12-02-73d9857-reacher-sized-sbx.json":
+    "2026-12-02-efd41b6-reacher-sized-sbx.json":
         "rlpipe bench time-to-return --tasks reacher-sac --seeds 5 --seed 100 --peers sbx",
     "2026-12-02-5485d13-swimmer-sized-sbx.json":
         "rlpipe bench time-to-return --tasks swimmer-sac --seeds 5 --seed 100 --peers sbx --cap-scale 0.4",
