@@ -99,6 +99,8 @@ TIME_TO_TARGET = [
          "2026-12-02-01cc2df-torchrl-dev.json", "reacher-sac", "torchrl"),
     Pair("Swimmer-v5 SAC to 40, sized default", "The sized default and the development suite",
          "2026-12-02-5485d13-swimmer-sized-sbx.json", "swimmer-sac", "sbx"),
+    Pair("Hopper-v5 SAC to 500, sized default (off the suite)", "The sized default and the development suite",
+         "2026-12-02-efd41b6-hopper-sized-sbx.json", "Hopper-v5", "sbx"),
     Pair("Acrobot-v1 DQN to -100, tuned 30 min", "The sized default and the development suite",
          "2026-12-02-d36e01a-acrobot-tuned-sbx.json", "acrobot-dqn", "sbx"),
     Pair("InvertedDoublePendulum-v5 SAC to 9,000, tuned 30 min", "The sized default and the development suite",
@@ -136,6 +138,8 @@ COMMANDS = {
         "rlpipe bench time-to-return --tasks reacher-sac --seeds 5 --seed 100 --peers sbx",
     "2026-12-02-5485d13-swimmer-sized-sbx.json":
         "rlpipe bench time-to-return --tasks swimmer-sac --seeds 5 --seed 100 --peers sbx --cap-scale 0.4",
+    "2026-12-02-efd41b6-hopper-sized-sbx.json":
+        "rlpipe bench time-to-return --envs Hopper-v5 --target-return 500 --seeds 3 --seed 100 --peers sbx",
     "2026-12-02-91840b3-torchrl-short.json":
         "rlpipe bench time-to-return --tasks pendulum-sac pendulum-td3 cartpole-v0-dqn cartpole-v1-dqn acrobot-dqn "
         "invpendulum-sac invpendulum-td3 --seeds 1 --seed 100 --peers torchrl --torchrl-sota DIR --no-crossq",
