@@ -92,11 +92,11 @@ TIME_TO_TARGET = [
     Pair("InvertedDoublePendulum-v5 SAC to 9,000, sized default", "The sized default and the development suite",
          "2026-12-02-efd41b6-idp-sized-sbx.json", "invdoublependulum-sac", "sbx"),
     Pair("InvertedDoublePendulum-v5 SAC to 9,000, sized default", "TorchRL's own recipes against rlpipe",
-         "2026-12-02-01cc2df-torchrl-dev.json", "invdoublependulum-sac", "torchrl"),
+         "2026-12-02-efd41b6-torchrl-dev.json", "invdoublependulum-sac", "torchrl"),
     Pair("Reacher-v5 SAC to -5, sized default", "The sized default and the development suite",
          "2026-12-02-efd41b6-reacher-sized-sbx.json", "reacher-sac", "sbx"),
     Pair("Reacher-v5 SAC to -5, sized default", "TorchRL's own recipes against rlpipe",
-         "2026-12-02-01cc2df-torchrl-dev.json", "reacher-sac", "torchrl"),
+         "2026-12-02-efd41b6-torchrl-dev.json", "reacher-sac", "torchrl"),
     Pair("Swimmer-v5 SAC to 40, sized default", "The sized default and the development suite",
          "2026-12-02-5485d13-swimmer-sized-sbx.json", "swimmer-sac", "sbx"),
     Pair("Hopper-v5 SAC to 500, sized default (off the suite)", "The sized default and the development suite",
@@ -143,7 +143,7 @@ COMMANDS = {
     "2026-12-02-91840b3-torchrl-short.json":
         "rlpipe bench time-to-return --tasks pendulum-sac pendulum-td3 cartpole-v0-dqn cartpole-v1-dqn acrobot-dqn "
         "invpendulum-sac invpendulum-td3 --seeds 1 --seed 100 --peers torchrl --torchrl-sota DIR --no-crossq",
-    "2026-12-02-01cc2df-torchrl-dev.json":
+    "2026-12-02-efd41b6-torchrl-dev.json":
         "rlpipe bench time-to-return --tasks invdoublependulum-sac reacher-sac --seeds 1 --seed 100 --peers torchrl "
         "--torchrl-sota DIR --cap torchrl=50000",
     "2026-12-02-d36e01a-acrobot-tuned-sbx.json":
