@@ -81,6 +81,17 @@ def test_sac_updates_every_second_env_step_unless_the_random_agent_plays_long_ep
 
 
 @pytest.mark.unit
+def test_sac_learns_from_3_step_returns_only_where_the_random_agent_plays_long_episodes_to_their_limit():
+    swimmer = EnvFacts("Swimmer-v5", False, 8, 2, (-1.0, -1.0), (1.0, 1.0), 1000, -3.4, 1000.0, 2)
+    for facts, n_step in ((swimmer, 3), (CHEETAH, 3), (IDP, 1), (REACHER, 1),
+                          (dataclasses.replace(swimmer, random_episode_length=950.0), 1)):
+        cfg, line = sized_config("sac", facts)
+        assert cfg.n_step == n_step, facts.env
+        assert ("3-step returns" in line) == (n_step == 3), line
+    assert sized_config("td3", swimmer)[0].n_step == 1 and sized_config("dqn", ACROBOT)[0].n_step == 1
+
+
+@pytest.mark.unit
 def test_the_rule_is_a_function_of_the_facts_alone():
     for algo, facts in (("sac", REACHER), ("td3", REACHER), ("sac", CHEETAH), ("dqn", ACROBOT)):
         assert sized_config(algo, facts) == sized_config(algo, facts)
