@@ -102,9 +102,12 @@ def assert_finished(run: Path, proc: subprocess.CompletedProcess) -> list[dict[s
 
 
 @pytest.mark.slow
-def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
-    """Also with the evaluation in the background, which runs on a Ray actor (a Ray worker process,
-    not a child of the learner)."""
+def test_default_starts_a_local_ray_instance_and_a_killed_evaluator_actor_is_replaced_and_asked_again(tmp_path):
+    """No ray.address: the run starts a local Ray instance and shuts it down with itself. Its evaluation in the
+    background runs on a Ray actor (a Ray worker process, not a child of the learner); kill -9 of that actor's
+    process right after the evaluation at 150 was sent to it: the learner sees the actor dead, starts another
+    (counted in metrics.csv), which makes that evaluation; each one asked for is recorded once, and the run ends
+    as usual."""
     actors: dict[int, int] = {}  # pid -> parent pid of the evaluator actors seen while the run went on
 
     def watch(sid: int) -> None:
@@ -113,33 +116,18 @@ def test_default_starts_a_local_ray_instance_and_shuts_it_down(tmp_path):
                 actors.setdefault(int(p.name), _parent(p))
 
     proc, sid = train(["td3", *TINY, "collector.sync=true", "ray.address=", "eval_in_background=true", "--out", "run"],
-                      tmp_path, watch=watch)
+                      tmp_path, env={"RLPIPE_FAULT": "evaluator_worker@150:SIGKILL"}, watch=watch)
     rows = assert_finished(tmp_path / "run", proc)
+    restarts = [line for line in proc.stderr.splitlines() if "restarting the evaluator" in line]
+    assert len(restarts) == 1 and "the evaluator actor (pid" in restarts[0] and "restart 1 of" in restarts[0], \
+        proc.stderr[-3000:]
     evaluated = [r for r in rows if r["average_return"]]
     assert [int(r["step"]) for r in evaluated] == [0, 150, 300]  # 0 in the learner, before training; the rest on Ray
     assert all(math.isfinite(float(r["average_return"])) and float(r["average_episode_length"]) == 200
                for r in evaluated), evaluated
-    assert len(actors) == 1, actors  # one actor, alive from the start to the end
-    assert sid not in actors.values(), actors  # Ray's worker, not the learner's child process
-    assert [int(r["evaluator_restarts"]) for r in rows if r["evaluator_restarts"]] == [0, 0, 0]
-    assert_no_leftovers(sid)
-
-
-@pytest.mark.slow
-def test_a_killed_evaluator_actor_is_replaced_and_asked_again(tmp_path):
-    """kill -9 of the evaluator actor's process right after the evaluation at 150 was sent to it: the
-    learner sees the actor dead, starts another (counted in metrics.csv), which makes that evaluation;
-    each one asked for is recorded once, and the run ends as usual."""
-    run = tmp_path / "run"
-    proc, sid = train(["td3", *TINY, "collector.sync=false", "eval_in_background=true", "--out", "run"], tmp_path,
-                      env={"RLPIPE_FAULT": "evaluator_worker@150:SIGKILL"})
-    rows = assert_finished(run, proc)
-    restarts = [line for line in proc.stderr.splitlines() if "restarting the evaluator" in line]
-    assert len(restarts) == 1 and "the evaluator actor (pid" in restarts[0] and "restart 1 of" in restarts[0], \
-        proc.stderr[-3000:]
-    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 150, 300]
-    logged = [r for r in rows if r["evaluator_restarts"]]
-    assert logged[-1]["evaluator_restarts"] == "1", logged[-1]
+    assert len(actors) == 2, actors  # the one killed and the one that replaced it
+    assert sid not in actors.values(), actors  # Ray's workers, not the learner's child processes
+    assert [int(r["evaluator_restarts"]) for r in rows if r["evaluator_restarts"]][-1] == 1, rows
     assert_no_leftovers(sid)
 
 
