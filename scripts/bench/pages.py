@@ -98,7 +98,7 @@ TIME_TO_TARGET = [
     Pair("Reacher-v5 SAC to -5, sized default", "TorchRL's own recipes against rlpipe",
          "2026-12-02-efd41b6-torchrl-dev.json", "reacher-sac", "torchrl"),
     Pair("Swimmer-v5 SAC to 40, sized default", "The sized default and the development suite",
-         "2026-12-02-5485d13-swimmer-sized-sbx.json", "swimmer-sac", "sbx"),
+         "2026-12-02-fdc1ddd-swimmer-sized-sbx.json", "swimmer-sac", "sbx"),
     Pair("Hopper-v5 SAC to 500, sized default (off the suite)", "The sized default and the development suite",
          "2026-12-02-efd41b6-hopper-sized-sbx.json", "Hopper-v5", "sbx"),
     Pair("Acrobot-v1 DQN to -100, tuned 30 min", "The sized default and the development suite",
@@ -136,7 +136,7 @@ COMMANDS = {
         "rlpipe bench time-to-return --tasks invdoublependulum-sac --seeds 5 --seed 100 --peers sbx",
     "2026-12-02-efd41b6-reacher-sized-sbx.json":
         "rlpipe bench time-to-return --tasks reacher-sac --seeds 5 --seed 100 --peers sbx",
-    "2026-12-02-5485d13-swimmer-sized-sbx.json":
+    "2026-12-02-fdc1ddd-swimmer-sized-sbx.json":
         "rlpipe bench time-to-return --tasks swimmer-sac --seeds 5 --seed 100 --peers sbx --cap-scale 0.4",
     "2026-12-02-efd41b6-hopper-sized-sbx.json":
         "rlpipe bench time-to-return --envs Hopper-v5 --target-return 500 --seeds 3 --seed 100 --peers sbx",
