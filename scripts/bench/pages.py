@@ -107,6 +107,8 @@ TIME_TO_TARGET = [
          "2026-12-02-246967f-idp-tuned-sbx.json", "invdoublependulum-sac", "sbx"),
     Pair("Reacher-v5 SAC to -5, tuned 30 min", "The sized default and the development suite",
          "2026-12-02-e78301c-reacher-tuned-sbx.json", "reacher-sac", "sbx"),
+    Pair("Swimmer-v5 SAC to 40, tuned 30 min", "The sized default and the development suite",
+         "2026-12-03-144292a-swimmer-tuned-sbx.json", "swimmer-sac", "sbx"),
     Pair("Minitaur to 5", "Minitaur to 5, SAC against CrossQ",
          "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json", "minitaur-sac-5", None, side="crossq"),
 ]
@@ -155,6 +157,9 @@ COMMANDS = {
     "2026-12-02-e78301c-reacher-tuned-sbx.json":
         "rlpipe bench time-to-return --tasks reacher-sac --preset scripts/results/tune/"
         "2026-12-02-246967f-reacher-sac/sac-reacher-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx",
+    "2026-12-03-144292a-swimmer-tuned-sbx.json":
+        "rlpipe bench time-to-return --tasks swimmer-sac --preset scripts/results/tune/"
+        "2026-12-03-3679480-swimmer-sac/sac-swimmer-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx --cap-scale 0.4",
     "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json":
         "rlpipe bench time-to-return --tasks minitaur-sac-5 --seeds 5 --peers none --cap-scale 0.1",
 }
