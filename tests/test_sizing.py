@@ -81,14 +81,22 @@ def test_sac_updates_every_second_env_step_unless_the_random_agent_plays_long_ep
 
 
 @pytest.mark.unit
-def test_sac_learns_from_3_step_returns_only_where_the_random_agent_plays_long_episodes_to_their_limit():
+def test_sac_learns_from_3_step_returns_where_random_episodes_last_a_tenth_of_a_long_limit():
     swimmer = EnvFacts("Swimmer-v5", False, 8, 2, (-1.0, -1.0), (1.0, 1.0), 1000, -3.4, 1000.0, 2)
-    for facts, n_step in ((swimmer, 3), (CHEETAH, 3), (IDP, 1), (REACHER, 1),
-                          (dataclasses.replace(swimmer, random_episode_length=950.0), 1)):
+    lander = EnvFacts("LunarLanderContinuous-v3", False, 8, 2, (-1.0, -1.0), (1.0, 1.0), 1000, -208.6, 113.0, 2)
+    hopper = EnvFacts("Hopper-v5", False, 11, 3, (-1.0,) * 3, (1.0,) * 3, 1000, 14.6, 22.0, 2)
+    cases = ((swimmer, 3), (CHEETAH, 3), (lander, 3), (dataclasses.replace(swimmer, random_episode_length=950.0), 3),
+             (dataclasses.replace(lander, random_episode_length=99.0), 1), (IDP, 1), (hopper, 1), (REACHER, 1),
+             (dataclasses.replace(lander, time_limit=999), 1))
+    for facts, n_step in cases:
         cfg, line = sized_config("sac", facts)
-        assert cfg.n_step == n_step, facts.env
+        assert cfg.n_step == n_step, facts
         assert ("3-step returns" in line) == (n_step == 3), line
+    # the lander keeps what its short random episodes give it otherwise: gamma 0.99, an update every 2 env steps
+    cfg, _ = sized_config("sac", lander)
+    assert (cfg.gamma, cfg.collect_steps_per_iteration) == (0.99, 2)
     assert sized_config("td3", swimmer)[0].n_step == 1 and sized_config("dqn", ACROBOT)[0].n_step == 1
+    assert sized_config("td3", lander)[0].n_step == 1
 
 
 @pytest.mark.unit
