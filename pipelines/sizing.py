@@ -41,7 +41,7 @@ a task"), written once for every env:
   on Swimmer-v5, whose random agent plays every episode to the limit, development seeds 0-4 reached 40 at
   17,000-29,000 env steps with them, at 37,000-48,000 (and not by 80,000 on seed 4) without; on
   LunarLanderContinuous-v3, whose random agent crashes after ~110 steps, seeds 0 and 1 reached 200 at 77,700 and
-  80,500 with them, not by 120,000 without. One-step returns where a random episode ends within a tenth of the
+  80,500 with them, not by 120,000 without, and the judging seeds 100-104 at 79,450-127,050. One-step returns where a random episode ends within a tenth of the
   limit (InvertedDoublePendulum's 7 steps, Hopper's 22, Ant's 34), as the judged InvertedDoublePendulum default
   has, and where the limit is shorter (BENCHMARKS.md, "The sized default: the tries");
 - a body of one or two actuators steps in the learner's process; one of three or more (HalfCheetah's 6,
