@@ -11,8 +11,8 @@ import queue
 import sys
 import time
 
-__all__ = ["COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "prompt_block_hand_over", "set_model_version",
-           "write_cursor"]
+__all__ = ["COLLECTOR_KWARGS", "AckDeadline", "close_weight_sync_queues", "prompt_block_hand_over",
+           "ray_weight_sync_deadline", "set_model_version", "write_cursor"]
 
 
 class AckDeadline:
@@ -93,6 +93,25 @@ def prompt_block_hand_over() -> None:
 
     if getattr(_runner, "_MIN_TIMEOUT", None) is not None:
         _runner._MIN_TIMEOUT = 0.0
+
+
+def ray_weight_sync_deadline(seconds: float) -> None:
+    """In this process, give TorchRL's ``RayWeightSyncScheme`` ``seconds`` to connect its Gloo group (the learner
+    and every collector actor) and to finish each weight transfer over it.
+
+    TorchRL 0.14 fixes that deadline at 60 s (``weight_update/_ray.py``'s ``_DIST_TIMEOUT``, read when the learner
+    and each actor connect): on a 2-core machine whose cores another job holds, an actor that is still importing
+    TorchRL a minute after the learner began to wait ends the run with ``DistStoreError: wait timeout after
+    60000ms``, where every other start-up wait of a worker waits at least ``MIN_START_TIMEOUT_S`` (300 s). Call it
+    in the learner before the scheme connects and in each actor before its collector does (``WorkerSnapshotCollector``
+    takes ``weight_sync_deadline``). Delete when the scheme takes a timeout (not in 0.14; check at each upgrade).
+    """
+    from datetime import timedelta
+
+    from torchrl.weight_update import _ray
+
+    if getattr(_ray, "_DIST_TIMEOUT", None) is not None:
+        _ray._DIST_TIMEOUT = timedelta(seconds=seconds)
 
 
 def set_model_version(scheme, version: int) -> None:

@@ -31,7 +31,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.collectors.utils import _TrajectoryPool  # TorchRL 0.14's; StridedTrajectoryPool says why
 
-from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS, set_model_version
+from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS, ray_weight_sync_deadline, set_model_version
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
@@ -104,6 +104,7 @@ class RayBackend(CollectorBackend):
         self.runtime = RayRuntime(r.address, c.workers * r.num_cpus_per_worker)
         try:
             check_cpus(ray, self.config)
+            ray_weight_sync_deadline(start_timeout(c.timeout))
             self.scheme = RayWeightSyncScheme()
             # The version the first weights carry (a resumed run's policy is already trained).
             set_model_version(self.scheme, self.learner_version())
@@ -335,7 +336,8 @@ def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_
             # the exploration noise of two runs of one seed differed)
             collector_class=WorkerSnapshotCollector,
             collector_kwargs=[{"track_policy_version": True, "traj_pool": StridedTrajectoryPool(i, c.workers),
-                               **COLLECTOR_KWARGS} for i in range(c.workers)],
+                               "weight_sync_deadline": start_timeout(c.timeout), **COLLECTOR_KWARGS}
+                              for i in range(c.workers)],
             frames_per_batch=c.frames_per_batch, total_frames=total_frames, init_random_frames=init_random_frames,
             # the learner's device is not the actors' business: they step and act on CPU
             device="cpu", storing_device="cpu",

@@ -31,7 +31,8 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, TransformedEnv
 
 from rlpipe.envs.snapshot import NotCapturable, capture, restore, why_not_capturable
-from rlpipe.pipelines.compat.torchrl import prompt_block_hand_over
+from rlpipe.pipelines.compat.torchrl import prompt_block_hand_over, ray_weight_sync_deadline
+from rlpipe.pipelines.system.runtime import fault_point
 
 __all__ = ["SNAPSHOT", "SnapshotCollector", "WorkerSnapshotCollector", "gym_envs_of", "seed_worker", "why_not_exact"]
 
@@ -169,13 +170,22 @@ class WorkerSnapshotCollector(SnapshotCollector):
 
     own_rng = True
 
-    def __init__(self, *args, **kwargs):
+    def __init__(self, *args, weight_sync_deadline: float | None = None, **kwargs):
+        """``weight_sync_deadline``: on a Ray actor, the seconds its weight sync may take to connect (the run's
+        start-up deadline; ``compat.torchrl.ray_weight_sync_deadline``)."""
         prompt_block_hand_over()  # no 1-ms wait after each block in TorchRL's worker loop
+        if weight_sync_deadline is not None:
+            ray_weight_sync_deadline(weight_sync_deadline)
         super().__init__(*args, **kwargs)
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         seed_worker(seed)
         return super().set_seed(seed, static_seed=static_seed)
+
+    def cascade_execute(self, attr_path: str, *args, **kwargs):
+        if attr_path.endswith(".connect"):  # TorchRL's RayCollector: an actor joins the learner's weight sync
+            fault_point("ray_weight_connect", 0)
+        return super().cascade_execute(attr_path, *args, **kwargs)
 
 
 def seed_worker(seed: int) -> None:
