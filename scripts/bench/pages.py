@@ -82,6 +82,8 @@ TIME_TO_TARGET = [
     Pair("CartPole-v0 DQN to 195", "TorchRL's own recipes against rlpipe", "2026-12-02-91840b3-torchrl-short.json", "cartpole-v0-dqn", "torchrl"),
     Pair("HalfCheetah-v5 SAC to 3,000", "HalfCheetah-v5 SAC to 3,000", "2026-11-29-8fe68e7-halfcheetah-heldout.json",
          "halfcheetah-sac", "sbx"),
+    Pair("HalfCheetah-v5 SAC to 3,000", "TorchRL's own recipes against rlpipe", "2026-12-03-fb86c42-torchrl-long.json",
+         "halfcheetah-sac", "torchrl"),
     Pair("Minitaur SAC to 1.0", "Minitaur SAC to 1.0, against SBX", "2026-11-29-a13faf7-minitaur-1.json",
          "minitaur-sac-1", "sbx"),
     Pair("Minitaur SAC to 1.0", "Minitaur SAC to 1.0, against TF-Agents' own tutorial",
@@ -99,6 +101,12 @@ TIME_TO_TARGET = [
          "2026-12-02-efd41b6-torchrl-dev.json", "reacher-sac", "torchrl"),
     Pair("Swimmer-v5 SAC to 40, sized default", "The sized default and the development suite",
          "2026-12-02-fdc1ddd-swimmer-sized-sbx.json", "swimmer-sac", "sbx"),
+    Pair("Swimmer-v5 SAC to 40, sized default", "TorchRL's own recipes against rlpipe",
+         "2026-12-03-fb86c42-torchrl-long.json", "swimmer-sac", "torchrl"),
+    Pair("LunarLanderContinuous-v3 SAC to 200, sized default", "The sized default and the development suite",
+         "2026-12-03-fb86c42-lunarlander-sized.json", "lunarlandercontinuous-sac", None),
+    Pair("LunarLanderContinuous-v3 SAC to 200, sized default", "TorchRL's own recipes against rlpipe",
+         "2026-12-03-fb86c42-torchrl-long.json", "lunarlandercontinuous-sac", "torchrl"),
     Pair("Hopper-v5 SAC to 500, sized default (off the suite)", "The sized default and the development suite",
          "2026-12-02-efd41b6-hopper-sized-sbx.json", "Hopper-v5", "sbx"),
     Pair("Acrobot-v1 DQN to -100, tuned 30 min", "The sized default and the development suite",
@@ -160,6 +168,11 @@ COMMANDS = {
     "2026-12-03-144292a-swimmer-tuned-sbx.json":
         "rlpipe bench time-to-return --tasks swimmer-sac --preset scripts/results/tune/"
         "2026-12-03-3679480-swimmer-sac/sac-swimmer-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx --cap-scale 0.4",
+    "2026-12-03-fb86c42-lunarlander-sized.json":
+        "rlpipe bench time-to-return --tasks lunarlandercontinuous-sac --seeds 5 --seed 100 --peers none --cap-scale 0.667",
+    "2026-12-03-fb86c42-torchrl-long.json":
+        "rlpipe bench time-to-return --tasks halfcheetah-sac swimmer-sac lunarlandercontinuous-sac --seeds 1 --seed 100 "
+        "--peers torchrl --torchrl-sota DIR --cap torchrl=50000 --no-crossq",
     "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json":
         "rlpipe bench time-to-return --tasks minitaur-sac-5 --seeds 5 --peers none --cap-scale 0.1",
 }
