@@ -78,7 +78,8 @@ def zoo_hyperparams(lib: str, algo: str, env_id: str) -> tuple[dict, str]:
     entry of another version of the same env (MuJoCo ``-v5`` -> the zoo's ``-v4``: v5 changed no dynamics
     or reward of the tasks here, only constructor options; ``CartPole-v0`` -> ``CartPole-v1``: the same
     dynamics, episodes cut at 200 steps instead of 500); else the zoo's ``default`` entry. ``n_timesteps`` and ``policy`` are left out
-    (the benchmark sets the step cap; every entry here is ``MlpPolicy``)."""
+    (the benchmark sets the step cap; every entry here is ``MlpPolicy``); where a value is a linear schedule
+    (``lin_X``), ``schedule_timesteps`` is the entry's ``n_timesteps``, over which the zoo's schedule falls to 0."""
     import yaml
 
     table = yaml.safe_load(zoo_file(lib, algo).read_text())
@@ -90,5 +91,7 @@ def zoo_hyperparams(lib: str, algo: str, env_id: str) -> tuple[dict, str]:
                         ("default", f"RL-Zoo {algo}.yml default (no {env_id} entry)")):
         if key and key in table:
             hp = {k: v for k, v in table[key].items() if k not in ("n_timesteps", "policy")}
+            if any(isinstance(v, str) and v.startswith("lin_") for v in hp.values()) and "n_timesteps" in table[key]:
+                hp["schedule_timesteps"] = int(float(table[key]["n_timesteps"]))  # what the zoo's lin_X falls over
             return hp, source
     return {}, f"SB3 defaults (RL-Zoo {algo}.yml has no {env_id} or default entry)"

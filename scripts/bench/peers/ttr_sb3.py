@@ -5,7 +5,8 @@
 
 ``hyperparams`` are RL-Zoo's for the env as the harness read them from the zoo's yml (``n_timesteps`` and
 ``policy`` dropped; ``policy_kwargs`` a string as in the yml; ``noise_type``/``noise_std`` turned into
-the action noise as the zoo does). A callback applies the shared rule (``ttr_rule.Rule``) to the
+the action noise as the zoo does; a ``lin_X`` learning rate into the zoo's linear schedule over its
+``n_timesteps``, passed as ``schedule_timesteps``). A callback applies the shared rule (``ttr_rule.Rule``) to the
 Monitor's episode returns after every env step and stops ``learn`` once the target is confirmed by a
 deterministic evaluation (``model.predict(obs, deterministic=True)``) on an env of its own.
 """
@@ -29,6 +30,16 @@ def _policy_kwargs(text):
     from torch import nn  # the zoo's strings name torch's activations (nn.ReLU) for SB3
 
     return eval(text, {"dict": dict, "nn": nn, "__builtins__": {}})  # noqa: S307 - RL-Zoo's own yml strings
+
+
+def _linear(initial: float, cap: int, total: int):
+    """RL-Zoo's ``lin_X``: X falling linearly to 0 over the zoo's ``n_timesteps`` (``total``). SB3 calls it with
+    the progress left of this run's ``learn(total_timesteps=cap)``, which is rescaled to the zoo's."""
+
+    def schedule(progress_remaining: float) -> float:
+        return initial * max(0.0, 1.0 - (1.0 - progress_remaining) * cap / total)
+
+    return schedule
 
 
 def env_maker(env: str, kwargs: dict):
@@ -83,6 +94,10 @@ def main(spec: dict) -> None:
         hp.pop(unsupported, None)
     if "policy_kwargs" in hp:
         hp["policy_kwargs"] = _policy_kwargs(hp["policy_kwargs"])
+    schedule_steps = int(hp.pop("schedule_timesteps", None) or spec["cap"])
+    for key in ("learning_rate",):  # the zoo's schedules (exp_manager._preprocess_schedules) of the off-policy algos
+        if isinstance(hp.get(key), str) and hp[key].startswith("lin_"):
+            hp[key] = _linear(float(hp[key][4:]), int(spec["cap"]), schedule_steps)
     noise_type, noise_std = hp.pop("noise_type", None), hp.pop("noise_std", None)
     make = env_maker(env_id, dict(spec.get("env_kwargs") or {}))
     env = make_vec_env(make, n_envs=n_envs, seed=seed)
