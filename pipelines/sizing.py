@@ -207,10 +207,9 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     big_body = not facts.discrete and facts.action_size >= 3
     one_actuator = not facts.discrete and facts.action_size == 1
     in_process = not big_body or facts.cpus < 2
-    whole_episodes = (not facts.discrete and facts.time_limit is not None and facts.time_limit >= LONG_EPISODE
-                      and facts.random_episode_length >= facts.time_limit)
     long_random_episodes = (not facts.discrete and facts.time_limit is not None and facts.time_limit >= LONG_EPISODE
                             and facts.random_episode_length >= LONG_RANDOM_EPISODE * facts.time_limit)
+    whole_episodes = long_random_episodes and facts.random_episode_length >= facts.time_limit
     # env steps per update (collect_steps_per_iteration)
     per_update = 4 if facts.discrete else 2 if algo == "sac" and not whole_episodes else 1
     gamma = 0.999 if whole_episodes else 0.99
