@@ -68,6 +68,29 @@ def test_no_crossq_leaves_out_only_the_crossq_side():
     assert ttr.task_sides(task, ["sbx"], crossq=False) == ["rlpipe", "sbx"]
 
 
+
+def test_also_preset_plays_a_second_rlpipe_side_beside_the_default_against_the_same_peers(tmp_path, capsys):
+    """`--also-preset FILE` (the file `rlpipe tune` wrote): the sized default and the file, seed by seed, in the
+    one command that times SBX, so both ratios come from the same peer runs."""
+    from rlpipe.scripts.cli import main
+
+    task = ttr.TASKS["reacher-sac"]
+    plan = list(ttr._plan({"reacher-sac": task}, ["sbx"], True, 2, first=100, also=True))
+    assert plan == [("reacher-sac", 100, "rlpipe"), ("reacher-sac", 100, "preset"), ("reacher-sac", 100, "sbx"),
+                    ("reacher-sac", 101, "rlpipe"), ("reacher-sac", 101, "preset"), ("reacher-sac", 101, "sbx")]
+    mine = tmp_path / "mine.yaml"
+    mine.write_text((Path(ttr.__file__).resolve().parents[2] / "presets" / "sac-pendulum.yaml").read_text())
+    default = ttr.rlpipe_launch(task, "rlpipe", 100, -5.0, 2000, tmp_path / "a" / "run", None, [])
+    also = ttr.rlpipe_launch(task, "preset", 100, -5.0, 2000, tmp_path / "b" / "run", None, [], str(mine))
+    assert default.cmd[default.cmd.index("train") + 1] != str(mine)
+    assert also.cmd[also.cmd.index("train") + 1] == str(mine) and f"env={task.env}" in also.cmd
+    # a file that does not exist: one line, exit 2, before any run
+    code = main(["bench", "time-to-return", "--tasks", "reacher-sac", "--peers", "none", "--also-preset",
+                 str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "nope.yaml" in err[0]
+    assert not (tmp_path / "out").exists()
+
 def test_a_side_with_its_own_seed_count_runs_its_first_seeds_and_the_others_every_seed():
     # --side-seeds tfagents=1: the Minitaur tutorial's ~35-minute run timed once, rlpipe and SBX on every seed
     plan = list(ttr._plan({"minitaur-sac-1": ttr.TASKS["minitaur-sac-1"]}, ["sbx", "tfagents"], False, 3, {"tfagents": 1}))

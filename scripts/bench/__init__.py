@@ -12,7 +12,7 @@
     rlpipe bench threads [--preset td3] [--steps N] [--seeds 3] [key=value ...]
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents torchrl | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--cap SIDE=STEPS ...]
-                                [--side-seeds SIDE=N ...] [--seed FIRST] [--preset P] [--no-crossq]
+                                [--side-seeds SIDE=N ...] [--seed FIRST] [--preset P] [--also-preset P] [--no-crossq]
                                 [--torchrl-sota DIR] [key=value ...]
 
 ``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
@@ -57,6 +57,8 @@ def add_parser(sub) -> None:
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs (profile: PRESET first)")
     bench.add_argument("--seeds", type=int, help="seeds per side (default 3; time-to-return: 5)")
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
+    bench.add_argument("--also-preset", metavar="P", help="time-to-return: a second rlpipe side, preset, that plays P "
+                       "(e.g. the file rlpipe tune wrote) beside rlpipe's own, seed by seed against the same peers")
     bench.add_argument("--steps", type=int, help="env steps (td3, minitaur) or iterations (sac, profile: default 100000; "
                        "ray: the shorter timed run)")
     bench.add_argument("--duration", type=int, default=20, help="profile: seconds sampled after learning starts")

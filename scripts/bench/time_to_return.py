@@ -2,7 +2,7 @@
 
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents torchrl | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--preset P] [key=value ...]
-                                [--cap SIDE=STEPS ...] [--side-seeds SIDE=N ...] [--seed FIRST] [--no-crossq]
+                                [--also-preset P] [--cap SIDE=STEPS ...] [--side-seeds SIDE=N ...] [--seed FIRST] [--no-crossq]
                                 [--torchrl-sota DIR] [--out DIR] [--json FILE]
 
 Every side is judged by one rule (rlpipe's ``target_return``, ``pipelines/training/triggers.py``
@@ -16,7 +16,9 @@ and counts (as never) in the median; none is dropped. The fixed cost is reported
 the first env step (rlpipe: to its first block of env steps), and the end of training to exit.
 
 Sides, interleaved per seed (for each seed, every side once, in order): ``rlpipe`` (the preset sized
-for the task; the tutorial preset with the env set where that preset does not exist yet), ``crossq``
+for the task; the tutorial preset with the env set where that preset does not exist yet; ``--preset``'s where
+given), ``preset`` (``--also-preset``'s, such as the file ``rlpipe tune`` wrote, beside rlpipe's own side so that
+one command times both against the same peers), ``crossq``
 (the task's CrossQ preset, where the task has one and it exists; ``--no-crossq`` leaves it out), and the peers, each in a venv of
 its own built on first use: ``cleanrl`` (CleanRL 1.2.0's scripts on their defaults, ``peers/cleanrl.py``),
 ``sb3`` and ``sbx`` (RL-Zoo's hyperparameters for the env, ``peers/sb3.py``), ``tfagents`` (its
@@ -53,7 +55,8 @@ from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import DeferredInterrupt, fault_point
 
 PEERS = ("cleanrl", "sb3", "sbx", "tfagents", "torchrl")
-SIDES = ("rlpipe", "crossq", *PEERS)
+SIDES = ("rlpipe", "preset", "crossq", *PEERS)
+RLPIPE_SIDES = ("rlpipe", "preset", "crossq")
 DEFAULT_PEERS = ("cleanrl", "sb3", "sbx")
 TORCH_PEER_THREADS = 1
 RUN_TIMEOUT_S = 4 * 3600  # the Minitaur runs to 5.0 take hours on this machine; a hung run is cut here
@@ -175,12 +178,16 @@ def check_args(args) -> None:
                          f"(the last of --seeds {args.seeds} seeds at most {MAX_SEED})")
     if args.cap_scale is not None and not args.cap_scale > 0:
         raise InputError(f"--cap-scale={args.cap_scale}: expected a positive factor")
-    if args.preset is not None:
-        from rlpipe.pipelines import resolve_preset
+    also = getattr(args, "also_preset", None)
+    for preset in (args.preset, also):
+        if preset is not None:
+            from rlpipe.pipelines import resolve_preset
 
-        resolve_preset(args.preset)  # an unknown one: its own line
-    for task in tasks.values():  # the rlpipe side's overrides: a bad key is refused before any run
+            resolve_preset(preset)  # an unknown one: its own line
+    for task in tasks.values():  # the rlpipe sides' overrides: a bad key is refused before any run
         rlpipe_config(task, list(args.overrides), args.preset)
+        if also is not None:
+            rlpipe_config(task, list(args.overrides), also)
 
 
 def chosen_tasks(args) -> dict[str, Task]:
@@ -254,7 +261,7 @@ def _side_seeds(args) -> dict[str, int]:
 
 
 def _threads(args) -> dict[str, int | None]:
-    chosen: dict[str, int | None] = {"rlpipe": None, "crossq": None, "cleanrl": TORCH_PEER_THREADS,
+    chosen: dict[str, int | None] = {"rlpipe": None, "preset": None, "crossq": None, "cleanrl": TORCH_PEER_THREADS,
                                      "sb3": TORCH_PEER_THREADS, "sbx": None, "tfagents": None,
                                      "torchrl": TORCH_PEER_THREADS}
     for side, n in _per_side(args.threads, "--threads").items():
@@ -321,7 +328,8 @@ def rlpipe_config(task: Task, overrides: list[str], preset: str | None = None):
 
 def rlpipe_launch(task: Task, side: str, seed: int, target: float, cap: int, run_dir: Path, threads: int | None,
                   overrides: list[str], preset: str | None = None) -> Launch | str:
-    """The rlpipe side (``rlpipe``: the task's preset; ``crossq``: its CrossQ preset), or why it is not run."""
+    """An rlpipe side (``rlpipe``: the task's preset, or ``preset`` where given; ``preset``: ``preset``, the
+    ``--also-preset``; ``crossq``: the task's CrossQ preset), or why it is not run."""
     from rlpipe.pipelines import presets, resolve_preset
     from rlpipe.pipelines.config import apply_overrides
 
@@ -530,7 +538,8 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
     crossq = not getattr(args, "no_crossq", False)
     side_seeds = _side_seeds(args)
     first = getattr(args, "seed", 0)
-    plan = list(_plan(catalog, peers, crossq, args.seeds, side_seeds, first))
+    also = getattr(args, "also_preset", None)
+    plan = list(_plan(catalog, peers, crossq, args.seeds, side_seeds, first, also=also is not None))
     total = len(plan)
     n = 0
     interrupted: dict[str, Any] | None = None
@@ -547,9 +556,9 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
                 cap = side_caps.get(side, max(1, int(task.cap * scale)))
                 work = out / name / f"{side}-seed{seed}"
                 try:
-                    if side in ("rlpipe", "crossq"):
+                    if side in RLPIPE_SIDES:
                         launch = rlpipe_launch(task, side, seed, target, cap, work / "run", threads[side],
-                                               list(args.overrides), args.preset if side == "rlpipe" else None)
+                                               list(args.overrides), {"rlpipe": args.preset, "preset": also}.get(side))
                     else:
                         launch = peer_launch(task, side, seed, target, cap, work, threads[side],
                                              getattr(args, "torchrl_sota", None))
@@ -592,21 +601,23 @@ def bench_time_to_return(args, out: Path) -> dict[str, Any]:
 
 
 def _plan(tasks: dict[str, Task], peers: list[str], crossq: bool, seeds: int, side_seeds: dict[str, int] | None = None,
-          first: int = 0):
+          first: int = 0, also: bool = False):
     """``(task, seed, side)`` in the order they run: per task, per seed (``first`` to ``first + seeds - 1``), every
-    side once (interleaved); a side in ``side_seeds`` only in its first N seeds."""
+    side once (interleaved; ``also``: the ``--also-preset`` side after rlpipe's); a side in ``side_seeds`` only in its
+    first N seeds."""
     side_seeds = side_seeds or {}
     for name in tasks:
         for seed in range(first, first + seeds):
-            for side in task_sides(tasks[name], peers, crossq):
+            for side in task_sides(tasks[name], peers, crossq, also):
                 if seed - first < side_seeds.get(side, seeds):
                     yield name, seed, side
 
 
-def task_sides(task: Task, peers: list[str], crossq: bool = True) -> list[str]:
-    """The sides that play ``task``: rlpipe, CrossQ where the task has a CrossQ preset (unless ``--no-crossq``),
-    the peers chosen that play it."""
-    return ["rlpipe", *(["crossq"] if task.crossq and crossq else []), *(p for p in peers if p in task.peers)]
+def task_sides(task: Task, peers: list[str], crossq: bool = True, also: bool = False) -> list[str]:
+    """The sides that play ``task``: rlpipe, the ``--also-preset`` (``also``), CrossQ where the task has a CrossQ
+    preset (unless ``--no-crossq``), the peers chosen that play it."""
+    return ["rlpipe", *(["preset"] if also else []), *(["crossq"] if task.crossq and crossq else []),
+            *(p for p in peers if p in task.peers)]
 
 
 def progress_line(n: int, total: int, r: dict[str, Any]) -> str:
