@@ -104,7 +104,7 @@ TIME_TO_TARGET = [
     Pair("Swimmer-v5 SAC to 40, sized default", "TorchRL's own recipes against rlpipe",
          "2026-12-03-fb86c42-torchrl-long.json", "swimmer-sac", "torchrl"),
     Pair("LunarLanderContinuous-v3 SAC to 200, sized default", "The sized default and the development suite",
-         "2026-12-03-fb86c42-lunarlander-sized.json", "lunarlandercontinuous-sac", None),
+         "2026-12-03-23b0abf-lunarlander-sbx.json", "lunarlandercontinuous-sac", "sbx"),
     Pair("LunarLanderContinuous-v3 SAC to 200, sized default", "TorchRL's own recipes against rlpipe",
          "2026-12-03-fb86c42-torchrl-long.json", "lunarlandercontinuous-sac", "torchrl"),
     Pair("Hopper-v5 SAC to 500, sized default (off the suite)", "The sized default and the development suite",
@@ -117,6 +117,8 @@ TIME_TO_TARGET = [
          "2026-12-02-e78301c-reacher-tuned-sbx.json", "reacher-sac", "sbx"),
     Pair("Swimmer-v5 SAC to 40, tuned 30 min", "The sized default and the development suite",
          "2026-12-03-144292a-swimmer-tuned-sbx.json", "swimmer-sac", "sbx"),
+    Pair("LunarLanderContinuous-v3 SAC to 200, tuned 30 min", "The sized default and the development suite",
+         "2026-12-03-23b0abf-lunarlander-sbx.json", "lunarlandercontinuous-sac", "sbx", side="preset"),
     Pair("Minitaur to 5", "Minitaur to 5, SAC against CrossQ",
          "2026-11-29-c8dfaff-minitaur-5-sac-crossq.json", "minitaur-sac-5", None, side="crossq"),
 ]
@@ -168,8 +170,10 @@ COMMANDS = {
     "2026-12-03-144292a-swimmer-tuned-sbx.json":
         "rlpipe bench time-to-return --tasks swimmer-sac --preset scripts/results/tune/"
         "2026-12-03-3679480-swimmer-sac/sac-swimmer-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx --cap-scale 0.4",
-    "2026-12-03-fb86c42-lunarlander-sized.json":
-        "rlpipe bench time-to-return --tasks lunarlandercontinuous-sac --seeds 5 --seed 100 --peers none --cap-scale 0.667",
+    "2026-12-03-23b0abf-lunarlander-sbx.json":
+        "rlpipe bench time-to-return --tasks lunarlandercontinuous-sac --also-preset scripts/results/tune/"
+        "2026-12-03-25dd45a-lunarlander-sac/sac-lunarlandercontinuous-v3-tuned.yaml --seeds 5 --seed 100 --peers sbx "
+        "--cap sbx=75000",
     "2026-12-03-fb86c42-torchrl-long.json":
         "rlpipe bench time-to-return --tasks halfcheetah-sac swimmer-sac lunarlandercontinuous-sac --seeds 1 --seed 100 "
         "--peers torchrl --torchrl-sota DIR --cap torchrl=50000 --no-crossq",
@@ -235,16 +239,17 @@ def _peer_runs(data: dict, task: str, peer: str) -> list[dict]:
 
 
 def _ratio(data: dict, pair: Pair) -> tuple[float | None, str]:
-    """rlpipe's median against the peer's, both from one command. Where the peer's median is not reached its
-    median run went past the cap, so its median is more than its fastest success, or than its shortest run to the
-    cap where none succeeded: the ratio is then a bound."""
+    """rlpipe's median against the peer's, both from one command. Where the peer's median is not reached, the ratio
+    is a bound: each of its runs would have reached the target no sooner than a floor (its seconds where it reached
+    it; where it did not, the seconds from launch to the cap: ``wall_s`` less ``tail_s``, the exit after training),
+    and the median of the runs' times is no less than the median of their floors."""
     ours, theirs = data["summary"][pair.task][pair.side], data["summary"][pair.task][pair.peer]
     if theirs["median_s"] is not None:
         ratio = theirs["median_s"] / ours["median_s"]
         return ratio, f"**{ratio:.1f}x**"
-    runs = _peer_runs(data, pair.task, pair.peer)
-    reached = [run["seconds"] for run in runs if run["reached"]]
-    bound = (min(reached) if reached else min(run["wall_s"] for run in runs)) / ours["median_s"]
+    floors = [run["seconds"] if run["reached"] else run["wall_s"] - (run.get("tail_s") or 0.0)
+              for run in _peer_runs(data, pair.task, pair.peer)]
+    bound = statistics.median(floors) / ours["median_s"]
     return bound, f"more than {bound:.1f}x"
 
 
