@@ -34,10 +34,22 @@ from torchrl.envs import (
 from torchrl.envs.batched_envs import BatchedEnvBase
 
 from rlpipe.envs import user
+from rlpipe.envs.observations import (
+    DictObservation,
+    ImageObservation,
+    atari_preprocessed,
+    dict_keys,
+    goal_env,
+    is_atari,
+    is_image,
+    observation_layout,
+    register_optional_families,
+)
 
 __all__ = [
     "EnvError", "MINITAUR_ID", "describe_action_space", "env_id_of", "env_label", "is_discrete", "make_env", "resolve_env_id",
-    "observation_rescaling", "rescaling_bounds", "with_episode_return",
+    "observation_rescaling", "rescaling_bounds", "with_episode_return", "gym_env_under", "goal_env", "observation_layout",
+    "image_scale",
 ]
 
 MINITAUR_ID = "rlpipe/MinitaurBullet-v0"
@@ -62,7 +74,7 @@ _EXTRAS = {
     "ale_py": "gymnasium[atari]",
 }
 # Namespaces registered only once their package is imported: an id in one is not a typo.
-_NAMESPACE_EXTRAS = {"ALE": "gymnasium[atari]"}
+_NAMESPACE_EXTRAS = {"ALE": "gymnasium[atari]", "MinAtar": "minatar"}
 
 # Observation spaces gymnasium's FlattenObservation turns into one flat vector (one-hot for discrete parts).
 _FLATTENED = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary, spaces.Tuple)
@@ -79,6 +91,7 @@ def resolve_env_id(env_id: str) -> str:
     if user.is_user_env(env_id):
         return user.resolve(env_id, EnvError)
     env_id = _ALIASES.get(env_id, env_id)
+    register_optional_families(env_id)
     if env_id in gymnasium.registry:
         return env_id
     namespace = env_id.split("/", 1)[0] if "/" in env_id else None
@@ -100,6 +113,8 @@ def make_env(
     render_mode: str | None = None,
     num_envs: int = 1,
     rescale_observations: bool = False,
+    observation_keys: list[str] | None = None,
+    frame_stack: int = 1,
     **gym_kwargs,
 ) -> TransformedEnv:
     """A TorchRL env for ``env_id`` with ``StepCounter``, ``RewardSum``, ``InitTracker``, and
@@ -112,6 +127,10 @@ def make_env(
 
     ``rescale_observations`` maps a Box observation from its bounds to [-1, 1] with gymnasium's
     ``RescaleObservation`` (``rescaling_bounds`` says from what), before TorchRL sees it.
+
+    A Dict observation becomes one float vector of the entries ``observation_keys`` names (default: all),
+    an image stays uint8, channels first, with the last ``frame_stack`` frames stacked, and Atari ids get
+    the standard preprocessing (``rlpipe.envs.observations``).
 
     ``num_envs > 1`` makes one env of batch size ``[num_envs]``: gymnasium's ``SyncVectorEnv``
     stepping the copies in this process as one call, wrapped by TorchRL's ``GymWrapper`` (which
@@ -128,11 +147,19 @@ def make_env(
         gym_kwargs["render_mode"] = render_mode
     if gym_kwargs:
         user.check_kwargs(gym_id, gym_kwargs, label, EnvError)
+    if is_atari(gym_id):
+        gym_kwargs.setdefault("frameskip", 1)  # AtariPreprocessing skips frames itself
+
+    def readable(gym_env: gymnasium.Env) -> gymnasium.Env:
+        if is_atari(gym_id):
+            gym_env = atari_preprocessed(gym_env)
+        gym_env = _flat_observations(gym_env, label, observation_keys, frame_stack)
+        return _rescaled(gym_env, label, rescale_observations)
+
     with _extra_named(gym_id, env_id):
         if num_envs > 1:
             vector = gymnasium.vector.SyncVectorEnv(
-                [lambda: _rescaled(_flat_observations(gymnasium.make(gym_id, **gym_kwargs), label), label,
-                                   rescale_observations)] * num_envs,
+                [lambda: readable(gymnasium.make(gym_id, **gym_kwargs))] * num_envs,
                 autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
             )
             base = GymWrapper(vector, device=device, categorical_action_encoding=True)
@@ -141,7 +168,7 @@ def make_env(
                 base = GymWrapper(gymnasium.make(gym_id, **gym_kwargs), device=device, categorical_action_encoding=True)
             else:
                 base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
-            flat = _rescaled(_flat_observations(base._env, label), label, rescale_observations)
+            flat = readable(base._env)
             if flat is not base._env:
                 base = GymWrapper(flat, device=device, categorical_action_encoding=True)
     transforms = [StepCounter(), RewardSum(), InitTracker()]
@@ -185,20 +212,36 @@ class _extra_named:
                        f"expected it installed{install} or another env id") from exc
 
 
-def _flat_observations(env: gymnasium.Env, gym_id: str) -> gymnasium.Env:
-    """``env`` as the networks read it: a flat float vector of observations, and Box or Discrete actions.
+def _flat_observations(env: gymnasium.Env, gym_id: str, observation_keys: list[str] | None = None,
+                       frame_stack: int = 1) -> gymnasium.Env:
+    """``env`` as the networks read it: one ``observation`` (a float vector, or a uint8 image stack), and Box
+    or Discrete actions.
 
-    A flat float Box comes back as it is. Discrete, MultiDiscrete, MultiBinary and Tuple/Dict of
-    them (FrozenLake's Discrete(16), Blackjack's Tuple) and image or integer Boxes become one flat
-    float32 vector through gymnasium's ``FlattenObservation`` (one-hot for the discrete parts). A
-    Dict stays as it is: TorchRL gives each entry a key of its own.
+    A flat float Box comes back as it is. A Dict becomes one float vector of its entries (``DictObservation``;
+    a Dict holding only an image is that image). An image (an integer or bool Box of 2 or 3 dimensions)
+    stays integer, channels first, ``frame_stack`` frames deep (``ImageObservation``). Discrete,
+    MultiDiscrete, MultiBinary and Tuples of them (FrozenLake's Discrete(16), Blackjack's Tuple) and other
+    Boxes become one flat float32 vector through gymnasium's ``FlattenObservation`` (one-hot for the
+    discrete parts).
     """
     action, obs = env.action_space, env.observation_space
     if not isinstance(action, (spaces.Box, spaces.Discrete)) or isinstance(action, spaces.Box) and len(action.shape) != 1:
         raise EnvError(f"env {gym_id!r} has a {action} action space; expected a Discrete one or a one-dimensional Box")
-    if isinstance(obs, spaces.Dict) or isinstance(obs, spaces.Box) and len(obs.shape) == 1 and np.issubdtype(
-            obs.dtype, np.floating):
-        return env  # TorchRL gives a Dict's entries keys of their own: the pipeline reads `observation_key`
+    if observation_keys and not isinstance(obs, spaces.Dict):
+        raise EnvError(f"observation_keys={list(observation_keys)}: env {gym_id!r} has a {obs} observation space, "
+                       "not a Dict; expected observation_keys unset")
+    if isinstance(obs, spaces.Dict):
+        if len(obs.spaces) == 1 and is_image(next(iter(obs.spaces.values()))) and not observation_keys:
+            (key, image), = obs.spaces.items()
+            return ImageObservation(gymnasium.wrappers.TransformObservation(env, lambda o: o[key], image), frame_stack)
+        return DictObservation(env, dict_keys(obs, observation_keys, gym_id, EnvError))
+    if is_image(obs):
+        return ImageObservation(env, frame_stack)
+    if frame_stack > 1:
+        raise EnvError(f"frame_stack={frame_stack}: env {gym_id!r} observes {obs}, not an image; expected "
+                       "frame_stack=1 (stacking is for image observations)")
+    if isinstance(obs, spaces.Box) and len(obs.shape) == 1 and np.issubdtype(obs.dtype, np.floating):
+        return env
     if not _flattenable(obs):
         raise EnvError(f"env {gym_id!r} has a {obs} observation space; expected a Box, Dict, or Discrete, "
                        "MultiDiscrete, MultiBinary or Tuple spaces of them (flattened into one vector)")
@@ -229,12 +272,7 @@ def rescaling_bounds(space: spaces.Space, gym_id: str) -> tuple[np.ndarray, np.n
 def observation_rescaling(env: EnvBase) -> tuple[np.ndarray, np.ndarray] | None:
     """The (low, high) ``make_env(..., rescale_observations=True)`` maps ``env``'s observations from, or None
     where it does not rescale them."""
-    base = env.base_env if isinstance(env, TransformedEnv) else env
-    if not isinstance(base, GymWrapper):  # a user's own env (a SerialEnv's __getattr__ would ask each copy)
-        return None
-    gym_env = base._env
-    if isinstance(gym_env, gymnasium.vector.SyncVectorEnv):
-        gym_env = gym_env.envs[0]
+    gym_env = gym_env_under(env)  # None for a user's own env (a SerialEnv's __getattr__ would ask each copy)
     if isinstance(gym_env, RescaleObservation):
         return rescaling_bounds(gym_env.env.observation_space, "")
     return None
@@ -251,6 +289,28 @@ def _flattenable(space: spaces.Space) -> bool:
     if isinstance(space, spaces.Tuple):
         return all(_flattenable(s) for s in space.spaces)
     return isinstance(space, _FLATTENED)
+
+
+def gym_env_under(env: EnvBase) -> gymnasium.Env | None:
+    """The gymnasium env a TorchRL env made by ``make_env`` steps (the first copy of a vector), else None."""
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    if not isinstance(base, GymWrapper):
+        return None
+    gym_env = base._env
+    if isinstance(gym_env, gymnasium.vector.SyncVectorEnv):
+        gym_env = gym_env.envs[0]
+    return gym_env if isinstance(gym_env, gymnasium.Env) else None
+
+
+def image_scale(env: EnvBase) -> float | None:
+    """What one unit of ``env``'s image observation is as a fraction of full brightness (1/255 for uint8
+    pictures, 1 for 0/1 channels), or None where ``env`` does not observe an image (``ImageObservation``)."""
+    gym_env = gym_env_under(env)
+    while isinstance(gym_env, gymnasium.Wrapper):
+        if isinstance(gym_env, ImageObservation):
+            return gym_env.scale
+        gym_env = gym_env.env
+    return None
 
 
 def _action_spec(env_or_spec: EnvBase | TensorSpec) -> TensorSpec:

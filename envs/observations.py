@@ -1,0 +1,212 @@
+"""What an env's observation becomes before TorchRL sees it: one entry, ``observation``, that the networks read.
+
+* **Vectors, and a Dict of them** (gymnasium-robotics' goal envs, any Dict env): every entry the user reads
+  (``observation_keys``, default all) is flattened in the Dict's own key order and concatenated into one
+  float32 vector (``DictObservation``). Where each entry lies in that vector is its ``layout``: hindsight
+  relabelling writes a goal into its slice, and the exported policy takes the entries by name and joins
+  them the same way. Concatenating at the env keeps one tensor per transition, so the collectors, the
+  replay buffer and the lean losses serve Dict envs unchanged.
+* **Images** (a uint8 or bool Box of HxW, HxWxC or CxHxW): kept as integers, channels first, the last
+  ``frame_stack`` frames stacked on the channel axis (``ImageObservation``): ``uint8 [frame_stack * C, H, W]``.
+  A convolutional encoder (``rlpipe.modules.encoders``) reads it.
+* **Atari** (``ALE/...`` ids): gymnasium's ``AtariPreprocessing`` as CleanRL's and SB3's Atari wrappers set
+  it up (no-op reset up to 30, frame skip 4 with max-pooling, 84x84 grey), before the frames are stacked.
+  Rewards stay the game's score; clipping them is the loss's business (``clip_rewards``).
+
+An entry that cannot be read (a Text space, an image inside a Dict beside other entries, a nested Dict)
+is one ``EnvError`` naming the entry and what is expected.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+__all__ = [
+    "DictObservation", "ImageObservation", "GOAL_KEYS", "atari_preprocessed", "goal_env", "image_space",
+    "is_atari", "is_image", "observation_layout", "register_optional_families",
+]
+
+GOAL_KEYS = ("achieved_goal", "desired_goal")
+"""the entries of gymnasium-robotics' goal envs that hindsight relabelling reads and writes"""
+
+_VECTOR_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+
+
+def is_image(space: spaces.Space) -> bool:
+    """An integer or boolean Box of 2 or 3 dimensions: a picture (a float Box of that shape is a matrix)."""
+    return (isinstance(space, spaces.Box) and len(space.shape) in (2, 3)
+            and (np.issubdtype(space.dtype, np.integer) or space.dtype == np.bool_))
+
+
+def image_space(space: spaces.Box) -> tuple[int, int, int]:
+    """(C, H, W) of an image space: HxW is one channel; a last axis of 1, 3 or 4 (and a first that is not)
+    holds the channels (gymnasium's and Atari's HxWxC), else the first does (CxHxW, as TorchRL's pixels)."""
+    shape = space.shape
+    if len(shape) == 2:
+        return 1, shape[0], shape[1]
+    if shape[-1] in (1, 3, 4) and shape[0] not in (1, 3, 4):
+        return shape[2], shape[0], shape[1]
+    if shape[-1] in (1, 3, 4) and shape[0] in (1, 3, 4) and shape[-1] < shape[0]:
+        return shape[2], shape[0], shape[1]
+    return shape[0], shape[1], shape[2]
+
+
+class ImageObservation(gymnasium.ObservationWrapper):
+    """An image observation as the encoders read it: ``uint8 [frames * C, H, W]``, the newest frame last.
+
+    Channels go first (the convolutions' layout); bool images (MinAtar's) become 0/1. At a reset the stack
+    is filled with the first frame, as gymnasium's ``FrameStackObservation(padding_type="reset")`` does.
+    ``scale`` is what one unit of the image is as a fraction of full brightness (1/255 for uint8 pictures,
+    1 for 0/1 channels): the encoder multiplies by it.
+    """
+
+    def __init__(self, env: gymnasium.Env, frames: int = 1):
+        super().__init__(env)
+        space = env.observation_space
+        channels, height, width = image_space(space)
+        self.channels_last = len(space.shape) == 3 and space.shape[-1] == channels and space.shape[0] != channels
+        self.frames = frames
+        high = float(np.max(space.high)) if space.dtype != np.bool_ else 1.0
+        self.scale = 1.0 / max(high, 1.0)
+        self.observation_space = spaces.Box(0, 255 if space.dtype != np.bool_ else 1,
+                                            (frames * channels, height, width), np.uint8)
+        self._stack: deque[np.ndarray] = deque(maxlen=frames)
+
+    def _frame(self, observation) -> np.ndarray:
+        frame = np.asarray(observation)
+        if frame.ndim == 2:
+            frame = frame[None]
+        elif self.channels_last:
+            frame = np.moveaxis(frame, -1, 0)
+        return frame.astype(np.uint8, copy=False)
+
+    def reset(self, **kwargs):
+        observation, info = self.env.reset(**kwargs)
+        frame = self._frame(observation)
+        self._stack.clear()
+        self._stack.extend([frame] * self.frames)
+        return self._stacked(), info
+
+    def observation(self, observation):
+        self._stack.append(self._frame(observation))
+        return self._stacked()
+
+    def _stacked(self) -> np.ndarray:
+        return np.ascontiguousarray(np.concatenate(self._stack, axis=0))
+
+
+class DictObservation(gymnasium.ObservationWrapper):
+    """A Dict observation's entries ``keys``, each flattened, concatenated into one float32 vector.
+
+    ``layout`` maps each entry to its ``(start, stop)`` in the vector; ``entry_spaces`` keeps each entry's
+    own space (the exported policy's named inputs).
+    """
+
+    def __init__(self, env: gymnasium.Env, keys: Sequence[str]):
+        super().__init__(env)
+        space: spaces.Dict = env.observation_space
+        self.keys = list(keys)
+        self.entry_spaces = {key: space[key] for key in self.keys}
+        self.layout: dict[str, tuple[int, int]] = {}
+        start = 0
+        for key in self.keys:
+            size = int(spaces.flatdim(space[key]))
+            self.layout[key] = (start, start + size)
+            start += size
+        low = np.concatenate([_flat_bound(space[k], "low") for k in self.keys])
+        high = np.concatenate([_flat_bound(space[k], "high") for k in self.keys])
+        self.observation_space = spaces.Box(low, high, (start,), np.float32)
+
+    def observation(self, observation) -> np.ndarray:
+        return np.concatenate([spaces.flatten(self.entry_spaces[k], observation[k]).astype(np.float32, copy=False)
+                               for k in self.keys])
+
+
+def _flat_bound(space: spaces.Space, which: str) -> np.ndarray:
+    if isinstance(space, spaces.Box):
+        return getattr(space, which).astype(np.float32).reshape(-1)
+    return np.full(spaces.flatdim(space), 0.0 if which == "low" else 1.0, np.float32)  # one-hot parts
+
+
+def dict_keys(space: spaces.Dict, wanted: Sequence[str] | None, label: str, error: type[Exception]) -> list[str]:
+    """The entries of a Dict space the networks read: ``wanted`` (each must exist), else all; each must be a
+    vector (a Box, or a discrete space read one-hot). One ``error`` naming the first entry that is not."""
+    names = list(space.spaces)
+    if wanted:
+        missing = [k for k in wanted if k not in space.spaces]
+        if missing:
+            raise error(f"observation_keys names {', '.join(map(repr, missing))}, which env {label!r} does not "
+                        f"observe; expected some of {', '.join(map(repr, names))}")
+        names = list(wanted)
+    for key in names:
+        sub = space[key]
+        if is_image(sub):
+            raise error(f"env {label!r} observes an image {key!r} {sub} beside other entries, which rlpipe does not "
+                        f"read yet; expected observation_keys naming only vector entries, or only {key!r}")
+        if not isinstance(sub, _VECTOR_SPACES):
+            raise error(f"env {label!r} observes {key!r} as {sub}, which the networks cannot read; expected a Box or "
+                        "a Discrete, MultiDiscrete or MultiBinary space, or observation_keys leaving it out")
+    return names
+
+
+def observation_layout(gym_env: gymnasium.Env) -> dict[str, tuple[int, int]] | None:
+    """Where each Dict entry lies in the observation vector (``DictObservation.layout``), or None."""
+    env = gym_env
+    while isinstance(env, gymnasium.Wrapper):
+        if isinstance(env, DictObservation):
+            return dict(env.layout)
+        env = env.env
+    return None
+
+
+def goal_env(gym_env: gymnasium.Env) -> bool:
+    """Whether an env follows gymnasium-robotics' goal-env convention as read here: both goal entries
+    observed and a ``compute_reward(achieved_goal, desired_goal, info)``."""
+    layout = observation_layout(gym_env)
+    return (layout is not None and all(k in layout for k in GOAL_KEYS)
+            and callable(getattr(gym_env.unwrapped, "compute_reward", None)))
+
+
+def is_atari(gym_id: str) -> bool:
+    return gym_id.startswith("ALE/")
+
+
+def atari_preprocessed(env: gymnasium.Env) -> gymnasium.Env:
+    """Atari as the Nature DQN paper, CleanRL's ``dqn_atari.py`` and SB3's ``AtariWrapper`` play it: no-op
+    resets (up to 30), 4 frames a step with the last two max-pooled, 84x84 grey. The env must be made with
+    ``frameskip=1`` (the preprocessing skips frames itself)."""
+    return gymnasium.wrappers.AtariPreprocessing(env, noop_max=30, frame_skip=4, screen_size=84,
+                                                 terminal_on_life_loss=False, grayscale_obs=True)
+
+
+def register_optional_families(env_id: str) -> None:
+    """Register the env families that need their package imported first (ALE's Atari, MinAtar,
+    gymnasium-robotics' Fetch and mazes) when ``env_id`` may be one of them and the package is installed."""
+    if env_id in gymnasium.registry:
+        return
+    if env_id.startswith("ALE/"):
+        try:
+            import ale_py
+        except ImportError:
+            return
+        gymnasium.register_envs(ale_py)
+    elif env_id.startswith("MinAtar/"):
+        try:
+            import minatar.gym
+        except ImportError:
+            return
+        minatar.gym.register_envs()
+    else:
+        try:
+            import gymnasium_robotics
+        except ImportError:
+            return
+        from rlpipe.envs import robotics_compat
+
+        robotics_compat.apply()
+        gymnasium.register_envs(gymnasium_robotics)
