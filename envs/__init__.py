@@ -48,7 +48,7 @@ from rlpipe.envs.observations import (
 
 __all__ = [
     "EnvError", "MINITAUR_ID", "describe_action_space", "env_id_of", "env_label", "is_discrete", "make_env", "resolve_env_id",
-    "observation_rescaling", "rescaling_bounds", "with_episode_return", "gym_env_under", "goal_env", "observation_layout",
+    "observation_rescaling", "rescaling_bounds", "with_episode_return", "gym_env_under", "goal_env", "observed", "observation_layout",
     "image_scale",
 ]
 
@@ -151,10 +151,8 @@ def make_env(
         gym_kwargs.setdefault("frameskip", 1)  # AtariPreprocessing skips frames itself
 
     def readable(gym_env: gymnasium.Env) -> gymnasium.Env:
-        if is_atari(gym_id):
-            gym_env = atari_preprocessed(gym_env)
-        gym_env = _flat_observations(gym_env, label, observation_keys, frame_stack)
-        return _rescaled(gym_env, label, rescale_observations)
+        return observed(gym_env, label, observation_keys=observation_keys, frame_stack=frame_stack,
+                        rescale_observations=rescale_observations)
 
     with _extra_named(gym_id, env_id):
         if num_envs > 1:
@@ -180,6 +178,17 @@ def make_env(
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+def observed(gym_env: gymnasium.Env, label: str, *, observation_keys: list[str] | None = None, frame_stack: int = 1,
+             rescale_observations: bool = False) -> gymnasium.Env:
+    """A gymnasium env (made with ``frameskip=1`` for Atari) with the wrappers ``make_env`` puts under TorchRL:
+    its observation as the networks read it. ``label`` names the env in errors."""
+    spec = getattr(gym_env, "spec", None)
+    if spec is not None and is_atari(spec.id):
+        gym_env = atari_preprocessed(gym_env)
+    gym_env = _flat_observations(gym_env, label, observation_keys, frame_stack)
+    return _rescaled(gym_env, label, rescale_observations)
 
 
 def _has_float64(env: EnvBase) -> bool:

@@ -77,6 +77,7 @@ def make_deterministic_actor(
     hidden_sizes: Sequence[int] = (256,),
     *,
     observation_key: str = "observation",
+    encoder: nn.Module | None = None,
 ) -> TensorDictModule:
     """TD3's deterministic policy: ``"observation"`` -> ``"action"`` inside the spec's bounds.
 
@@ -88,6 +89,8 @@ def make_deterministic_actor(
     """
     low, high = _bounds(action_spec)
     net = TanhBoundedMLP(observation_dim, low, high, hidden_sizes)
+    if encoder is not None:  # an image's (``modules.encoders``), whose out_features is observation_dim
+        net = nn.Sequential(encoder, net)
     return TensorDictModule(net, in_keys=[observation_key], out_keys=["action"])
 
 
@@ -99,6 +102,7 @@ def make_tanh_normal_actor(
     min_scale: float = 1e-4,
     return_log_prob: bool = True,
     observation_key: str = "observation",
+    encoder: nn.Module | None = None,
 ) -> ProbabilisticActor:
     """SAC's policy: a TanhNormal whose loc/scale come from an MLP, rescaled to the action bounds.
 
@@ -113,6 +117,8 @@ def make_tanh_normal_actor(
             ``scale_lb``); it keeps sampling alive when a loss drives the scale down.
         return_log_prob: also write ``"action_log_prob"`` (SAC's loss needs it).
         observation_key: the TensorDict key the actor reads.
+        encoder: a network in front of the MLP (an image's, ``modules.encoders``), whose ``out_features``
+            is ``observation_dim``.
     """
     low, high = _bounds(action_spec)
     net = nn.Sequential(
@@ -126,6 +132,8 @@ def make_tanh_normal_actor(
         # as TorchRL's SAC example does.
         NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=min_scale),
     )
+    if encoder is not None:
+        net = nn.Sequential(encoder, *net)
     module = TensorDictModule(net, in_keys=[observation_key], out_keys=["loc", "scale"])
     return ProbabilisticActor(
         module,
@@ -145,6 +153,7 @@ def make_gaussian_actor(
     *,
     min_scale: float = 0.1,
     observation_key: str = "observation",
+    encoder: nn.Module | None = None,
 ) -> ProbabilisticActor:
     """The stochastic policy for TD3's ``deterministic_policy=False`` ablation.
 
@@ -168,6 +177,7 @@ def make_gaussian_actor(
         # TD3 never reads log-probabilities; skipping them saves work on every step.
         return_log_prob=False,
         observation_key=observation_key,
+        encoder=encoder,
     )
 
 
@@ -224,6 +234,7 @@ class TanhNormalMode(nn.Module):
         import copy
 
         low, high = _bounds(action_spec)
-        # ProbabilisticActor -> TensorDictModule(Sequential(MLP, NormalParamExtractor)) -> MLP
-        net = copy.deepcopy(actor.module[0].module[0]).cpu()
+        # ProbabilisticActor -> TensorDictModule(Sequential([encoder,] MLP, NormalParamExtractor)) -> all but the last
+        layers = list(actor.module[0].module)[:-1]
+        net = copy.deepcopy(layers[0] if len(layers) == 1 else nn.Sequential(*layers)).cpu()
         return cls(net, low.cpu(), high.cpu())

@@ -23,6 +23,7 @@ def make_qvalue_critic(
     observation_key: str = "observation",
     init: str = "torch",
     layer_norm: bool = False,
+    encoder: nn.Module | None = None,
 ) -> ValueOperator:
     """Q(s, a): an MLP over ``cat(observation, action)`` writing ``"state_action_value"``.
 
@@ -43,6 +44,8 @@ def make_qvalue_critic(
             without weights, TorchRL's ``MLP(norm_class=...)``: Linear, LayerNorm, ReLU), as DroQ's and
             RLPD's critics do to keep Q-values from running away; parameter-free, so the lean losses
             still run it on tensors.
+        encoder: a network the observation goes through before it joins the action (an image's,
+            ``modules.encoders``), whose ``out_features`` is ``observation_dim``.
     """
     if init not in INITIALIZERS:
         raise ValueError(f"init={init!r}: expected one of {', '.join(INITIALIZERS)}")
@@ -61,8 +64,22 @@ def make_qvalue_critic(
             if isinstance(layer, nn.Linear):
                 nn.init.xavier_uniform_(layer.weight)
                 nn.init.zeros_(layer.bias)
+    if encoder is not None:
+        net = EncodedCritic(encoder, net)
     # TorchRL's MLP concatenates several inputs along the last dim, so it takes (obs, action).
     return ValueOperator(net, in_keys=[observation_key, "action"])
+
+
+class EncodedCritic(nn.Module):
+    """``head(cat(encoder(observation), action))``: a critic over an encoded observation."""
+
+    def __init__(self, encoder: nn.Module, head: nn.Module):
+        super().__init__()
+        self.encoder = encoder
+        self.head = head
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.head(torch.cat([self.encoder(observation), action], -1))
 
 
 class BatchRenorm1d(_TorchRLBatchRenorm1d):

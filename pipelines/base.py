@@ -34,18 +34,30 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 
-from rlpipe.envs import EnvError, env_id_of, env_label, is_discrete, make_env, observation_rescaling, resolve_env_id
+from rlpipe.envs import (
+    EnvError,
+    env_id_of,
+    env_label,
+    gym_env_under,
+    is_discrete,
+    make_env,
+    observation_layout,
+    observation_rescaling,
+    resolve_env_id,
+)
+from rlpipe.modules.encoders import make_image_encoder
 from rlpipe.modules.optim import clip_gradient_norms
 from rlpipe.modules.plain_policy import OnRescaledObservations
 from rlpipe.pipelines import presets as preset_files
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
-from rlpipe.pipelines.config import EVAL_SEED_OFFSET, PresetInfo, TrainConfig, layer_sizes, validate
+from rlpipe.pipelines.config import EVAL_SEED_OFFSET, PresetInfo, TrainConfig, env_options, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.plugins import (
     EnvArg,
     check_action_space,
     eval_env_of,
     factory_and_env,
+    image_observation,
     observation_key_in,
     observation_key_of,
 )
@@ -141,7 +153,7 @@ class OffPolicyPipeline:
         self.env_fn, self.env = factory_and_env(env, cfg)
         # Evaluation plays one env copy: the collection env may be a vector of them.
         self.eval_env_fn = self.env_fn if cfg.collector.envs_per_worker == 1 else functools.partial(
-            make_env, cfg.env, device="cpu", rescale_observations=cfg.rescale_observations, **cfg.env_kwargs)
+            make_env, cfg.env, device="cpu", **env_options(cfg), **cfg.env_kwargs)
         self.eval_env = eval_env_of(eval_env, self.eval_env_fn)
         self.env.set_seed(cfg.seed)
         self.eval_env.set_seed(cfg.seed + EVAL_SEED_OFFSET)
@@ -150,11 +162,25 @@ class OffPolicyPipeline:
         self.action_spec = self.env.action_spec_unbatched
         check_action_space(self.algo, self.action_space, self.action_spec, self.config.env)
         self.observation_key = observation_key_in(self.env, observation_key, self.config.env)
-        self.observation_dim = int(self.env.observation_spec[self.observation_key].shape[-1])
+        self.image_shape, self.image_scale = image_observation(self.env, self.observation_key, self.config.env)
+        spec = self.env.observation_spec[self.observation_key]
+        # one observation as the policy takes it (exported policies too): a vector, or an image stack
+        self.observation_shape = tuple(spec.shape[len(self.env.batch_size):])
+        self.observation_dtype = spec.dtype
+        # what the heads read: the observation vector, or an image's features (the encoder's)
+        self.observation_dim = (int(self.env.observation_spec[self.observation_key].shape[-1]) if self.image_shape is None
+                                else self.make_encoder().out_features)
         action_dim = int(self.action_spec.space.n) if is_discrete(self.action_spec) else int(self.action_spec.shape[-1])
         check_memory(cfg, self.env, self.observation_key, action_dim, self.device,  # before a network is built
                      stored=self._replay_keys(), networks=layer_sizes(cfg))
         self.state = RunState.fresh(cfg)
+
+    def make_encoder(self) -> nn.Module | None:
+        """A new encoder of the env's image observation (``modules.encoders``), or None for a vector one:
+        each network that reads the observation puts one in front of its head."""
+        if self.image_shape is None:
+            return None
+        return make_image_encoder(self.image_shape, self.image_scale)
 
     # --- what a pipeline supplies -----------------------------------------------------------------
 
@@ -258,6 +284,12 @@ class OffPolicyPipeline:
         spec = self.action_spec
         info = {"algo": self.algo, "env": self.config.env, "env_kwargs": dict(self.config.env_kwargs),
                 "observation_key": str(self.observation_key)}
+        gym_env = gym_env_under(self.env)
+        layout = observation_layout(gym_env) if gym_env is not None else None
+        if layout is not None:  # a Dict env's entries, joined in this order into the observation vector
+            info["observation_entries"] = {key: list(span) for key, span in layout.items()}
+        if self.config.frame_stack > 1:
+            info["frame_stack"] = self.config.frame_stack
         if is_discrete(spec):
             return {**info, "action": "discrete", "num_actions": int(spec.space.n)}
         return {**info, "action": "continuous", "low": spec.space.low.flatten().tolist(),

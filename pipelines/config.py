@@ -137,11 +137,19 @@ LAYER_SIZES = Check(lambda v: bool(v) and all(n > 0 for n in v),
 """hidden layer sizes of a network (the memory check counts the parameters of every such key)"""
 
 
-ENV_KWARGS_RESERVED = ("seed", "device", "num_envs", "rescale_observations", "render_mode")
+ENV_KWARGS_RESERVED = ("seed", "device", "num_envs", "rescale_observations", "render_mode", "observation_keys",
+                       "frame_stack")
 """what ``rlpipe.envs.make_env`` takes itself: an env keyword of the same name could not reach the env"""
 ENV_KWARGS = Check(lambda v: not set(v) & set(ENV_KWARGS_RESERVED),
                    lambda v: f"keywords other than {', '.join(ENV_KWARGS_RESERVED)} (rlpipe sets those itself: the "
                              f"`seed` key seeds the env, videos choose the render mode)")
+
+
+def env_options(cfg, *, rescaled: bool = True) -> dict[str, Any]:
+    """The keywords of ``rlpipe.envs.make_env`` that the config sets besides the env's own (``env_kwargs``);
+    ``rescaled=False`` leaves out the rescaling, which the exported policy does itself."""
+    options = {"observation_keys": cfg.observation_keys, "frame_stack": cfg.frame_stack}
+    return {"rescale_observations": cfg.rescale_observations, **options} if rescaled else options
 
 
 def check_learning_rate_schedule(cfg) -> None:
@@ -266,6 +274,14 @@ class TrainConfig:
     """keywords for the env's constructor (`gymnasium.make`'s), one a key on the command line: env_kwargs.size=3"""
     rescale_observations: bool = False
     """map each observation linearly from the observation space's bounds to [-1, 1] (gymnasium's RescaleObservation) in the envs made from `env`, so that no input dwarfs the others (Minitaur's motor velocities are bounded by 168, its motor angles by 3.15); the exported policy takes the env's own observations and rescales them itself. Needs finite bounds"""
+    observation_keys: list[str] | None = None
+    """the entries of a Dict observation the networks read, concatenated in the env's order (null: every entry); each a vector (a Box, or a discrete space read one-hot)"""
+    frame_stack: int = checked(1, POSITIVE)
+    """stack the last N frames of an image observation on its channel axis (4 for Atari, as the Nature DQN); 1 for vector observations"""
+    her: bool | None = None
+    """Hindsight Experience Replay: relabel a share (her_ratio) of each sampled batch with a goal the same episode achieved later (the "future" strategy) and the env's compute_reward; needs a goal env (achieved_goal, desired_goal, compute_reward); null: on for a goal env"""
+    her_ratio: float = checked(0.8, PROBABILITY)
+    """share of each sampled batch HER relabels (0.8: four relabelled goals per original, the HER paper's k=4)"""
     seed: int = checked(0, Check(lambda v: 0 <= v <= MAX_SEED, f"an integer from 0 to {MAX_SEED}"))
     """seed for networks, replay sampling, exploration and envs; worker seeds derive from it"""
     num_iterations: int = checked(100_000, POSITIVE)

@@ -25,6 +25,7 @@ from rlpipe.modules.critics import make_batchrenorm_critic
 from rlpipe.modules.crossq_loss import LeanCrossQLoss
 from rlpipe.modules.optim import LeanAdam
 from rlpipe.pipelines.config import LAYER_SIZES, NON_NEGATIVE, Check, checked
+from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.sac_family import SACFamilyConfig, SACFamilyPipeline, scale_rewards
 
 __all__ = ["CrossQConfig", "CrossQ", "preset"]
@@ -94,6 +95,9 @@ class CrossQ(SACFamilyPipeline):
 
     def make_qvalue(self) -> nn.Module:
         cfg = self.config
+        if self.image_shape is not None:
+            raise InputError(f"CrossQ's batch-renormalised critic reads vector observations; env {cfg.env!r} observes "
+                             f"an image {self.image_shape}: expected sac or td3 for images")
         return make_batchrenorm_critic(self.observation_dim, int(self.action_spec.shape[-1]), cfg.critic_fc_layer_params,
                                        observation_key=self.observation_key, momentum=cfg.batch_renorm_momentum,
                                        warmup_steps=cfg.batch_renorm_warmup_steps)

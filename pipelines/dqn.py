@@ -127,7 +127,7 @@ class DQN(OffPolicyPipeline):
         if actor is None:
             actor = (loss_module.value_network if loss_module is not None  # the network the given loss trains
                      else make_qvalue_actor(self.observation_dim, spec, cfg.fc_layer_params,
-                                            observation_key=self.observation_key))
+                                            observation_key=self.observation_key, encoder=self.make_encoder()))
         if loss_module is None:
             # A target network updated with tau=1 after every update equals the online network, so the
             # loss can read the online one directly: same result, two fewer copies per update.

@@ -13,12 +13,15 @@ from collections.abc import Callable
 from torch import nn
 from torchrl.envs import EnvBase
 
-from rlpipe.envs import EnvError, describe_action_space, is_discrete, make_env, with_episode_return
+import torch
+
+from rlpipe.envs import EnvError, describe_action_space, image_scale, is_discrete, make_env, with_episode_return
 from rlpipe.pipelines.algos import ALGOS, pipeline_class
-from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.config import TrainConfig, env_options
 from rlpipe.pipelines.errors import InputError
 
-__all__ = ["EnvArg", "check_action_space", "eval_env_of", "factory_and_env", "observation_key_in", "observation_key_of"]
+__all__ = ["EnvArg", "check_action_space", "eval_env_of", "factory_and_env", "image_observation", "observation_key_in",
+           "observation_key_of"]
 
 EnvArg = EnvBase | Callable[[], EnvBase] | None
 
@@ -34,9 +37,12 @@ def factory_and_env(env: EnvArg, cfg: TrainConfig) -> tuple[Callable[[], EnvBase
     if env is not None and cfg.rescale_observations:
         raise InputError("rescale_observations=true rescales the envs made from config.env; with env= given, expected "
                          "rescale_observations=false (rescale in your own env, e.g. gymnasium's RescaleObservation)")
+    if env is not None and (cfg.observation_keys or cfg.frame_stack > 1):
+        raise InputError("observation_keys and frame_stack shape the envs made from config.env; with env= given, "
+                         "expected them unset (select and stack in your own env, e.g. TorchRL's CatTensors, CatFrames)")
     if env is None:
         factory = functools.partial(make_env, cfg.env, device="cpu", num_envs=cfg.collector.envs_per_worker,
-                                    rescale_observations=cfg.rescale_observations, **cfg.env_kwargs)
+                                    **env_options(cfg), **cfg.env_kwargs)
     elif isinstance(env, EnvBase):
         if cfg.collector.workers > 1 or not cfg.collector.sync:
             raise InputError("collector.workers>1 or collector.sync=false: pass env as a function that makes the env")
@@ -93,6 +99,27 @@ def observation_key_in(env: EnvBase, given: str | None, env_label: str) -> str:
         raise InputError(f"env {env_label!r} has no observation {key or 'observation'!r} (it has "
                          f"{', '.join(map(str, keys))}); pass observation_key=... or an actor that reads one of them")
     return key
+
+
+def image_observation(env: EnvBase, key: str, env_label: str) -> tuple[tuple[int, int, int] | None, float]:
+    """``((C, H, W), scale)`` where the observation ``key`` is an image (3 dimensions: an encoder reads it), else
+    ``(None, 1.0)``. ``scale``: one unit as a fraction of full brightness (1/255 for uint8 pictures). A float
+    image must already be in [0, 1]; one the networks cannot read is an ``InputError``."""
+    spec = env.observation_spec[key]
+    dims = tuple(spec.shape[len(env.batch_size):])
+    if len(dims) == 1:
+        return None, 1.0
+    if len(dims) != 3:
+        raise InputError(f"env {env_label!r} observes {key!r} of shape {dims}; expected a vector or an image of "
+                         "[C, H, W]")
+    shape = dims
+    if spec.dtype == torch.uint8:
+        scale = image_scale(env)
+        return shape, 1 / 255 if scale is None else scale
+    if spec.dtype.is_floating_point:
+        return shape, 1.0
+    raise InputError(f"env {env_label!r} observes an image {key!r} of dtype {spec.dtype}; expected uint8 (or float "
+                     "in [0, 1])")
 
 
 def observation_key_of(*modules: nn.Module | None) -> str | None:

@@ -79,7 +79,8 @@ class SAC(SACFamilyPipeline):
         cfg = self.config
         return make_qvalue_critic(self.observation_dim, int(self.action_spec.shape[-1]),
                                   cfg.critic_joint_fc_layer_params, observation_key=self.observation_key,
-                                  init=cfg.critic_kernel_initializer, layer_norm=cfg.critic_layer_norm)
+                                  init=cfg.critic_kernel_initializer, layer_norm=cfg.critic_layer_norm,
+                                  encoder=self.make_encoder())
 
     def make_loss(self, actor: nn.Module, qvalue: nn.Module) -> SACLoss:
         cfg = self.config

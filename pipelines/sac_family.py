@@ -146,7 +146,7 @@ class SACFamilyPipeline(OffPolicyPipeline):
         else:
             if actor is None:
                 actor = make_tanh_normal_actor(self.observation_dim, self.action_spec, cfg.actor_fc_layer_params,
-                                               observation_key=self.observation_key)
+                                               observation_key=self.observation_key, encoder=self.make_encoder())
             loss_module = self.make_loss(actor, qvalue if qvalue is not None else self.make_qvalue())
             loss_module.make_value_estimator(gamma=cfg.gamma)
         greedy = actor if cfg.policy_average_tau is None else copy.deepcopy(actor)

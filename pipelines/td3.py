@@ -153,7 +153,8 @@ class TD3(OffPolicyPipeline):
             actor = actor if actor is not None else loss_module.actor_network
         elif actor is None:
             make = make_deterministic_actor if cfg.deterministic_policy else make_gaussian_actor
-            actor = make(self.observation_dim, spec, cfg.actor_fc_layer_params, observation_key=key)
+            actor = make(self.observation_dim, spec, cfg.actor_fc_layer_params, observation_key=key,
+                         encoder=self.make_encoder())
             self._gaussian_actor_made = not cfg.deterministic_policy  # exported as TanhNormalMode of its MLP
         stochastic = isinstance(actor, ProbabilisticTensorDictSequential)
         if cfg.deterministic_policy and stochastic:
@@ -164,7 +165,7 @@ class TD3(OffPolicyPipeline):
         if loss_module is None:
             if qvalue is None:
                 qvalue = make_qvalue_critic(self.observation_dim, int(spec.shape[-1]), cfg.critic_fc_layer_params,
-                                            observation_key=key)
+                                            observation_key=key, encoder=self.make_encoder())
             loss_module = TD3AblationLoss(
                 actor, qvalue, action_spec=spec,
                 deterministic_policy=cfg.deterministic_policy,

@@ -242,6 +242,7 @@ def cmd_eval(args) -> int:
 
     from rlpipe.envs import make_env
     from rlpipe.pipelines.artifacts.export import load_policy
+    from rlpipe.pipelines.config import env_options
     from rlpipe.pipelines.errors import InputError
     from rlpipe.pipelines.workers.evaluation import evaluate
 
@@ -257,7 +258,7 @@ def cmd_eval(args) -> int:
     run, env_id, env_kwargs = None, args.env, {}
     if args.run_dir is not None:
         run, cfg = _run_config(args.run_dir)
-        env_id, env_kwargs = _run_env(run, cfg), cfg.env_kwargs
+        env_id, env_kwargs = _run_env(run, cfg), {**cfg.env_kwargs, **env_options(cfg, rescaled=False)}
     if args.random:
         module, source = None, "random"
     else:
@@ -304,6 +305,7 @@ def cmd_video(args) -> int:
     from rlpipe.pipelines.analysis.pages import VIDEO_FILE, write_run_report
     from rlpipe.pipelines.artifacts.export import load_policy
     from rlpipe.pipelines.artifacts.video import record_video
+    from rlpipe.pipelines.config import env_options
 
     _positive("--episodes", args.episodes)
     _check_random_without_step(args)
@@ -314,7 +316,7 @@ def cmd_video(args) -> int:
     policy = None if args.random else load_policy(run.policy_dir, step=args.step, trust=args.trust)[0]
     name = "random-agent.mp4" if args.random else "trained-agent.mp4" if args.step is None else f"trained-agent-step_{args.step}.mp4"
     path = record_video(env_id, policy, args.out or run.path / name, episodes=args.episodes, seed=args.seed,
-                        env_kwargs=cfg.env_kwargs)
+                        env_kwargs=cfg.env_kwargs, observation_options=env_options(cfg, rescaled=False))
     print(f"video: {path}")
     if not args.random and path == run.path / VIDEO_FILE:  # the page shows the trained agent's video
         print(f"report: {write_run_report(run.path)}")

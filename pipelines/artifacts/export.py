@@ -80,9 +80,10 @@ def available_steps(folder: Path) -> list[int]:
 # --- writing -----------------------------------------------------------------------------------------
 
 
-def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: dict, *, step: int | None = None,
-                  keep: int = 0) -> Path:
-    """Export ``module`` (observations ``[B, observation_dim]`` -> actions ``[B, ...]``) to ``folder``.
+def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], folder: Path, info: dict, *,
+                  step: int | None = None, keep: int = 0, dtype: torch.dtype = torch.float32) -> Path:
+    """Export ``module`` (observations ``[B, observation_dim]``, or ``[B, *shape]`` of ``dtype`` for a tuple:
+    an image stack ``uint8 [B, C, H, W]`` -> actions ``[B, ...]``) to ``folder``.
 
     Writes ``policy.onnx`` (unless ONNX cannot express the module: then a warning), ``policy.pt2``
     and ``policy.json``, each atomically; with ``step``, also ``step_NNNNNNN.onnx/.pt2``, keeping the
@@ -95,12 +96,13 @@ def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: d
     module = copy.deepcopy(module).eval()
     for parameter in module.parameters():
         parameter.requires_grad_(False)
-    example = torch.zeros(2, observation_dim)
+    shape = (observation_dim,) if isinstance(observation_dim, int) else tuple(observation_dim)
+    example = torch.zeros(2, *shape, dtype=dtype)
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
     program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},), strict=False)
     pt2 = io.BytesIO()
     torch.export.save(program, pt2)
-    files = {".pt2": pt2.getvalue(), ".onnx": _onnx_model(module, observation_dim)}
+    files = {".pt2": pt2.getvalue(), ".onnx": _onnx_model(module, shape, dtype)}
     for suffix, data in files.items():
         if data is not None:
             if step is not None:
@@ -115,7 +117,8 @@ def export_policy(module: nn.Module, observation_dim: int, folder: Path, info: d
                 (folder / step_name(old, suffix)).unlink(missing_ok=True)
     steps = available_steps(folder)
     write_json_atomic(folder / "policy.json", {
-        "observation_dim": observation_dim, **info, "step": step, "steps": steps,
+        "observation_dim": shape[0] if len(shape) == 1 else None, "observation_shape": list(shape),
+        "observation_dtype": str(dtype).removeprefix("torch."), **info, "step": step, "steps": steps,
         "env_recipe": _env_recipe(info.get("env"), info.get("env_kwargs") or {}),
         "files": {name: text for name, text in FILES.items() if (folder / name).exists() or name.startswith("step_") and steps},
     })
@@ -148,7 +151,7 @@ def _env_recipe(env: str | None, kwargs: dict[str, Any]) -> dict[str, Any]:
     return {"gymnasium_id": gym_id, "imports": imports, "make": make, "observations": observations}
 
 
-def _onnx_model(module: nn.Module, observation_dim: int) -> bytes | None:
+def _onnx_model(module: nn.Module, shape: tuple[int, ...], dtype: torch.dtype) -> bytes | None:
     """``module`` as an ONNX model (``observation [batch, D] -> action [batch, ...]``), checked against
     the module; None with a warning if ONNX cannot express it.
 
@@ -162,12 +165,12 @@ def _onnx_model(module: nn.Module, observation_dim: int) -> bytes | None:
     try:
         with warnings.catch_warnings(), stderr_kept_on_success():  # compat: torch 2.13 logs the graph
             warnings.simplefilter("ignore")  # its DeprecationWarning, and tracer notes on TensorDict code
-            torch.onnx.export(module, (torch.zeros(2, observation_dim),), buffer, dynamo=False,
+            torch.onnx.export(module, (torch.zeros(2, *shape, dtype=dtype),), buffer, dynamo=False,
                               opset_version=ONNX_OPSET, input_names=["observation"], output_names=["action"],
                               dynamic_axes={"observation": {0: "batch"}, "action": {0: "batch"}})
         data = buffer.getvalue()
         onnx.checker.check_model(onnx.load_from_string(data), full_check=True)
-        _check_same_actions(module, data, observation_dim)
+        _check_same_actions(module, data, shape, dtype)
     except Exception as exc:  # an operator ONNX lacks, a graph the tracer cannot follow, different actions
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         warnings.warn(f"the policy could not be exported as ONNX ({type(exc).__name__}: {message[:200]}); "
@@ -177,10 +180,13 @@ def _onnx_model(module: nn.Module, observation_dim: int) -> bytes | None:
     return data
 
 
-def _check_same_actions(module: nn.Module, onnx_model: bytes, observation_dim: int) -> None:
+def _check_same_actions(module: nn.Module, onnx_model: bytes, shape: tuple[int, ...], dtype: torch.dtype) -> None:
     """Raise if ONNX Runtime's actions differ from the module's (a tracer can miss Python control flow)."""
     generator = torch.Generator().manual_seed(0)
-    observations = torch.randn(8, observation_dim, generator=generator) * 3
+    if dtype.is_floating_point:
+        observations = torch.randn(8, *shape, generator=generator) * 3
+    else:
+        observations = torch.randint(0, 256, (8, *shape), generator=generator).to(dtype)
     with torch.no_grad():
         expected = module(observations)
     got = OnnxPolicy(onnx_model)(observations)
@@ -201,15 +207,18 @@ class ExportedPolicy(nn.Module):
     """
 
     path: Path
+    observation_ndim: int = 1
+    """dimensions of one observation: 1 for a vector, 3 for an image stack [C, H, W]"""
+    observation_dtype: torch.dtype = torch.float32
 
     def forward(self, observation):
         as_numpy = not isinstance(observation, torch.Tensor)
-        obs = torch.as_tensor(np.asarray(observation, dtype=np.float32) if as_numpy else observation,
-                              dtype=torch.float32)
+        obs = torch.as_tensor(np.asarray(observation) if as_numpy else observation, dtype=self.observation_dtype)
+        ndim = self.observation_ndim
         with torch.no_grad():
-            batch = obs.reshape(-1, obs.shape[-1])
+            batch = obs.reshape(-1, *obs.shape[obs.ndim - ndim:])
             action = self.act(batch.cpu())
-        action = action.reshape((*obs.shape[:-1], *action.shape[1:])).to(obs.device)
+        action = action.reshape((*obs.shape[:obs.ndim - ndim], *action.shape[1:])).to(obs.device)
         return action.numpy() if as_numpy else action
 
     def act(self, observations: torch.Tensor) -> torch.Tensor:
@@ -220,6 +229,9 @@ class ExportedPolicy(nn.Module):
         # An exported policy has no training mode; torch.export's modules refuse to be told one.
         self.training = mode
         return self
+
+
+_ONNX_DTYPES = {"tensor(float)": torch.float32, "tensor(uint8)": torch.uint8}
 
 
 class OnnxPolicy(ExportedPolicy):
@@ -235,7 +247,11 @@ class OnnxPolicy(ExportedPolicy):
         # From bytes, not a path: weights stored outside the file ("external data") have nothing to
         # resolve against, so a crafted model cannot make the runtime read other files.
         self.session = onnxruntime.InferenceSession(model, options, providers=["CPUExecutionProvider"])
-        self.input_name = self.session.get_inputs()[0].name
+        model_input = self.session.get_inputs()[0]
+        self.input_name = model_input.name
+        # the model says what it takes: float32 vectors, or uint8 image stacks [B, C, H, W]
+        self.observation_dtype = _ONNX_DTYPES.get(model_input.type, torch.float32)
+        self.observation_ndim = max(1, len(model_input.shape) - 1)
 
     def act(self, observations: torch.Tensor) -> torch.Tensor:
         observations = np.ascontiguousarray(observations.numpy())
@@ -275,26 +291,33 @@ def load_policy(folder: Path, *, step: int | None = None, trust: bool = False) -
     except (OSError, ValueError):
         info = {}
     dim = info.get("observation_dim")
+    shape = info.get("observation_shape") or ([dim] if isinstance(dim, int) else None)
+    dtype = getattr(torch, str(info.get("observation_dtype", "float32")), None)
+    if not isinstance(dtype, torch.dtype):
+        raise InputError(f"{folder / 'policy.json'}: observation_dtype {info.get('observation_dtype')!r} is not a torch "
+                         "dtype; expected the file an export wrote (e.g. 'float32', 'uint8')")
     if onnx_path.exists():
-        policy = _load(onnx_path, lambda: OnnxPolicy(onnx_path.read_bytes()), dim)
+        policy = _load(onnx_path, lambda: OnnxPolicy(onnx_path.read_bytes()), shape, dtype)
     elif pt2_path.exists():
         if not trust:
             raise InputError(
                 f"{pt2_path}: this policy exists only as a torch.export archive, and loading one unpickles parts of it, "
                 f"which can run code; pass --trust (trust=True) to load it if you trust where it came from "
                 f"(a policy.onnx, data only, would load without)")
-        policy = _load(pt2_path, lambda: TorchExportPolicy(_torch_export_load(pt2_path)), dim)
+        policy = _load(pt2_path, lambda: TorchExportPolicy(_torch_export_load(pt2_path)), shape, dtype)
     else:
         raise InputError(f"{folder / 'policy.onnx'}: no exported policy; expected a run that finished or saved its policy")
     policy.path = onnx_path if onnx_path.exists() else pt2_path
     return policy, info
 
 
-def _load(path: Path, make, observation_dim: int | None) -> ExportedPolicy:
+def _load(path: Path, make, shape: list[int] | None, dtype: torch.dtype) -> ExportedPolicy:
     try:
         policy = make()
-        if isinstance(observation_dim, int):  # a file that loads but is not this run's policy fails here, not mid-episode
-            policy(torch.zeros(1, observation_dim))
+        policy.observation_dtype = dtype
+        if shape:  # a file that loads but is not this run's policy fails here, not mid-episode
+            policy.observation_ndim = len(shape)
+            policy(torch.zeros(1, *shape, dtype=dtype))
         return policy
     except Exception as exc:  # onnxruntime and torch.export raise many kinds on a damaged file
         raise InputError(f"{path}: corrupt or not an exported policy ({type(exc).__name__}); "

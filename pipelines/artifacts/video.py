@@ -14,7 +14,8 @@ import imageio.v2 as imageio
 import numpy as np
 import torch
 
-from rlpipe.envs import MINITAUR_ID, EnvError, resolve_env_id
+from rlpipe.envs import MINITAUR_ID, EnvError, observed, resolve_env_id
+from rlpipe.envs.observations import is_atari
 from rlpipe.envs.user import check_kwargs
 from rlpipe.pipelines.artifacts.files import atomic_path
 
@@ -33,11 +34,15 @@ def record_video(
     max_steps: int = 1000,
     frame_skip: int = 1,
     env_kwargs: Mapping | None = None,
+    observation_options: Mapping | None = None,
 ) -> Path:
     """Write an mp4 of ``episodes`` episodes of ``policy`` (random actions if ``None``) to ``path``, the env made
-    with ``env_kwargs`` (a run's own)."""
+    with ``env_kwargs`` (a run's own), its observations read as ``observation_options`` (``make_env``'s
+    ``observation_keys`` and ``frame_stack``) say."""
     gym_id = resolve_env_id(env_id)
     kwargs = {**_RENDER_KWARGS.get(gym_id, {}), **(env_kwargs or {})}
+    if is_atari(gym_id):
+        kwargs.setdefault("frameskip", 1)
     check_kwargs(gym_id, kwargs, env_id, EnvError)
     no_frames = (f"env {env_id!r} does not render frames: expected an env that takes render_mode='rgb_array' and "
                  "returns frames from render()")
@@ -45,7 +50,7 @@ def record_video(
         check_kwargs(gym_id, {**kwargs, "render_mode": "rgb_array"}, env_id, EnvError)
     except EnvError:
         raise EnvError(f"{no_frames} (its constructor takes no render_mode)") from None
-    env = gymnasium.make(gym_id, render_mode="rgb_array", **kwargs)
+    env = observed(gymnasium.make(gym_id, render_mode="rgb_array", **kwargs), env_id, **(observation_options or {}))
     if env.render_mode != "rgb_array":
         env.close()
         raise EnvError(f"{no_frames} (its render_mode is {env.render_mode!r} when asked for 'rgb_array')")
@@ -66,7 +71,8 @@ def record_video(
                         action = env.action_space.sample()
                     else:
                         with torch.no_grad():
-                            out = policy(torch.as_tensor(np.asarray(obs), dtype=torch.float32))
+                            obs = torch.as_tensor(np.asarray(obs))
+                            out = policy(obs if obs.dtype == torch.uint8 else obs.float())
                         action = out.numpy()
                         if isinstance(env.action_space, gymnasium.spaces.Discrete):
                             action = int(action)

@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.export import export_policy
-from rlpipe.pipelines.config import TrainConfig
+from rlpipe.pipelines.config import TrainConfig, env_options
 from rlpipe.pipelines.training.evaluations import Evaluations, eval_line
 from rlpipe.pipelines.training.state import EVAL, EXPORT, LOG, SAVE, TARGET, VIDEO
 from rlpipe.pipelines.workers.evaluation import evaluate
@@ -214,8 +214,9 @@ class ExportTrigger(Trigger):
     def __call__(self, loop: Loop) -> None:
         pipeline = loop.pipeline
         with loop.clock.paused():
-            export_policy(pipeline.exported_policy(), pipeline.observation_dim, loop.run_dir.policy_dir,
-                          pipeline.export_info(), step=loop.state.iteration, keep=loop.config.policy_keep)
+            export_policy(pipeline.exported_policy(), pipeline.observation_shape, loop.run_dir.policy_dir,
+                          pipeline.export_info(), step=loop.state.iteration, keep=loop.config.policy_keep,
+                          dtype=pipeline.observation_dtype)
         self.exported_at = loop.state.iteration
 
     def final(self, loop: Loop) -> None:
@@ -263,7 +264,8 @@ class VideoTrigger(Trigger):
         # the policy this run exported a moment ago: its own file, so a .pt2-only export (a plug-in
         # actor ONNX cannot express) is trusted here, as it would not be from someone else's run
         policy = load_policy(loop.run_dir.policy_dir, trust=True)[0]
-        path = record_video(loop.config.env, policy, loop.run_dir.path / VIDEO_FILE, env_kwargs=loop.config.env_kwargs)
+        path = record_video(loop.config.env, policy, loop.run_dir.path / VIDEO_FILE, env_kwargs=loop.config.env_kwargs,
+                            observation_options=env_options(loop.config, rescaled=False))
         loop.echo(f"video: {path}")
 
     def final(self, loop: Loop) -> None:

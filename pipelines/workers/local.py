@@ -45,7 +45,8 @@ def direct_collection(config: TrainConfig, env_fn: Callable[[], EnvBase] | None,
     own TorchRL env keeps TorchRL's ``Collector``: its transforms are its own)."""
     c = config.collector
     made_here = (isinstance(env_fn, functools.partial) and env_fn.func is make_env and env_fn.args == (config.env,)
-                 and set(env_fn.keywords) - set(config.env_kwargs) <= {"device", "num_envs", "rescale_observations"}
+                 and set(env_fn.keywords) - set(config.env_kwargs) <= {"device", "num_envs", "rescale_observations",
+                                                                          "observation_keys", "frame_stack"}
                  and env_fn.keywords.get("num_envs", 1) == 1)
     return c.direct and made_here and gym_env_of(env) is not None
 

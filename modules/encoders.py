@@ -1,0 +1,56 @@
+"""Encoders: an image observation (``uint8 [C, H, W]``, frames stacked on C) to a feature vector the heads read.
+
+``make_image_encoder`` picks by size, as SB3 and CleanRL do: from 36 px up, the Nature DQN network (Mnih et
+al. 2015: 32 8x8/4, 64 4x4/2, 64 3x3/1 convolutions, then 512 features); below, for small grids such as
+MinAtar's 10x10, one 16-channel 3x3 convolution (the MinAtar paper's network) over the whole grid. The
+pixels are scaled to [0, 1] inside the encoder, so the replay buffer and the exported policy keep uint8.
+
+An encoder is a plain ``nn.Module`` with ``out_features``: put it in front of any head
+(``nn.Sequential(encoder, MLP(...))``), in a TorchRL ``TensorDictModule`` like any network.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+__all__ = ["ImageEncoder", "NATURE_MIN_SIZE", "make_image_encoder"]
+
+NATURE_MIN_SIZE = 36
+"""the smallest side the Nature DQN network takes (its three convolutions leave a 1x1 map at 36 px)"""
+
+
+class ImageEncoder(nn.Module):
+    """``scale * image`` through ``convolutions``, flattened, through ``head``: ``[..., C, H, W] -> [..., out_features]``."""
+
+    def __init__(self, convolutions: nn.Module, head: nn.Module, out_features: int, scale: float):
+        super().__init__()
+        self.convolutions = convolutions
+        self.head = head
+        self.out_features = out_features
+        self.scale = scale
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        batch = image.shape[:-3]
+        x = image.reshape(-1, *image.shape[-3:]).float() * self.scale
+        features = self.head(self.convolutions(x).flatten(1))
+        return features.reshape(*batch, self.out_features)
+
+
+def make_image_encoder(shape: tuple[int, int, int], scale: float = 1 / 255) -> ImageEncoder:
+    """The encoder for images of ``shape`` (C, H, W) whose unit is ``scale`` of full brightness."""
+    channels, height, width = shape
+    if min(height, width) >= NATURE_MIN_SIZE:
+        convolutions = nn.Sequential(
+            nn.Conv2d(channels, 32, 8, stride=4), nn.ReLU(),
+            nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
+            nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(),
+        )
+        features = 512
+    else:
+        convolutions = nn.Sequential(nn.Conv2d(channels, 16, 3, stride=1), nn.ReLU())
+        features = 128
+    with torch.no_grad():
+        flat = convolutions(torch.zeros(1, channels, height, width)).numel()
+    head = nn.Sequential(nn.Linear(flat, features), nn.ReLU())
+    return ImageEncoder(convolutions, head, features, scale)
