@@ -10,10 +10,9 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
+import torch
 from torch import nn
 from torchrl.envs import EnvBase
-
-import torch
 
 from rlpipe.envs import EnvError, describe_action_space, image_scale, is_discrete, make_env, with_episode_return
 from rlpipe.pipelines.algos import ALGOS, pipeline_class
