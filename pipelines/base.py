@@ -45,7 +45,9 @@ from rlpipe.envs import (
     observation_rescaling,
     resolve_env_id,
 )
+from rlpipe.envs.observations import GOAL_KEYS, goal_env
 from rlpipe.modules.encoders import make_image_encoder
+from rlpipe.modules.hindsight import TRAJ_IDS, HindsightReplayBuffer
 from rlpipe.modules.optim import clip_gradient_norms
 from rlpipe.modules.plain_policy import OnRescaledObservations
 from rlpipe.pipelines import presets as preset_files
@@ -170,10 +172,31 @@ class OffPolicyPipeline:
         # what the heads read: the observation vector, or an image's features (the encoder's)
         self.observation_dim = (int(self.env.observation_spec[self.observation_key].shape[-1]) if self.image_shape is None
                                 else self.make_encoder().out_features)
+        self.hindsight = self._hindsight()
         action_dim = int(self.action_spec.space.n) if is_discrete(self.action_spec) else int(self.action_spec.shape[-1])
         check_memory(cfg, self.env, self.observation_key, action_dim, self.device,  # before a network is built
                      stored=self._replay_keys(), networks=layer_sizes(cfg))
         self.state = RunState.fresh(cfg)
+
+    def _hindsight(self) -> dict[str, Any] | None:
+        """What HER relabels with (``compute_reward`` and the goals' places in the observation), where it is on:
+        ``config.her``, or by default for a goal env; ``InputError`` for HER asked of an env without goals."""
+        cfg = self.config
+        gym_env = gym_env_under(self.env)
+        layout = observation_layout(gym_env) if gym_env is not None else None
+        is_goal_env = gym_env is not None and goal_env(gym_env)
+        if cfg.her and not is_goal_env:
+            raise InputError(f"her=true: env {cfg.env!r} is not a goal env read here (a Dict observation with "
+                             f"{' and '.join(GOAL_KEYS)} among the entries read, and a compute_reward method); expected "
+                             "her=false, or a goal env made from config.env")
+        if not (cfg.her if cfg.her is not None else is_goal_env):
+            return None
+        if cfg.n_step > 1:
+            raise InputError(f"her with n_step={cfg.n_step}: a relabelled goal changes every reward of an n-step "
+                             "return; expected n_step=1 (or her=false)")
+        return {"compute_reward": gym_env.unwrapped.compute_reward, "achieved": layout["achieved_goal"],
+                "desired": layout["desired_goal"], "observation_key": self.observation_key,
+                "her_ratio": cfg.her_ratio}
 
     def make_encoder(self) -> nn.Module | None:
         """A new encoder of the env's image observation (``modules.encoders``), or None for a vector one:
@@ -262,6 +285,8 @@ class OffPolicyPipeline:
         if self.config.replay_all_keys:
             return None
         steps = [STEPS_KEY] if self.config.n_step > 1 else []
+        if self.hindsight is not None:  # the buffer writes each episode whole: it reads the ids
+            steps += [TRAJ_IDS]
         if hasattr(self, "loss_module"):
             return [*self.loss_module.in_keys, *steps]
         obs = self.observation_key
@@ -299,8 +324,10 @@ class OffPolicyPipeline:
 
     def make_replay_buffer(self) -> ReplayBuffer:
         cfg = self.config
-        return ReplayBuffer(storage=LazyTensorStorage(cfg.replay_buffer_capacity, device=self.device),
-                            batch_size=cfg.batch_size)
+        storage = LazyTensorStorage(cfg.replay_buffer_capacity, device=self.device)
+        if self.hindsight is not None:
+            return HindsightReplayBuffer(storage=storage, batch_size=cfg.batch_size, **self.hindsight)
+        return ReplayBuffer(storage=storage, batch_size=cfg.batch_size)
 
     def make_backend(self) -> CollectorBackend:
         """The collector backend ``collector.backend`` names (local processes, Ray actors), not started:
@@ -317,8 +344,11 @@ class OffPolicyPipeline:
         return self.make_backend().start(total_frames, init_random_frames).collector
 
     def metrics_columns(self) -> list[str]:
-        """metrics.csv's columns past the losses and speeds: what the collector backend reports."""
-        return list(backend_class(self.config).metric_columns)
+        """metrics.csv's columns past the losses and speeds: what the collector backend reports, and a goal
+        env's evaluated ``success_rate``."""
+        gym_env = gym_env_under(self.env)
+        success = ["success_rate"] if gym_env is not None and goal_env(gym_env) else []
+        return [*backend_class(self.config).metric_columns, *success]
 
     def push_weights(self, collector) -> None:
         """Send the policy's weights to a collector's workers (``make_collector``'s, or a backend's;

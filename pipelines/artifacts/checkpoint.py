@@ -78,6 +78,16 @@ def set_rng_state(state: dict[str, Any]) -> None:
 def replay_buffer_state(replay_buffer) -> dict[str, Any]:
     """The buffer's transitions as plain tensors, oldest first (so FIFO eviction resumes in order)."""
     n = len(replay_buffer)
+    pending = replay_buffer.pending_state() if hasattr(replay_buffer, "pending_state") else None
+    if pending is not None:  # HER's episodes under way (modules/hindsight.py)
+        return {**_stored_transitions(replay_buffer, n),
+                "pending": {key: value for key, value in pending.flatten_keys("/").items()},
+                "pending_len": len(pending)}
+    return _stored_transitions(replay_buffer, n)
+
+
+def _stored_transitions(replay_buffer, n: int) -> dict[str, Any]:
+    """The buffer's ``n`` stored transitions as plain tensors, oldest first."""
     if n == 0:
         return {"len": 0}
     storage = replay_buffer.storage
@@ -96,9 +106,16 @@ def load_replay_buffer(replay_buffer, state: dict[str, Any], keys=None) -> None:
     """
     from tensordict import TensorDict
 
+    if "pending" in state:
+        replay_buffer.load_pending(TensorDict(state["pending"], batch_size=[state["pending_len"]]).unflatten_keys("/"))
     if state["len"] == 0:
         return
     data = TensorDict(state["data"], batch_size=[state["len"]]).unflatten_keys("/")
+    if hasattr(replay_buffer, "pending_state"):  # whole episodes as stored: past the HER buffer's own writing
+        from torchrl.data import ReplayBuffer
+
+        ReplayBuffer.extend(replay_buffer, data)
+        return
     replay_buffer.extend(data if keys is None else data.select(*keys))
 
 

@@ -131,8 +131,10 @@ class Evaluations:
     def record(self, result: dict[str, Any], at: dict[str, int]) -> None:
         loop = self.loop
         loop.evaluations.append({**at, **result})
+        success = {"success_rate": result["success_rate"]} if "success_rate" in result else {}
         loop.log({"average_return": result["average_return"],
-                  "average_episode_length": result["average_episode_length"], "wall_time": loop.clock.wall()}, at)
+                  "average_episode_length": result["average_episode_length"], **success,
+                  "wall_time": loop.clock.wall()}, at)
         loop.echo(eval_line(at["step"], result, *loop.speeds()))
         if loop.config.live_report and at["step"] < loop.config.num_iterations:  # the last: the run's end draws it
             with loop.clock.paused():  # returns.png from the evaluations in memory, and the page: at a bounded cost
@@ -175,6 +177,7 @@ def eval_line(step: int, result: Mapping[str, Any], steps_per_s: float, updates_
 
     The speeds are training time's (evaluations and saving left out) since this session started.
     """
+    success = f"SuccessRate = {result['success_rate']:.3f}, " if "success_rate" in result else ""
     return (f"step = {step}: AverageReturn = {result['average_return']:.6f}, "
-            f"AverageEpisodeLength = {result['average_episode_length']:.6f}, "
+            f"AverageEpisodeLength = {result['average_episode_length']:.6f}, {success}"
             f"env steps/s = {steps_per_s:.1f}, updates/s = {updates_per_s:.1f}")

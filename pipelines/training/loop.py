@@ -106,6 +106,10 @@ class Loop(LoopContext):
     def start(self) -> None:
         """A fresh run's checkpoint at iteration 0 (a resumed run's line saying where it is), the watchdog,
         the triggers' ``start``; training time counts from here."""
+        her = self.pipeline.hindsight
+        if her is not None:
+            self.echo(f"hindsight experience replay: {her['her_ratio']:.0%} of each batch relabelled with a goal its "
+                      f"episode reached later (the 'future' strategy; her=false turns it off)")
         if self.fresh:
             self.save()  # iteration 0: a run stopped at any point from here on can be resumed
         else:

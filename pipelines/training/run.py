@@ -241,6 +241,7 @@ class Run:
             "updates": state.updates,
             "final_average_return": last.get("average_return"),
             "final_average_episode_length": last.get("average_episode_length"),
+            **({"final_success_rate": last["success_rate"]} if "success_rate" in last else {}),
             "wall_time_s": clock.wall(),
             "train_time_s": train_s,
             "env_steps_per_s": state.frames / train_s if train_s > 0 else None,

@@ -79,12 +79,15 @@ def _evaluate_rollouts(env: EnvBase, policy, num_episodes: int, max_steps: int, 
     return _result(returns, lengths)
 
 
-def _result(returns: list[float], lengths: list[int]) -> dict:
-    return {
+def _result(returns: list[float], lengths: list[int], successes: list[float] = ()) -> dict:
+    result = {
         "average_return": sum(returns) / len(returns),
         "average_episode_length": sum(lengths) / len(lengths),
         "returns": returns,
     }
+    if successes:  # every episode said: the share that ended in success
+        result["success_rate"] = sum(successes) / len(successes)
+    return result
 
 
 def _on_cpu(policy) -> bool:
@@ -113,13 +116,15 @@ def _evaluate_directly(env: EnvBase, gym_env, policy: nn.Module, num_episodes: i
     act = greedy_step(policy, obs_key)
     returns: list[float] = []
     lengths: list[int] = []
+    successes: list[float] = []  # goal envs' info["is_success"] at each episode's end
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         while len(returns) < num_episodes:
             obs, _ = gym_env.reset()
             rewards: list[float] = []
+            info: dict = {}
             for _ in range(max_steps):
                 action = act(torch.as_tensor(obs).to(obs_dtype))
-                obs, reward, terminated, truncated, _ = gym_env.step(action.item() if discrete else action.numpy())
+                obs, reward, terminated, truncated, info = gym_env.step(action.item() if discrete else action.numpy())
                 rewards.append(reward)
                 if interrupt is not None:
                     interrupt()
@@ -127,7 +132,9 @@ def _evaluate_directly(env: EnvBase, gym_env, policy: nn.Module, num_episodes: i
                     break
             returns.append(torch.tensor(rewards, dtype=torch.float64).to(reward_dtype).sum(-1).item())
             lengths.append(len(rewards))
-    return _result(returns, lengths)
+            if "is_success" in info:
+                successes.append(float(info["is_success"]))
+    return _result(returns, lengths, successes)
 
 
 class AsyncEvaluator:
