@@ -71,10 +71,10 @@ _EXTRAS = {
     "gymnasium.envs.mujoco": "gymnasium[mujoco]",
     "gymnasium.envs.toy_text": "gymnasium[toy-text]",
     "gymnasium.envs.classic_control": "gymnasium[classic-control]",
-    "ale_py": "gymnasium[atari]",
+    "ale_py": "rlpipe[atari]",
 }
 # Namespaces registered only once their package is imported: an id in one is not a typo.
-_NAMESPACE_EXTRAS = {"ALE": "gymnasium[atari]", "MinAtar": "minatar"}
+_NAMESPACE_EXTRAS = {"ALE": "rlpipe[atari]", "MinAtar": "rlpipe[minatar]"}
 
 # Observation spaces gymnasium's FlattenObservation turns into one flat vector (one-hot for discrete parts).
 _FLATTENED = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary, spaces.Tuple)

@@ -19,6 +19,8 @@ is one ``EnvError`` naming the entry and what is expected.
 
 from __future__ import annotations
 
+import contextlib
+import io
 from collections import deque
 from collections.abc import Sequence
 
@@ -33,6 +35,9 @@ __all__ = [
 
 GOAL_KEYS = ("achieved_goal", "desired_goal")
 """the entries of gymnasium-robotics' goal envs that hindsight relabelling reads and writes"""
+
+ROBOTICS_PREFIXES = ("Fetch", "Hand", "PointMaze", "AntMaze", "Adroit", "FrankaKitchen")
+"""the env names gymnasium-robotics registers (rlpipe[robotics]): imported only for an id that may be one"""
 
 _VECTOR_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
 
@@ -201,9 +206,11 @@ def register_optional_families(env_id: str) -> None:
         except ImportError:
             return
         minatar.gym.register_envs()
-    else:
+    elif env_id.startswith(ROBOTICS_PREFIXES):
         try:
-            import gymnasium_robotics
+            # its import prints a notice about Adroit's rewards
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                import gymnasium_robotics
         except ImportError:
             return
         from rlpipe.envs import robotics_compat

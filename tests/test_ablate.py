@@ -216,7 +216,7 @@ BAD = {
     "key typo": (["lerning_rate=1e-3"], "lerning_rate"),
     # every env is checked before any run starts (the discrete one is the second)
     "discrete env": (["--envs", "Pendulum-v1,CartPole-v1"], "CartPole-v1"),
-    "extra not installed": (["--envs", "Pendulum-v1,ALE/Pong-v5"], "gymnasium[atari]"),
+    "extra not installed": (["--envs", "Pendulum-v1,ALE/Pong-v5"], "rlpipe[atari]"),
     "memory": (["replay_buffer_capacity=1000000000000"], "replay_buffer_capacity"),
     "absurd workers": (["--workers", "100000"], "--workers=100000"),
     "out under a file": (["--out", "FILE/study"], "is a file"),

@@ -256,7 +256,7 @@ BAD_INPUTS = {
     "cuda-index-absent": (["train", "dqn", "device=cuda:99", "--out", "new"], ["device='cuda:99'", "cpu"], None),
     "meta-device": (["train", "dqn", "device=meta", "--out", "new"], ["device='meta'", "cpu"], None),
     "bad-choice": (["train", "dqn", "initial_collect_policy=greedy", "--out", "new"], ["initial_collect_policy"], None),
-    "atari-extra": (["train", "dqn", "env=ALE/Pong-v5", "--out", "new"], ["ALE/Pong-v5", "gymnasium[atari]"], None),
+    "atari-extra": (["train", "dqn", "env=ALE/Pong-v5", "--out", "new"], ["ALE/Pong-v5", "rlpipe[atari]"], None),
     "multidiscrete-actions": (["train", "dqn", "env=rlpipe-test/MultiDiscreteActions-v0", "--out", "new"],
                               ["MultiDiscrete", "Discrete"], None),
     "text-observations": (["train", "dqn", "env=rlpipe-test/TextObservations-v0", "--out", "new"],

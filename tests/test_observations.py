@@ -1,0 +1,201 @@
+"""Every observation a user's env gives: a goal env (Dict with achieved and desired goals) trained with HER, a
+Dict read entry by entry, an image read through a convolutional encoder and kept uint8, and the refusals.
+
+The envs are a user's own, in a module on sys.path, named ``module:Class`` as on the command line.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from rlpipe.envs import EnvError, make_env
+from rlpipe.modules.hindsight import STEPS_LEFT, TRAJ_IDS, HindsightReplayBuffer
+from rlpipe.pipelines import dqn, sac
+from rlpipe.pipelines.artifacts.export import load_policy
+from rlpipe.scripts.cli import main
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+MODULE = "rlpipe_test_observations"
+ENVS_PY = '''
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+
+class GoalPoint(gymnasium.Env):
+    """A point on a line moved to a goal drawn at reset, in gymnasium-robotics' goal-env form."""
+
+    def __init__(self):
+        box = spaces.Box(-1.0, 1.0, (1,), np.float32)
+        self.observation_space = spaces.Dict(observation=box, achieved_goal=box, desired_goal=box)
+        self.action_space = spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def compute_reward(self, achieved_goal, desired_goal, info):
+        return -(np.abs(achieved_goal - desired_goal)[..., 0] > 0.1).astype(np.float32)
+
+    def _obs(self):
+        return {"observation": self.x.copy(), "achieved_goal": self.x.copy(), "desired_goal": self.g.copy()}
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x = self.np_random.uniform(-1, 1, (1,)).astype(np.float32)
+        self.g = self.np_random.uniform(-1, 1, (1,)).astype(np.float32)
+        self.t = 0
+        return self._obs(), {}
+
+    def step(self, action):
+        self.x = np.clip(self.x + 0.2 * np.asarray(action, np.float32), -1, 1).astype(np.float32)
+        self.t += 1
+        obs = self._obs()
+        reward = float(self.compute_reward(obs["achieved_goal"], obs["desired_goal"], {}))
+        return obs, reward, False, self.t >= 20, {"is_success": float(reward == 0.0)}
+
+
+class Labelled(gymnasium.Env):
+    """A Dict of a vector and a label no network can read."""
+
+    def __init__(self):
+        self.observation_space = spaces.Dict(position=spaces.Box(-1, 1, (2,), np.float32), label=spaces.Text(8))
+        self.action_space = spaces.Discrete(2)
+
+    def reset(self, seed=None, options=None):
+        return {"position": np.zeros(2, np.float32), "label": "a"}, {}
+
+    def step(self, action):
+        return {"position": np.zeros(2, np.float32), "label": "a"}, 0.0, False, True, {}
+
+
+class PixPoint(gymnasium.Env):
+    """A 48x48 RGB picture of a column moved left or right; reaching the right edge pays 1."""
+
+    def __init__(self):
+        self.observation_space = spaces.Box(0, 255, (48, 48, 3), np.uint8)
+        self.action_space = spaces.Discrete(3)
+
+    def _image(self):
+        image = np.zeros((48, 48, 3), np.uint8)
+        image[:, self.x, 0] = 255
+        return image
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x, self.t = 24, 0
+        return self._image(), {}
+
+    def step(self, action):
+        self.x = int(np.clip(self.x + int(action) - 1, 0, 47))
+        self.t += 1
+        return self._image(), float(self.x > 40), self.x > 40, self.t >= 30, {}
+'''
+
+
+@pytest.fixture(scope="module")
+def envs_module(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("user_envs")
+    (folder / f"{MODULE}.py").write_text(textwrap.dedent(ENVS_PY))
+    sys.path.insert(0, str(folder))
+    yield MODULE
+    sys.path.remove(str(folder))
+
+
+def test_dict_entries_are_joined_in_the_env_order_and_named_keys_select(envs_module):
+    env = make_env(f"{envs_module}:GoalPoint", seed=0)
+    assert env.observation_spec["observation"].shape == (3,)  # observation, achieved_goal, desired_goal
+    only = make_env(f"{envs_module}:GoalPoint", observation_keys=["observation", "desired_goal"])
+    assert only.observation_spec["observation"].shape == (2,)
+    with pytest.raises(EnvError, match="'label' as Text"):
+        make_env(f"{envs_module}:Labelled")
+    with pytest.raises(EnvError, match="does not observe"):
+        make_env(f"{envs_module}:GoalPoint", observation_keys=["velocity"])
+    assert make_env(f"{envs_module}:Labelled", observation_keys=["position"]).observation_spec["observation"].shape == (2,)
+
+
+def test_her_relabels_with_a_later_goal_of_the_same_episode():
+    """Two episodes interleaved block by block (as two collector workers give them): each relabelled goal is an
+    achieved goal of the transition's own episode, at that step or later, and the reward is compute_reward's."""
+    def reward(achieved, desired, info):
+        return -(np.abs(achieved - desired)[..., 0] > 0.5).astype(np.float32)
+
+    # observation = [achieved, desired]; episode e's achieved goal at step t is 100 * e + t
+    def block(episode, steps, last):
+        achieved = torch.tensor([100.0 * episode + t for t in steps])
+        obs = torch.stack([achieved - 1, torch.full_like(achieved, -7.0)], -1)
+        nxt = torch.stack([achieved, torch.full_like(achieved, -7.0)], -1)
+        done = torch.tensor([t == last for t in steps]).unsqueeze(-1)
+        return TensorDict({"observation": obs, "action": torch.zeros(len(steps), 1), TRAJ_IDS: torch.full((len(steps),), episode),
+                           "next": {"observation": nxt, "reward": torch.full((len(steps), 1), -1.0), "done": done,
+                                    "terminated": torch.zeros_like(done)}}, batch_size=[len(steps)])
+
+    from torchrl.data import LazyTensorStorage
+
+    rb = HindsightReplayBuffer(storage=LazyTensorStorage(100), batch_size=64, compute_reward=reward, achieved=(0, 1),
+                               desired=(1, 2), her_ratio=1.0)
+    rb.extend(torch.cat([block(1, range(0, 3), 5), block(2, range(0, 3), 5)]))
+    assert len(rb) == 0 and rb.pending_state() is not None  # episodes wait for their end
+    rb.extend(torch.cat([block(1, range(3, 6), 5), block(2, range(3, 6), 5)]))
+    assert len(rb) == 12 and rb.pending_state() is None
+    torch.manual_seed(0)
+    batch = rb.sample()
+    achieved = batch["next", "observation"][:, 0]
+    goal = batch["observation"][:, 1]
+    assert torch.equal(goal, batch["next", "observation"][:, 1])
+    assert (torch.div(goal, 100, rounding_mode="floor") == torch.div(achieved, 100, rounding_mode="floor")).all()
+    assert (goal >= achieved).all() and (goal > achieved).any() and (goal == achieved).any()
+    expected = torch.as_tensor(reward(achieved.numpy()[:, None], goal.numpy()[:, None], {})).unsqueeze(-1)
+    assert torch.equal(batch["next", "reward"], expected)
+    assert STEPS_LEFT not in batch.keys(True)
+
+
+def test_goal_env_trains_with_her_and_reports_success(envs_module, tmp_path):
+    cfg = sac.preset("sac-pendulum")
+    cfg.env = f"{envs_module}:GoalPoint"
+    cfg.num_iterations, cfg.initial_collect_steps, cfg.eval_interval, cfg.num_eval_episodes = 1500, 500, 1500, 10
+    cfg.target_return = None
+    pipeline = sac.SAC(cfg)
+    assert isinstance(pipeline.replay_buffer, HindsightReplayBuffer)
+    result = pipeline.train(tmp_path / "run", progress=False)
+    assert result.summary["final_success_rate"] >= 0.7  # a random agent: ~0.1
+    assert "success_rate" in (tmp_path / "run" / "metrics.csv").read_text().splitlines()[0]
+    policy, info = load_policy(tmp_path / "run" / "policy")
+    assert info["observation_entries"] == {"observation": [0, 1], "achieved_goal": [1, 2], "desired_goal": [2, 3]}
+    assert policy(np.zeros(3, np.float32)).shape == (1,)
+
+
+def test_her_refused_for_an_env_without_goals(tmp_path, capsys):
+    code = main(["train", "sac-pendulum", "her=true", "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "her=true" in err[0] and "not a goal env" in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_image_env_trains_dqn_through_a_cnn_with_uint8_frames(envs_module, tmp_path):
+    cfg = dqn.preset("dqn")
+    cfg.env = f"{envs_module}:PixPoint"
+    cfg.frame_stack = 2
+    cfg.num_iterations, cfg.initial_collect_steps, cfg.eval_interval, cfg.num_eval_episodes = 200, 100, 200, 2
+    pipeline = dqn.DQN(cfg)
+    assert pipeline.image_shape == (6, 48, 48) and pipeline.observation_dim == 512  # the Nature network from 36 px
+    assert not pipeline.loss_module.lean  # the stock TorchRL loss runs the encoder
+    pipeline.train(tmp_path / "run", progress=False)
+    stored = pipeline.replay_buffer.storage._storage
+    assert stored["observation"].dtype == torch.uint8 and stored["next", "observation"].dtype == torch.uint8
+    info = json.loads((tmp_path / "run" / "policy" / "policy.json").read_text())
+    assert info["observation_shape"] == [6, 48, 48] and info["observation_dtype"] == "uint8"
+    policy, _ = load_policy(tmp_path / "run" / "policy")  # ONNX, checked against torch when written
+    frames = make_env(f"{envs_module}:PixPoint", frame_stack=2).reset()["observation"]
+    assert policy(frames.numpy()).shape == ()
+
+
+def test_small_images_get_the_small_encoder():
+    from rlpipe.modules.encoders import make_image_encoder
+
+    encoder = make_image_encoder((4, 10, 10), 1.0)
+    assert len(list(encoder.convolutions)) == 2 and encoder(torch.zeros(3, 4, 10, 10, dtype=torch.uint8)).shape == (3, 128)
