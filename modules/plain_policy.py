@@ -15,16 +15,20 @@ __all__ = ["TensorDictPolicy", "OnRescaledObservations"]
 
 class TensorDictPolicy(nn.Module):
     """``observation [B, D] -> action``: ``policy`` called on a TensorDict holding the observation
-    under ``observation_key``, deterministically (a stochastic policy gives its mode)."""
+    under ``observation_key``, deterministically (a stochastic policy gives its mode). ``observation_ndim``:
+    the dimensions of one observation (3 for an image ``[C, H, W]``)."""
 
-    def __init__(self, policy: nn.Module, observation_key: str = "observation", action_key: str = "action"):
+    def __init__(self, policy: nn.Module, observation_key: str = "observation", action_key: str = "action",
+                 observation_ndim: int = 1):
         super().__init__()
         self.policy = policy
         self.observation_key = observation_key
         self.action_key = action_key
+        self.observation_ndim = observation_ndim
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        td = TensorDict({self.observation_key: observation}, batch_size=observation.shape[:-1])
+        td = TensorDict({self.observation_key: observation},
+                        batch_size=observation.shape[:observation.ndim - self.observation_ndim])
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             return self.policy(td).get(self.action_key)
 

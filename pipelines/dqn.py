@@ -170,7 +170,8 @@ class DQN(OffPolicyPipeline):
     def export_module(self) -> nn.Module:
         if isinstance(self.policy, QValueActor):
             return _GreedyPolicy(copy.deepcopy(self.policy.module[0]).cpu())
-        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
+        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key,
+                                observation_ndim=len(self.observation_shape))
 
 
 preset = DQN.preset

@@ -168,7 +168,8 @@ class SACFamilyPipeline(OffPolicyPipeline):
     def export_module(self) -> nn.Module:
         if self.export_network_only:
             return TanhNormalMode.from_actor(self.policy, self.action_spec)
-        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
+        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key,
+                                observation_ndim=len(self.observation_shape))
 
     # --- between and after updates ---------------------------------------------------------------------
 

@@ -110,6 +110,8 @@ class EnvFacts:
     """the random agent's mean episode length (short where the env ends a failed episode early)"""
     cpus: int = 1
     """this machine's CPUs"""
+    observation_shape: tuple[int, ...] = ()
+    """one observation's shape: (D,) for a vector, (C, H, W) for an image (an encoder reads it)"""
 
     def describe(self) -> str:
         if self.discrete:
@@ -120,7 +122,9 @@ class EnvFacts:
                       else f"in [{_g(min(low))}..{_g(max(low))}, {_g(min(high))}..{_g(max(high))}]")
             actions = f"act {self.action_size} {bounds}"
         limit = f"{self.time_limit:,}-step episodes" if self.time_limit else "no time limit"
-        return (f"obs {self.observation_size}, {actions}, {limit}, random agent {self.random_return:,.1f} in "
+        observed = (f"image {'x'.join(map(str, self.observation_shape))}" if len(self.observation_shape) == 3
+                    else f"obs {self.observation_size}")
+        return (f"{observed}, {actions}, {limit}, random agent {self.random_return:,.1f} in "
                 f"{self.random_episode_length:,.0f} steps, {self.cpus} CPU{'s' if self.cpus != 1 else ''}")
 
 
@@ -139,7 +143,8 @@ def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
         spec = env.action_spec_unbatched
         discrete = is_discrete(spec)
         key = observation_key_in(env, None, cfg.env)
-        obs = int(math.prod(env.observation_spec[key].shape)) or 1
+        shape = tuple(env.observation_spec[key].shape)
+        obs = int(math.prod(shape)) or 1
         if discrete:
             size, low, high = int(spec.space.n), (), ()
         else:
@@ -149,7 +154,7 @@ def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
         limit, (ret, length) = _random_agent(env) if play else (None, (0.0, 0.0))
     finally:
         env.close()
-    return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1)
+    return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1, shape)
 
 
 def _random_agent(env) -> tuple[int | None, tuple[float, float]]:

@@ -218,7 +218,8 @@ class TD3(OffPolicyPipeline):
             return copy.deepcopy(network).cpu()
         if self._gaussian_actor_made:
             return TanhNormalMode.from_actor(self.policy, self.action_spec)
-        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key)
+        return TensorDictPolicy(copy.deepcopy(self.policy).cpu(), self.observation_key,
+                                observation_ndim=len(self.observation_shape))
 
 
 preset = TD3.preset
