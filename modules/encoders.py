@@ -1,9 +1,11 @@
 """Encoders: an image observation (``uint8 [C, H, W]``, frames stacked on C) to a feature vector the heads read.
 
-``make_image_encoder`` picks by size, as SB3 and CleanRL do: from 36 px up, the Nature DQN network (Mnih et
-al. 2015: 32 8x8/4, 64 4x4/2, 64 3x3/1 convolutions, then 512 features); below, for small grids such as
-MinAtar's 10x10, one 16-channel 3x3 convolution (the MinAtar paper's network) over the whole grid. The
-pixels are scaled to [0, 1] inside the encoder, so the replay buffer and the exported policy keep uint8.
+``make_image_encoder`` picks by size, as SB3 and CleanRL do: from 36 px up, the Nature DQN network's
+convolutions (Mnih et al. 2015: 32 8x8/4, 64 4x4/2, 64 3x3/1); below, for small grids such as MinAtar's
+10x10, one 16-channel 3x3 convolution (the MinAtar paper's network). The encoder ends at the flattened
+feature maps: the head's first hidden layer reads them, so ``fc_layer_params: [512]`` on an 84x84 stack is the
+Nature network (then one output per action) and ``[128]`` on MinAtar the MinAtar paper's. The pixels are
+scaled to [0, 1] inside the encoder, so the replay buffer and the exported policy keep uint8.
 
 An encoder is a plain ``nn.Module`` with ``out_features``: put it in front of any head
 (``nn.Sequential(encoder, MLP(...))``), in a TorchRL ``TensorDictModule`` like any network.
@@ -21,20 +23,18 @@ NATURE_MIN_SIZE = 36
 
 
 class ImageEncoder(nn.Module):
-    """``scale * image`` through ``convolutions``, flattened, through ``head``: ``[..., C, H, W] -> [..., out_features]``."""
+    """``scale * image`` through ``convolutions``, flattened: ``[..., C, H, W] -> [..., out_features]``."""
 
-    def __init__(self, convolutions: nn.Module, head: nn.Module, out_features: int, scale: float):
+    def __init__(self, convolutions: nn.Module, out_features: int, scale: float):
         super().__init__()
         self.convolutions = convolutions
-        self.head = head
         self.out_features = out_features
         self.scale = scale
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         batch = image.shape[:-3]
         x = image.reshape(-1, *image.shape[-3:]).float() * self.scale
-        features = self.head(self.convolutions(x).flatten(1))
-        return features.reshape(*batch, self.out_features)
+        return self.convolutions(x).reshape(*batch, self.out_features)
 
 
 def make_image_encoder(shape: tuple[int, int, int], scale: float = 1 / 255) -> ImageEncoder:
@@ -46,11 +46,8 @@ def make_image_encoder(shape: tuple[int, int, int], scale: float = 1 / 255) -> I
             nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
             nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(),
         )
-        features = 512
     else:
         convolutions = nn.Sequential(nn.Conv2d(channels, 16, 3, stride=1), nn.ReLU())
-        features = 128
     with torch.no_grad():
         flat = convolutions(torch.zeros(1, channels, height, width)).numel()
-    head = nn.Sequential(nn.Linear(flat, features), nn.ReLU())
-    return ImageEncoder(convolutions, head, features, scale)
+    return ImageEncoder(convolutions, flat, scale)

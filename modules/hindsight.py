@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import ReplayBuffer
 
 __all__ = ["HindsightReplayBuffer", "STEPS_LEFT", "TRAJ_IDS"]
@@ -72,6 +72,8 @@ class HindsightReplayBuffer(ReplayBuffer):
         episode = torch.cat(parts) if len(parts) > 1 else parts[0]
         steps = len(episode)
         episode = episode.exclude(TRAJ_IDS)
+        if "collector" in episode.keys() and episode.get("collector").is_empty():
+            episode = episode.exclude("collector")
         episode.set(STEPS_LEFT, torch.arange(steps - 1, -1, -1, device=episode.device))
         super().extend(episode)
 
@@ -113,17 +115,23 @@ class HindsightReplayBuffer(ReplayBuffer):
         data.set(("next", key), next_observation)
         data.set(("next", "reward"), reward)
 
-    # --- what a checkpoint keeps besides the storage -------------------------------------------------
+    # --- what a checkpoint keeps besides the stored transitions --------------------------------------
 
-    def pending_state(self) -> TensorDictBase | None:
-        """The episodes under way, as one TensorDict with their trajectory ids (None if there are none)."""
+    def extra_state(self) -> dict[str, torch.Tensor]:
+        """The episodes under way (their steps, trajectory ids included), flattened to tensors."""
         parts = [part for traj in self.pending.values() for part in traj]
-        return torch.cat(parts) if parts else None
+        if not parts:
+            return {}
+        pending = torch.cat(parts)
+        return {"pending_len": torch.tensor(len(pending)),
+                **{f"pending/{key}": value for key, value in pending.flatten_keys("/").items()}}
 
-    def load_pending(self, pending: TensorDictBase | None) -> None:
+    def load_extra_state(self, state: dict[str, torch.Tensor]) -> None:
         self.pending = {}
-        if pending is None:
+        if not state:
             return
+        fields = {key.removeprefix("pending/"): value for key, value in state.items() if key.startswith("pending/")}
+        pending = TensorDict(fields, batch_size=[int(state["pending_len"])]).unflatten_keys("/")
         ids = pending.get(TRAJ_IDS).reshape(-1)
         for traj in dict.fromkeys(ids.tolist()):
             self.pending[traj] = [pending[ids == traj]]

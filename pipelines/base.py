@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,7 @@ from rlpipe.envs import (
     env_id_of,
     env_label,
     gym_env_under,
+    image_scale,
     is_discrete,
     make_env,
     observation_layout,
@@ -47,6 +49,7 @@ from rlpipe.envs import (
 )
 from rlpipe.envs.observations import GOAL_KEYS, goal_env
 from rlpipe.modules.encoders import make_image_encoder
+from rlpipe.modules.frames import FrameReplayBuffer
 from rlpipe.modules.hindsight import TRAJ_IDS, HindsightReplayBuffer
 from rlpipe.modules.optim import clip_gradient_norms
 from rlpipe.modules.plain_policy import OnRescaledObservations
@@ -175,7 +178,7 @@ class OffPolicyPipeline:
         self.hindsight = self._hindsight()
         action_dim = int(self.action_spec.space.n) if is_discrete(self.action_spec) else int(self.action_spec.shape[-1])
         check_memory(cfg, self.env, self.observation_key, action_dim, self.device,  # before a network is built
-                     stored=self._replay_keys(), networks=layer_sizes(cfg))
+                     stored=self._replay_keys(), networks=layer_sizes(cfg), frame_bytes=self._frame_bytes())
         self.state = RunState.fresh(cfg)
 
     def _hindsight(self) -> dict[str, Any] | None:
@@ -285,7 +288,7 @@ class OffPolicyPipeline:
         if self.config.replay_all_keys:
             return None
         steps = [STEPS_KEY] if self.config.n_step > 1 else []
-        if self.hindsight is not None:  # the buffer writes each episode whole: it reads the ids
+        if self.hindsight is not None or self._stacks_frames():  # the buffer chains each episode's steps by id
             steps += [TRAJ_IDS]
         if hasattr(self, "loss_module"):
             return [*self.loss_module.in_keys, *steps]
@@ -327,7 +330,23 @@ class OffPolicyPipeline:
         storage = LazyTensorStorage(cfg.replay_buffer_capacity, device=self.device)
         if self.hindsight is not None:
             return HindsightReplayBuffer(storage=storage, batch_size=cfg.batch_size, **self.hindsight)
+        if self._stacks_frames():
+            return FrameReplayBuffer(storage=storage, batch_size=cfg.batch_size, capacity=cfg.replay_buffer_capacity,
+                                     frame_stack=cfg.frame_stack, channels=self.image_shape[0] // cfg.frame_stack,
+                                     observation_key=self.observation_key)
         return ReplayBuffer(storage=storage, batch_size=cfg.batch_size)
+
+    def _stacks_frames(self) -> bool:
+        """Whether the replay buffer stores each frame once (``modules.frames``): an image stack the pipeline's
+        own env made (``make_env``'s ``ImageObservation``: its channel layout known), stored on the CPU."""
+        return self.image_shape is not None and image_scale(self.env) is not None and self.device.type == "cpu"
+
+    def _frame_bytes(self) -> int | None:
+        """A frame-stacking buffer's bytes per transition for its frames and their slots, else None."""
+        if not self._stacks_frames():
+            return None
+        frame = math.prod(self.image_shape) // self.config.frame_stack
+        return frame + frame // 16 + 16 * (self.config.frame_stack + 1)
 
     def make_backend(self) -> CollectorBackend:
         """The collector backend ``collector.backend`` names (local processes, Ray actors), not started:

@@ -74,6 +74,8 @@ class DQNConfig(TrainConfig):
     """TD error loss: 'l2' (element-wise squared, the tutorial's) or 'smooth_l1' (Huber)"""
     double_dqn: bool = False
     """use the online network to pick the next action (Double DQN)"""
+    clip_rewards: bool = False
+    """clip each reward to its sign (-1, 0, 1) in the loss, as the Nature DQN and CleanRL's dqn_atari.py do for Atari; the returns a run reports stay the env's (the game's score)"""
     gradient_clipping: float | None = checked(None, GRADIENT_CLIPPING)
     """clip each gradient tensor's norm to this value before the optimiser steps, as DqnAgent's gradient_clipping does (TF-Agents' clip_gradient_norms, per variable; not one norm over all gradients); null: no clipping"""
 
@@ -154,6 +156,8 @@ class DQN(OffPolicyPipeline):
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         """The Q-network's TD step, then the target network every ``target_update_period`` updates."""
         loss_module = self.loss_module
+        if self.config.clip_rewards:  # the batch's entry replaced, the buffer's tensor untouched
+            batch.set(("next", "reward"), batch.get(("next", "reward")).sign())
         # LeanDQNLoss's forward without the module call and the TensorDict around its loss (~15 us an update)
         lean = type(loss_module) is LeanDQNLoss and loss_module.lean and not (loss_module._forward_hooks
                                                                             or loss_module._forward_pre_hooks)

@@ -136,12 +136,19 @@ def test_her_relabels_with_a_later_goal_of_the_same_episode():
 
     from torchrl.data import LazyTensorStorage
 
+    from rlpipe.pipelines.artifacts import checkpoint as ckpt
+
     rb = HindsightReplayBuffer(storage=LazyTensorStorage(100), batch_size=64, compute_reward=reward, achieved=(0, 1),
                                desired=(1, 2), her_ratio=1.0)
     rb.extend(torch.cat([block(1, range(0, 3), 5), block(2, range(0, 3), 5)]))
-    assert len(rb) == 0 and rb.pending_state() is not None  # episodes wait for their end
+    assert len(rb) == 0 and len(rb.pending) == 2  # episodes wait for their end
+    resumed = HindsightReplayBuffer(storage=LazyTensorStorage(100), batch_size=64, compute_reward=reward,
+                                    achieved=(0, 1), desired=(1, 2), her_ratio=1.0)
+    ckpt.load_replay_buffer(resumed, ckpt.replay_buffer_state(rb))  # a checkpoint keeps the episodes under way
+    assert {k: torch.cat(v)["observation"].tolist() for k, v in resumed.pending.items()} == {
+        k: torch.cat(v)["observation"].tolist() for k, v in rb.pending.items()}
     rb.extend(torch.cat([block(1, range(3, 6), 5), block(2, range(3, 6), 5)]))
-    assert len(rb) == 12 and rb.pending_state() is None
+    assert len(rb) == 12 and not rb.pending
     torch.manual_seed(0)
     batch = rb.sample()
     achieved = batch["next", "observation"][:, 0]
@@ -182,11 +189,12 @@ def test_image_env_trains_dqn_through_a_cnn_with_uint8_frames(envs_module, tmp_p
     cfg.frame_stack = 2
     cfg.num_iterations, cfg.initial_collect_steps, cfg.eval_interval, cfg.num_eval_episodes = 200, 100, 200, 2
     pipeline = dqn.DQN(cfg)
-    assert pipeline.image_shape == (6, 48, 48) and pipeline.observation_dim == 512  # the Nature network from 36 px
+    assert pipeline.image_shape == (6, 48, 48) and pipeline.observation_dim == 256  # the Nature network from 36 px
     assert not pipeline.loss_module.lean  # the stock TorchRL loss runs the encoder
     pipeline.train(tmp_path / "run", progress=False)
-    stored = pipeline.replay_buffer.storage._storage
-    assert stored["observation"].dtype == torch.uint8 and stored["next", "observation"].dtype == torch.uint8
+    rb = pipeline.replay_buffer  # each frame once, uint8 (modules/frames.py)
+    assert rb.frames.dtype == torch.uint8 and rb.frames.shape[1:] == (3, 48, 48)
+    assert "observation" not in rb.storage._storage.keys() and rb.sample()["observation"].dtype == torch.uint8
     info = json.loads((tmp_path / "run" / "policy" / "policy.json").read_text())
     assert info["observation_shape"] == [6, 48, 48] and info["observation_dtype"] == "uint8"
     policy, _ = load_policy(tmp_path / "run" / "policy")  # ONNX, checked against torch when written
@@ -198,4 +206,61 @@ def test_small_images_get_the_small_encoder():
     from rlpipe.modules.encoders import make_image_encoder
 
     encoder = make_image_encoder((4, 10, 10), 1.0)
-    assert len(list(encoder.convolutions)) == 2 and encoder(torch.zeros(3, 4, 10, 10, dtype=torch.uint8)).shape == (3, 128)
+    assert len(list(encoder.convolutions)) == 2 and encoder(torch.zeros(3, 4, 10, 10, dtype=torch.uint8)).shape == (3, 1024)
+
+
+def _image_steps(envs_module, seed: int, traj_offset: int, steps: int = 120) -> TensorDict:
+    env = make_env(f"{envs_module}:PixPoint", frame_stack=3, seed=seed)
+    rollout = env.rollout(steps, break_when_any_done=False)
+    starts = rollout["is_init"].reshape(-1).long()
+    rollout.set(TRAJ_IDS, traj_offset + starts.cumsum(0))
+    return rollout
+
+
+def test_frame_buffer_stores_each_frame_once_and_gives_back_the_stacks(envs_module):
+    """Two envs' steps interleaved block by block, as two collector workers give them: every transition comes
+    back with the observation and next observation it was stored with; one frame per step is stored; a
+    checkpoint's state refills a fresh buffer that gives the same stacks."""
+    from torchrl.data import LazyTensorStorage
+
+    from rlpipe.modules.frames import FrameReplayBuffer
+    from rlpipe.pipelines.artifacts import checkpoint as ckpt
+
+    a, b = _image_steps(envs_module, 0, 0), _image_steps(envs_module, 1, 1000)
+    blocks = [part for i in range(0, 120, 40) for part in (a[i:i + 40], b[i:i + 40])]
+
+    def buffer():
+        return FrameReplayBuffer(storage=LazyTensorStorage(500), batch_size=32, capacity=500, frame_stack=3,
+                                 channels=3)
+
+    rb = buffer()
+    for block in blocks:
+        rb.extend(block)
+    episodes = int(a["is_init"].sum() + b["is_init"].sum())
+    assert rb.written <= 240 + 3 * episodes  # a frame a step, and at most a stack where an episode starts
+    expected = torch.cat(blocks)
+    got = rb._stacked(rb.storage.get(torch.arange(len(rb))))
+    assert torch.equal(got["observation"], expected["observation"])
+    assert torch.equal(got["next", "observation"], expected["next", "observation"])
+    again = buffer()
+    ckpt.load_replay_buffer(again, ckpt.replay_buffer_state(rb))
+    assert torch.equal(again._stacked(again.storage.get(torch.arange(len(again))))["observation"], got["observation"])
+
+
+def test_frame_buffer_never_returns_a_transition_whose_frames_were_overwritten(envs_module):
+    from torchrl.data import LazyTensorStorage
+
+    from rlpipe.modules.frames import FrameReplayBuffer
+
+    rb = FrameReplayBuffer(storage=LazyTensorStorage(100), batch_size=64, capacity=100, frame_stack=3, channels=3,
+                           frame_headroom=2)
+    steps = _image_steps(envs_module, 0, 0, steps=300)
+    steps.set("row", torch.arange(300))
+    for i in range(0, 300, 10):
+        rb.extend(steps[i:i + 10])
+    assert rb.written > rb.frame_capacity  # the ring went round: some stored transitions lost frames
+    torch.manual_seed(0)
+    for _ in range(20):
+        batch = rb.sample()
+        assert torch.equal(batch["observation"], steps["observation"][batch["row"]])
+        assert torch.equal(batch["next", "observation"], steps["next", "observation"][batch["row"]])

@@ -76,44 +76,37 @@ def set_rng_state(state: dict[str, Any]) -> None:
 
 
 def replay_buffer_state(replay_buffer) -> dict[str, Any]:
-    """The buffer's transitions as plain tensors, oldest first (so FIFO eviction resumes in order)."""
+    """The buffer's transitions as plain tensors, oldest first (so FIFO eviction resumes in order), and what a
+    buffer of rlpipe's own keeps besides them (``extra_state``: HER's episodes under way, the frame ring)."""
     n = len(replay_buffer)
-    pending = replay_buffer.pending_state() if hasattr(replay_buffer, "pending_state") else None
-    if pending is not None:  # HER's episodes under way (modules/hindsight.py)
-        return {**_stored_transitions(replay_buffer, n),
-                "pending": {key: value for key, value in pending.flatten_keys("/").items()},
-                "pending_len": len(pending)}
-    return _stored_transitions(replay_buffer, n)
-
-
-def _stored_transitions(replay_buffer, n: int) -> dict[str, Any]:
-    """The buffer's ``n`` stored transitions as plain tensors, oldest first."""
+    extra = {"extra": replay_buffer.extra_state()} if hasattr(replay_buffer, "extra_state") else {}
     if n == 0:
-        return {"len": 0}
+        return {"len": 0, **extra}
     storage = replay_buffer.storage
     index = torch.arange(n)
     if n == storage.max_size:
         index = (index + write_cursor(replay_buffer)) % n
     data = storage.get(index)
-    return {"len": n, "data": {key: value for key, value in data.flatten_keys("/").items()}}
+    return {"len": n, "data": {key: value for key, value in data.flatten_keys("/").items()}, **extra}
 
 
 def load_replay_buffer(replay_buffer, state: dict[str, Any], keys=None) -> None:
     """Refill ``replay_buffer`` (a fresh one) from ``replay_buffer_state`` output.
 
     ``keys``: store only these (a checkpoint saved with every key, loaded by a run that stores
-    fewer); None stores what the checkpoint has.
+    fewer); None stores what the checkpoint has. A buffer with ``extra_state`` gets its transitions
+    back as they were stored (past its own ``extend``) and its extra state.
     """
     from tensordict import TensorDict
+    from torchrl.data import ReplayBuffer
 
-    if "pending" in state:
-        replay_buffer.load_pending(TensorDict(state["pending"], batch_size=[state["pending_len"]]).unflatten_keys("/"))
+    own = hasattr(replay_buffer, "load_extra_state")
+    if own:
+        replay_buffer.load_extra_state(state.get("extra", {}))
     if state["len"] == 0:
         return
     data = TensorDict(state["data"], batch_size=[state["len"]]).unflatten_keys("/")
-    if hasattr(replay_buffer, "pending_state"):  # whole episodes as stored: past the HER buffer's own writing
-        from torchrl.data import ReplayBuffer
-
+    if own:
         ReplayBuffer.extend(replay_buffer, data)
         return
     replay_buffer.extend(data if keys is None else data.select(*keys))

@@ -91,19 +91,24 @@ _WORKER_PROCESS_BYTES = 350 << 20
 
 
 def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, device: torch.device, *,
-                 stored: list | None, networks: dict[str, list[int]]) -> None:
+                 stored: list | None, networks: dict[str, list[int]], frame_bytes: int | None = None) -> None:
     """Raise ``InputError`` if the run ``cfg`` describes cannot fit in this machine's memory.
 
     ``stored``: the keys the replay buffer keeps of each transition (None: all); ``networks``: the
     config keys giving hidden layer sizes, with their values. The line names the key whose value
     takes the most, what the run would need, what the machine has available, and the largest value
-    that would fit where that is one number.
+    that would fit where that is one number. ``frame_bytes``: a frame-stacking buffer's bytes of frames per
+    transition (``modules.frames``), which then stores the observations in place of ``stored``'s.
     """
     available = available_bytes(device)
     if available is None:
         return
     obs = observation_key
-    per_transition = transition_bytes(env, stored)
+    if frame_bytes is None:
+        per_transition = transition_bytes(env, stored)
+    else:
+        rest = [k for k in (stored or env.fake_tensordict().keys(True, True)) if k not in (obs, ("next", obs))]
+        per_transition = transition_bytes(env, rest) + frame_bytes
     per_block_transition = transition_bytes(env)
     obs_dim = int(env.observation_spec[obs].shape[-1]) if obs in env.observation_spec.keys() else 1
     c = cfg.collector
