@@ -10,6 +10,7 @@
     rlpipe bench collect [--envs CartPole-v1 ...] [--envs-per-worker 1 8 32] [--frames 3000]
     rlpipe bench ray [--envs MinitaurBulletEnv-v0] [--workers 1 2 4] [--frames 1000] [--steps 500 | --lengths N1 N2]
     rlpipe bench threads [--preset td3] [--steps N] [--seeds 3] [key=value ...]
+    rlpipe bench replay-memory [--steps 1000000]
     rlpipe bench time-to-return [--tasks pendulum-sac ...] [--seeds 5] [--peers cleanrl sb3 sbx tfagents torchrl | none]
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--cap SIDE=STEPS ...]
                                 [--side-seeds SIDE=N ...] [--seed FIRST] [--preset P] [--also-preset P] [--no-crossq]
@@ -25,6 +26,8 @@ collector process, against the raw gymnasium env (issue 9's target: at least hal
 preset, with the arithmetic of how many actors the learner can use (issue 10).
 ``threads``: a run's speed on each learner thread count, alone and beside a busy process of its own, with the
 count ``num_threads=-1`` chooses marked (``scripts/bench/threads.py``).
+``replay-memory``: the resident memory of a full image replay buffer (one million Atari transitions by default),
+measured, beside the floor and the stacks stored as they come (``scripts/bench/replay_memory.py``).
 ``time-to-return``: seconds from launching a command to a trained agent (a target return, judged
 the same way for every side), rlpipe's presets against CleanRL, SB3, SBX and TorchRL's own recipes, interleaved over seeds
 (``scripts/bench/time_to_return.py``; issue 21).
@@ -53,7 +56,7 @@ from pathlib import Path
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
     bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu", "profile",
-                                          "collect", "ray", "time-to-return", "threads"])
+                                          "collect", "ray", "time-to-return", "threads", "replay-memory"])
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs (profile: PRESET first)")
     bench.add_argument("--seeds", type=int, help="seeds per side (default 3; time-to-return: 5)")
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
