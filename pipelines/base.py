@@ -51,6 +51,7 @@ from rlpipe.envs.observations import GOAL_KEYS, goal_env
 from rlpipe.modules.encoders import make_image_encoder
 from rlpipe.modules.frames import FrameReplayBuffer
 from rlpipe.modules.hindsight import TRAJ_IDS, HindsightReplayBuffer
+from rlpipe.modules.normalization import RunningObservationNorm
 from rlpipe.modules.optim import clip_gradient_norms
 from rlpipe.modules.plain_policy import OnRescaledObservations
 from rlpipe.pipelines import presets as preset_files
@@ -176,6 +177,13 @@ class OffPolicyPipeline:
         self.observation_dim = (int(self.env.observation_spec[self.observation_key].shape[-1]) if self.image_shape is None
                                 else self.make_encoder().out_features)
         self.hindsight = self._hindsight()
+        self.normalizer = None
+        if cfg.normalize_observations:
+            if self.image_shape is not None:
+                raise InputError(f"normalize_observations=true: env {self.config.env!r} observes an image "
+                                 f"{self.image_shape}, which its encoder scales itself; expected it for vector "
+                                 "observations only")
+            self.normalizer = RunningObservationNorm(self.observation_dim)
         action_dim = int(self.action_spec.space.n) if is_discrete(self.action_spec) else int(self.action_spec.shape[-1])
         check_memory(cfg, self.env, self.observation_key, action_dim, self.device,  # before a network is built
                      stored=self._replay_keys(), networks=layer_sizes(cfg), frame_bytes=self._frame_bytes())
@@ -202,11 +210,16 @@ class OffPolicyPipeline:
                 "her_ratio": cfg.her_ratio}
 
     def make_encoder(self) -> nn.Module | None:
-        """A new encoder of the env's image observation (``modules.encoders``), or None for a vector one:
-        each network that reads the observation puts one in front of its head."""
+        """What each network that reads the observation puts in front of its head: a new encoder of an image
+        (``modules.encoders``), the one running normaliser (``normalize_observations``), or None."""
         if self.image_shape is None:
-            return None
+            return self.normalizer
         return make_image_encoder(self.image_shape, self.image_scale)
+
+    def on_block(self, batch: TensorDictBase) -> None:
+        """Called with each collected block before it is stored: the running normaliser learns its observations."""
+        if self.normalizer is not None:
+            self.normalizer.update(batch.get(self.observation_key))
 
     # --- what a pipeline supplies -----------------------------------------------------------------
 
@@ -271,6 +284,8 @@ class OffPolicyPipeline:
         self.policy = agent.policy.to(self.device)
         self.collect_policy = agent.collect_policy.to(self.device)
         self.loss_module = agent.loss_module.to(self.device)
+        if self.normalizer is not None:  # the loss's own copies of the statistics (its critics' stacked buffers)
+            self.normalizer.find_mirrors(self.loss_module)
         if self.config.n_step > 1 and _value_estimator(self.loss_module) is None:
             raise InputError(f"n_step={self.config.n_step} needs a loss that bootstraps through a TorchRL value "
                              f"estimator (its gamma, and steps_to_next_obs); {type(self.loss_module).__name__} has "

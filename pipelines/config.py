@@ -274,6 +274,8 @@ class TrainConfig:
     """keywords for the env's constructor (`gymnasium.make`'s), one a key on the command line: env_kwargs.size=3"""
     rescale_observations: bool = False
     """map each observation linearly from the observation space's bounds to [-1, 1] (gymnasium's RescaleObservation) in the envs made from `env`, so that no input dwarfs the others (Minitaur's motor velocities are bounded by 168, its motor angles by 3.15); the exported policy takes the env's own observations and rescales them itself. Needs finite bounds"""
+    normalize_observations: bool = False
+    """keep each observation entry's running mean and variance (updated by the learner from every collected block, frozen in evaluations) and feed the networks (observation - mean) / std clipped to [-10, 10], as SB3's VecNormalize; the statistics are in every checkpoint and in the exported policy, which takes the env's own observations. Vector observations"""
     observation_keys: list[str] | None = None
     """the entries of a Dict observation the networks read, concatenated in the env's order (null: every entry); each a vector (a Box, or a discrete space read one-hot)"""
     frame_stack: int = checked(1, POSITIVE)

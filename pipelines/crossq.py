@@ -95,9 +95,10 @@ class CrossQ(SACFamilyPipeline):
 
     def make_qvalue(self) -> nn.Module:
         cfg = self.config
-        if self.image_shape is not None:
-            raise InputError(f"CrossQ's batch-renormalised critic reads vector observations; env {cfg.env!r} observes "
-                             f"an image {self.image_shape}: expected sac or td3 for images")
+        if self.image_shape is not None or self.normalizer is not None:
+            what = f"an image {self.image_shape}" if self.image_shape is not None else "normalize_observations=true"
+            raise InputError(f"CrossQ's batch-renormalised critic reads the env's vectors as they are; env {cfg.env!r} "
+                             f"with {what}: expected sac or td3 (or normalize_observations=false)")
         return make_batchrenorm_critic(self.observation_dim, int(self.action_spec.shape[-1]), cfg.critic_fc_layer_params,
                                        observation_key=self.observation_key, momentum=cfg.batch_renorm_momentum,
                                        warmup_steps=cfg.batch_renorm_warmup_steps)

@@ -264,3 +264,33 @@ def test_frame_buffer_never_returns_a_transition_whose_frames_were_overwritten(e
         batch = rb.sample()
         assert torch.equal(batch["observation"], steps["observation"][batch["row"]])
         assert torch.equal(batch["next", "observation"], steps["next", "observation"][batch["row"]])
+
+
+def test_running_normalisation_is_shared_by_every_network_and_exported(envs_module, tmp_path):
+    """normalize_observations=true: the statistics are the blocks' running mean and variance, every critic copy
+    inside TorchRL's loss reads the same ones, and the exported policy normalises the env's own observation."""
+    from rlpipe.modules.normalization import RunningObservationNorm
+
+    norm = RunningObservationNorm(2)
+    data = torch.randn(300, 2) * torch.tensor([3.0, 0.1]) + torch.tensor([5.0, -1.0])
+    for part in data.split(70):
+        norm.update(part)
+    torch.testing.assert_close(norm.observation_mean, data.mean(0), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(norm.observation_var, data.var(0, unbiased=False), rtol=1e-3, atol=1e-4)
+
+    cfg = sac.preset("sac-pendulum")
+    cfg.num_iterations, cfg.initial_collect_steps, cfg.eval_interval, cfg.num_eval_episodes = 300, 200, 300, 2
+    cfg.target_return, cfg.normalize_observations = None, True
+    pipeline = sac.SAC(cfg)
+    assert len(pipeline.normalizer.mirrors) >= 6  # twin critics and their targets: mean, var and count each
+    pipeline.train(tmp_path / "run", progress=False)
+    mean = pipeline.normalizer.observation_mean
+    assert mean.abs().sum() > 0
+    for name, mirror in pipeline.normalizer.mirrors:
+        assert torch.equal(mirror, getattr(pipeline.normalizer, name).expand_as(mirror)), name
+    exported = pipeline.exported_policy()
+    assert any(key.endswith("observation_mean") for key in exported.state_dict())  # the statistics travel with it
+    policy, _ = load_policy(tmp_path / "run" / "policy")
+    observation = torch.tensor([0.5, -0.5, 1.0])
+    expected = pipeline.exported_policy()(observation.unsqueeze(0))[0]
+    torch.testing.assert_close(policy(observation), expected, rtol=1e-4, atol=1e-5)

@@ -183,6 +183,7 @@ class Loop(LoopContext):
         """Store a block in the replay buffer, count it, and note the triggers its iterations crossed."""
         batch = batch.reshape(-1)[: self.config.total_frames - self.state.frames]  # collectors round up to whole blocks
         self.resume.number_trajectories(batch)
+        self.pipeline.on_block(batch)
         self.store(batch)
         self.count(batch)
 
