@@ -353,8 +353,11 @@ class OffPolicyPipeline:
 
     def _stacks_frames(self) -> bool:
         """Whether the replay buffer stores each frame once (``modules.frames``): an image stack the pipeline's
-        own env made (``make_env``'s ``ImageObservation``: its channel layout known), stored on the CPU."""
-        return self.image_shape is not None and image_scale(self.env) is not None and self.device.type == "cpu"
+        own env made (``make_env``'s ``ImageObservation``: its channel layout known), stored on the CPU, with
+        one-step transitions (an n-step transition's next observation is not the next step's, which the frame
+        chain assumes: those store both stacks, uint8)."""
+        return (self.image_shape is not None and image_scale(self.env) is not None and self.device.type == "cpu"
+                and self.config.n_step == 1)
 
     def _frame_bytes(self) -> int | None:
         """A frame-stacking buffer's bytes per transition for its frames and their slots, else None."""

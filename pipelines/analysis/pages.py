@@ -182,6 +182,9 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
         ("random agent's AverageReturn",
          f"{_fmt(baseline['average_return'])} ({baseline['episodes']} episodes)" if baseline else "n/a"),
     ]
+    success = "success_rate" in (rows[0] if rows else {})  # a goal env's evaluated share of successful episodes
+    if success and eval_rows:
+        facts.insert(2, ("final SuccessRate" if summary else "last SuccessRate", eval_rows[-1].get("success_rate", "n/a")))
     if stopped:
         facts.append(("to continue it", f"rlpipe train {algo} --resume {run.resolve()}"))
     if summary:
@@ -198,7 +201,8 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
     return _render(
         "run.html.j2", out, title=title, run_name=run.resolve().name, algo=algo, env=env, facts=facts,
         figures=figures, video=video_src, exported=_has_policy(run), policy_save_interval=config.get(
-            "policy_save_interval"), config=_flatten(config), eval_columns=_EVAL_COLUMNS,
+            "policy_save_interval"), config=_flatten(config),
+        eval_columns={**_EVAL_COLUMNS, **({"success_rate": "SuccessRate"} if success else {})},
         eval_rows=eval_rows, log_columns=["step", *loss_columns, "train_episode_return", *_SPEED_COLUMNS],
         log_rows=log_rows,
     )
