@@ -65,6 +65,7 @@ import math
 import os
 from dataclasses import dataclass
 
+from rlpipe.modules.encoders import NATURE_MIN_SIZE
 from rlpipe.pipelines.config import CollectorConfig, TrainConfig, apply_overrides, flat_keys
 from rlpipe.pipelines.errors import InputError
 
@@ -112,6 +113,12 @@ class EnvFacts:
     """this machine's CPUs"""
     observation_shape: tuple[int, ...] = ()
     """one observation's shape: (D,) for a vector, (C, H, W) for an image (an encoder reads it)"""
+    goal_env: bool = False
+    """a goal env (achieved and desired goals, compute_reward): HER relabels its goals"""
+
+    @property
+    def image(self) -> bool:
+        return len(self.observation_shape) == 3
 
     def describe(self) -> str:
         if self.discrete:
@@ -122,8 +129,8 @@ class EnvFacts:
                       else f"in [{_g(min(low))}..{_g(max(low))}, {_g(min(high))}..{_g(max(high))}]")
             actions = f"act {self.action_size} {bounds}"
         limit = f"{self.time_limit:,}-step episodes" if self.time_limit else "no time limit"
-        observed = (f"image {'x'.join(map(str, self.observation_shape))}" if len(self.observation_shape) == 3
-                    else f"obs {self.observation_size}")
+        observed = (f"image {'x'.join(map(str, self.observation_shape))}" if self.image
+                    else f"goal env, obs {self.observation_size}" if self.goal_env else f"obs {self.observation_size}")
         return (f"{observed}, {actions}, {limit}, random agent {self.random_return:,.1f} in "
                 f"{self.random_episode_length:,.0f} steps, {self.cpus} CPU{'s' if self.cpus != 1 else ''}")
 
@@ -135,7 +142,7 @@ def _g(x: float) -> str:
 def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
     """The facts of the env ``cfg`` makes (``cfg.env``, as the pipeline makes it) and of this machine; with
     ``play=False`` its spaces only (no time limit, no random agent: what the algorithm is chosen by)."""
-    from rlpipe.envs import is_discrete
+    from rlpipe.envs import goal_env, gym_env_under, is_discrete
     from rlpipe.pipelines.plugins import factory_and_env, observation_key_in
 
     _, env = factory_and_env(None, cfg)
@@ -151,10 +158,12 @@ def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
             size = int(spec.shape[-1])
             low = tuple(float(v) for v in spec.space.low.flatten().tolist())
             high = tuple(float(v) for v in spec.space.high.flatten().tolist())
+        gym_env = gym_env_under(env)
+        goals = gym_env is not None and goal_env(gym_env)
         limit, (ret, length) = _random_agent(env) if play else (None, (0.0, 0.0))
     finally:
         env.close()
-    return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1, shape)
+    return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1, shape, goals)
 
 
 def _random_agent(env) -> tuple[int | None, tuple[float, float]]:
@@ -216,8 +225,10 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
                             and facts.random_episode_length >= LONG_RANDOM_EPISODE * facts.time_limit)
     whole_episodes = long_random_episodes and facts.random_episode_length >= facts.time_limit
     # env steps per update (collect_steps_per_iteration)
-    per_update = 4 if facts.discrete else 2 if algo == "sac" and not whole_episodes else 1
-    gamma = 0.999 if whole_episodes else 0.99
+    per_update = 4 if facts.discrete else 2 if algo == "sac" and not whole_episodes and not facts.goal_env else 1
+    # goal envs: RL-Zoo's HER settings for Fetch (and the HER paper's short horizon): gamma 0.95, observations
+    # normalised (their positions and velocities are of different scales), an update every env step
+    gamma = 0.999 if whole_episodes else 0.95 if facts.goal_env else 0.99
     iterations = (budget - random_steps) // per_update
     keys = dict(
         env=facts.env, num_iterations=iterations, initial_collect_steps=random_steps, replay_buffer_capacity=budget,
@@ -228,6 +239,12 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     )
     net = [width, width]
     chosen = [f"{width}x{width}"]
+    if facts.goal_env:
+        keys.update(normalize_observations=True)
+        chosen += ["gamma 0.95", "observations normalised", "HER"]
+    if facts.image and algo == "dqn":  # after the encoder's convolutions: the Nature DQN's 512, the MinAtar paper's 128
+        net = [512] if min(facts.observation_shape[1:]) >= NATURE_MIN_SIZE else [128]
+        chosen = [f"a CNN then {net[0]}"]
     if algo == "sac":
         keys.update(actor_fc_layer_params=net, critic_joint_fc_layer_params=list(net))
         if not one_actuator:
@@ -249,6 +266,26 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
         keys.update(actor_fc_layer_params=net, critic_fc_layer_params=list(net), learning_rate=rate,
                     target_update_tau=tau, learning_starts=random_steps, gamma=gamma)
         chosen += [f"lr {rate:g}", f"tau {tau:g}"]
+    elif facts.image:
+        # 1,000,000 env steps, as the peers train image envs (the MinAtar paper's buffer of 100,000 on small grids);
+        # the MinAtar paper's DQN (Young & Tian 2019) for small grids, the Nature DQN's for pictures: Adam at their
+        # rates, batch 32, a target copy every 1,000 env steps, epsilon to 0.01 (0.1 for MinAtar) over a tenth
+        small = net == [128]
+        decay = max(5000, _round_up(budget / 10, 1000))
+        rate, end = (2.5e-4, 0.1) if small else (1e-4, 0.01)
+        per_update = 1 if small else 4
+        budget = 1_000_000
+        decay = budget // 10
+        keys.update(fc_layer_params=net, learning_rate=rate, gamma=0.99, epsilon_greedy=1.0, epsilon_greedy_end=end,
+                    epsilon_decay_steps=decay, target_update_period=1000 // per_update, batch_size=32,
+                    collect_steps_per_iteration=per_update, clip_rewards=not small)
+        iterations = (budget - random_steps) // per_update
+        keys.update(num_iterations=iterations, replay_buffer_capacity=100_000 if small else budget,
+                    log_interval=1000, eval_interval=max(1000, _round_up(iterations / 10, 1000)),
+                    checkpoint_interval=min(25_000, iterations), policy_save_interval=iterations)
+        chosen += [f"lr {rate:g}", f"epsilon 1 -> {end:g} over {decay:,} steps",
+                   f"an update every {per_update} env steps" if per_update > 1 else "an update every env step",
+                   "the " + ("MinAtar paper's" if small else "Nature DQN's") + " settings"]
     else:
         decay = max(5000, _round_up(budget / 10, 1000))
         keys.update(fc_layer_params=net, learning_rate=2.3e-3, gamma=0.99, epsilon_greedy=1.0, epsilon_greedy_end=0.04,
