@@ -42,8 +42,8 @@ from rlpipe.modules.tensor_nets import (
     bootstrap_discount,
     cached_detached_params,
     cached_flat_params,
+    critic_layers,
     is_plain_module,
-    mlp_layers,
     run_mlp,
     run_stacked_mlp,
     sequential_layers,
@@ -175,9 +175,10 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
     def __init__(self, actor_network, qvalue_network, *args, **kwargs):
         super().__init__(actor_network, qvalue_network, *args, **kwargs)
         self._actor_parts = self._lean_actor()
-        self._critic_layers = (
-            mlp_layers(self.qvalue_network.module) if is_plain_module(self.qvalue_network) else None
-        )
+        critic = critic_layers(self.qvalue_network.module) if is_plain_module(self.qvalue_network) else None
+        norm, self._critic_layers = critic if critic is not None else (None, None)
+        # the critic network's own normaliser, called, not registered: the loss's state holds the critics' copies
+        self.__dict__["_critic_norm"] = norm
         # Built now rather than on first use (the default TD0, gamma 0.99), as TD3AblationLoss does.
         self.value_estimator  # noqa: B018
 
@@ -198,6 +199,8 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
 
     def qvalues(self, params: dict[str, torch.Tensor], observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """All critics at ``(observation, action)``: ``[num_qvalue_nets, *batch]``."""
+        if self._critic_norm is not None:  # normalize_observations: the statistics the learner keeps
+            observation = self._critic_norm(observation)
         x = torch.cat([observation, action], -1)
         return run_stacked_mlp(self._critic_layers, params, x, self.num_qvalue_nets).squeeze(-1)
 

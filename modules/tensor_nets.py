@@ -17,7 +17,10 @@ import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torchrl.modules import MLP
 
-__all__ = ["ELEMENTWISE", "importance_weights", "is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
+from rlpipe.modules.critics import EncodedCritic
+from rlpipe.modules.normalization import RunningObservationNorm
+
+__all__ = ["ELEMENTWISE", "critic_layers", "importance_weights", "is_plain_module", "mlp_layers", "sequential_layers", "run_mlp", "run_stacked_mlp", "cached_flat_params",
            "transition_tensors", "bootstrap_discount", "module_forward"]
 
 Layers = list[tuple[str, object]]
@@ -75,11 +78,23 @@ def sequential_layers(module: torch.nn.Module) -> Layers | None:
             if inner is None:
                 return None
             layers += inner
-        elif not any(True for _ in child.parameters()) and not any(True for _ in child.buffers()):
+        elif (not any(True for _ in child.parameters()) and not any(True for _ in child.buffers())
+              or type(child) is RunningObservationNorm):  # its statistics are the learner's, not the loss's
             layers.append(("other", child))
         else:
             return None
     return layers
+
+
+def critic_layers(module: torch.nn.Module) -> tuple[torch.nn.Module | None, Layers] | None:
+    """``(normaliser or None, mlp_layers)`` of a critic network: a TorchRL ``MLP`` over ``cat(observation,
+    action)``, or ``EncodedCritic(RunningObservationNorm, MLP)`` (``normalize_observations``: the observation
+    normalised first, by the module itself, then joined with the action); None for anything else."""
+    if type(module) is EncodedCritic and type(module.encoder) is RunningObservationNorm:
+        layers = mlp_layers(module.head, "head.")
+        return None if layers is None else (module.encoder, layers)
+    layers = mlp_layers(module)
+    return None if layers is None else (None, layers)
 
 
 def cached_flat_params(loss: torch.nn.Module, params_name: str, drop: int = 1) -> dict[str, torch.Tensor]:

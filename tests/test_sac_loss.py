@@ -13,6 +13,7 @@ from torchrl.objectives import SACLoss
 
 from rlpipe.modules.actors import make_tanh_normal_actor
 from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.modules.normalization import RunningObservationNorm
 from rlpipe.modules.sac_loss import LeanSACLoss, tanh_normal_rsample
 
 pytestmark = pytest.mark.unit
@@ -20,22 +21,27 @@ pytestmark = pytest.mark.unit
 OBS, ACT, B = 5, 3, 64
 
 
-def losses_pair(low=-2.0, high=1.5, layer_norm=False):
+def losses_pair(low=-2.0, high=1.5, layer_norm=False, normalized=False):
     spec = Bounded(torch.full((ACT,), low), torch.full((ACT,), high), (ACT,))
     torch.manual_seed(0)
-    actor = make_tanh_normal_actor(OBS, spec, [32, 32])
-    critic = make_qvalue_critic(OBS, ACT, [32, 32], layer_norm=layer_norm)
+    norm = None
+    if normalized:  # normalize_observations: one running normaliser in front of the actor and the critics
+        norm = RunningObservationNorm(OBS)
+        norm.update(torch.randn(100, OBS) * 3 + 2)
+    actor = make_tanh_normal_actor(OBS, spec, [32, 32], encoder=norm)
+    critic = make_qvalue_critic(OBS, ACT, [32, 32], layer_norm=layer_norm, encoder=norm)
     kwargs = dict(num_qvalue_nets=2, loss_function="l2", alpha_init=0.5, target_entropy=-1.5, delay_qvalue=True)
     stock = SACLoss(actor, critic, **kwargs)
     lean = LeanSACLoss(copy.deepcopy(actor), copy.deepcopy(critic), **kwargs)
     for loss in (stock, lean):
         loss.make_value_estimator(gamma=0.97)
     lean.load_state_dict(stock.state_dict())
-    with torch.no_grad():  # targets apart from the online critics, so a mix-up would show
-        for value in lean.target_qvalue_network_params.values(True, True):
-            value.add_(0.1)
-        for value in stock.target_qvalue_network_params.values(True, True):
-            value.add_(0.1)
+    with torch.no_grad():  # targets apart from the online critics, so a mix-up would show (the normaliser's
+        # statistics are the learner's, the same in every copy: RunningObservationNorm.update writes them all)
+        for params in (lean.target_qvalue_network_params, stock.target_qvalue_network_params):
+            for key, value in params.items(True, True):
+                if not key[-1].startswith("observation_"):
+                    value.add_(0.1)
     return stock, lean
 
 
@@ -53,11 +59,12 @@ def backward_and_grads(loss, out):
     return {name: p.grad.clone() for name, p in loss.named_parameters() if p.grad is not None}
 
 
-@pytest.mark.parametrize("bounds, layer_norm", [((-2.0, 1.5), False), ((-1.0, 1.0), False), ((-1.0, 1.0), True)])
-def test_lean_loss_matches_sacloss_values_and_gradients(bounds, layer_norm):
+@pytest.mark.parametrize("bounds, layer_norm, normalized", [((-2.0, 1.5), False, False), ((-1.0, 1.0), False, False),
+                                                            ((-1.0, 1.0), True, False), ((-2.0, 1.5), False, True)])
+def test_lean_loss_matches_sacloss_values_and_gradients(bounds, layer_norm, normalized):
     # layer_norm: the critics' LayerNorm acts on each row's features; the lean loss keeps the twin
     # critics' activations as columns, where a layout mistake normalises across the batch instead
-    stock, lean = losses_pair(*bounds, layer_norm=layer_norm)
+    stock, lean = losses_pair(*bounds, layer_norm=layer_norm, normalized=normalized)
     assert lean.lean
     data = batch()
     torch.manual_seed(5)

@@ -6,7 +6,9 @@
 ``hyperparams`` are RL-Zoo's for the env as the harness read them from the zoo's yml (``n_timesteps`` and
 ``policy`` dropped; ``policy_kwargs`` a string as in the yml; ``noise_type``/``noise_std`` turned into
 the action noise as the zoo does; a ``lin_X`` learning rate into the zoo's linear schedule over its
-``n_timesteps``, passed as ``schedule_timesteps``). A callback applies the shared rule (``ttr_rule.Rule``) to the
+``n_timesteps``, passed as ``schedule_timesteps``; ``normalize`` into ``VecNormalize`` as the zoo wraps it, the
+deterministic evaluation reading its statistics frozen; ``replay_buffer_class``/``replay_buffer_kwargs``, the
+zoo's HER settings, into SB3's ``HerReplayBuffer``). A Dict observation takes SB3's ``MultiInputPolicy``. A callback applies the shared rule (``ttr_rule.Rule``) to the
 Monitor's episode returns after every env step and stops ``learn`` once the target is confirmed by a
 deterministic evaluation (``model.predict(obs, deterministic=True)``) on an env of its own.
 """
@@ -22,6 +24,31 @@ import numpy as np
 from ttr_rule import Rule, register_minitaur, versions
 
 EVAL_SEED_OFFSET = 10_000
+_ROBOTICS = ("Fetch", "Hand", "PointMaze", "AntMaze", "Adroit", "FrankaKitchen")
+
+
+def register_robotics(env: str) -> None:
+    """gymnasium-robotics' envs, registered, under MuJoCo 4 with the mend rlpipe makes for them
+    (``rlpipe/envs/robotics_compat.py``, whose reason holds here too: its joint helpers compare NumPy ints with
+    MuJoCo 4's enums, and every Fetch env fails its first reset): rlpipe is not installed in this venv."""
+    if not env.startswith(_ROBOTICS):
+        return
+    import types
+
+    import gymnasium
+    import gymnasium_robotics
+    import mujoco
+    from gymnasium_robotics.utils import mujoco_utils
+
+    class IntJoints(types.ModuleType):
+        def __getattr__(self, name):
+            return getattr(mujoco, name)
+
+    view = IntJoints("mujoco")
+    view.mjtJoint = types.SimpleNamespace(**{n: int(getattr(mujoco.mjtJoint, n)) for n in dir(mujoco.mjtJoint)
+                                             if n.startswith("mjJNT_")})
+    mujoco_utils.mujoco = view
+    gymnasium.register_envs(gymnasium_robotics)
 
 
 def _policy_kwargs(text):
@@ -88,19 +115,34 @@ def main(spec: dict) -> None:
     env_id, seed = spec["env"], int(spec["seed"])
     hp = dict(spec.get("hyperparams") or {})
     n_envs = int(hp.pop("n_envs", 1))
-    for unsupported in ("normalize", "env_wrapper", "frame_stack", "callback", "vec_env_wrapper"):
+    normalize = hp.pop("normalize", False)
+    for unsupported in ("env_wrapper", "frame_stack", "callback", "vec_env_wrapper"):
         if hp.get(unsupported):
             raise SystemExit(f"ttr_sb3: hyperparameter {unsupported} is not supported by this runner")
         hp.pop(unsupported, None)
     if "policy_kwargs" in hp:
         hp["policy_kwargs"] = _policy_kwargs(hp["policy_kwargs"])
+    if "replay_buffer_kwargs" in hp:
+        hp["replay_buffer_kwargs"] = _policy_kwargs(hp["replay_buffer_kwargs"])
+    if isinstance(hp.get("replay_buffer_class"), str):  # the zoo names SB3's buffers by class name
+        import stable_baselines3
+
+        hp["replay_buffer_class"] = getattr(stable_baselines3, hp["replay_buffer_class"])
     schedule_steps = int(hp.pop("schedule_timesteps", None) or spec["cap"])
     for key in ("learning_rate",):  # the zoo's schedules (exp_manager._preprocess_schedules) of the off-policy algos
         if isinstance(hp.get(key), str) and hp[key].startswith("lin_"):
             hp[key] = _linear(float(hp[key][4:]), int(spec["cap"]), schedule_steps)
     noise_type, noise_std = hp.pop("noise_type", None), hp.pop("noise_std", None)
+    register_robotics(env_id)
     make = env_maker(env_id, dict(spec.get("env_kwargs") or {}))
     env = make_vec_env(make, n_envs=n_envs, seed=seed)
+    if normalize:  # the zoo's VecNormalize: observations and rewards, its gamma
+        from stable_baselines3.common.vec_env import VecNormalize
+
+        options = normalize if isinstance(normalize, dict) else {}
+        if isinstance(normalize, str):
+            options = _policy_kwargs(normalize)
+        env = VecNormalize(env, gamma=float(hp.get("gamma", 0.99)), **options)
     if noise_type == "normal":
         dim = env.action_space.shape[0]
         hp["action_noise"] = NormalActionNoise(mean=np.zeros(dim), sigma=float(noise_std) * np.ones(dim))
@@ -118,7 +160,8 @@ def main(spec: dict) -> None:
             eval_seed[0] += 1
             total, length, done = 0.0, 0, False
             while not done:
-                action, _ = model.predict(obs, deterministic=True)
+                seen = env.normalize_obs(obs) if normalize else obs  # the training statistics, frozen
+                action, _ = model.predict(seen, deterministic=True)
                 obs, reward, terminated, truncated, _ = eval_env.step(action)
                 total += float(reward)
                 length += 1
@@ -139,7 +182,10 @@ def main(spec: dict) -> None:
                 return True
             return not rule.check(evaluate, self.num_timesteps, getattr(self.model, "_n_updates", 0))
 
-    model = classes[algo]("MlpPolicy", env, seed=seed, verbose=0, **{k: v for k, v in hp.items() if k != "policy"})
+    import gymnasium
+
+    policy = "MultiInputPolicy" if isinstance(env.observation_space, gymnasium.spaces.Dict) else "MlpPolicy"
+    model = classes[algo](policy, env, seed=seed, verbose=0, **{k: v for k, v in hp.items() if k != "policy"})
     imported = time.time() - launch_import
     model.learn(total_timesteps=int(spec["cap"]), callback=Target())
     rule.emit(model.num_timesteps, getattr(model, "_n_updates", 0), versions=versions(*names), lib=lib,
