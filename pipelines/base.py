@@ -323,12 +323,17 @@ class OffPolicyPipeline:
             step = GraphedUpdate(step, self.update_periods())
         return step
 
+    def observation_entries(self) -> dict[str, tuple[int, int]] | None:
+        """A Dict env's entries and where each lies in the observation vector (the exported policy takes them by
+        name), or None."""
+        gym_env = gym_env_under(self.env)
+        return observation_layout(gym_env) if gym_env is not None else None
+
     def export_info(self) -> dict[str, Any]:
         spec = self.action_spec
         info = {"algo": self.algo, "env": self.config.env, "env_kwargs": dict(self.config.env_kwargs),
                 "observation_key": str(self.observation_key)}
-        gym_env = gym_env_under(self.env)
-        layout = observation_layout(gym_env) if gym_env is not None else None
+        layout = self.observation_entries()
         if layout is not None:  # a Dict env's entries, joined in this order into the observation vector
             info["observation_entries"] = {key: list(span) for key, span in layout.items()}
         if self.config.frame_stack > 1:

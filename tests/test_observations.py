@@ -174,6 +174,15 @@ def test_goal_env_trains_with_her_and_reports_success(envs_module, tmp_path):
     policy, info = load_policy(tmp_path / "run" / "policy")
     assert info["observation_entries"] == {"observation": [0, 1], "achieved_goal": [1, 2], "desired_goal": [2, 3]}
     assert policy(np.zeros(3, np.float32)).shape == (1,)
+    import onnxruntime  # the ONNX file takes the env's own observation: its entries by name
+
+    session = onnxruntime.InferenceSession(str(tmp_path / "run" / "policy" / "policy.onnx"))
+    assert [i.name for i in session.get_inputs()] == ["observation", "achieved_goal", "desired_goal"]
+    entries = {"observation": np.array([0.1], np.float32), "achieved_goal": np.array([0.1], np.float32),
+               "desired_goal": np.array([-0.5], np.float32)}
+    np.testing.assert_allclose(policy(entries), policy(np.array([0.1, 0.1, -0.5], np.float32)), rtol=1e-6)
+    raw = session.run(None, {k: v[None] for k, v in entries.items()})[0][0]
+    np.testing.assert_allclose(raw, policy(entries), rtol=1e-5, atol=1e-6)
 
 
 def test_her_refused_for_an_env_without_goals(tmp_path, capsys):

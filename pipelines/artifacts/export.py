@@ -33,6 +33,7 @@ import json
 import logging
 import re
 import warnings
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -80,10 +81,25 @@ def available_steps(folder: Path) -> list[int]:
 # --- writing -----------------------------------------------------------------------------------------
 
 
+class NamedEntries(nn.Module):
+    """``module`` on a Dict env's entries given one by one, by name: ``forward(*entries)`` joins them in the env's
+    order (``DictObservation``'s) into the vector ``module`` reads."""
+
+    def __init__(self, module: nn.Module, sizes: dict[str, int]):
+        super().__init__()
+        self.module, self.sizes = module, dict(sizes)
+
+    def forward(self, *entries: torch.Tensor) -> torch.Tensor:
+        return self.module(torch.cat(entries, -1))
+
+
 def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], folder: Path, info: dict, *,
-                  step: int | None = None, keep: int = 0, dtype: torch.dtype = torch.float32) -> Path:
+                  step: int | None = None, keep: int = 0, dtype: torch.dtype = torch.float32,
+                  entries: dict[str, tuple[int, int]] | None = None) -> Path:
     """Export ``module`` (observations ``[B, observation_dim]``, or ``[B, *shape]`` of ``dtype`` for a tuple:
-    an image stack ``uint8 [B, C, H, W]`` -> actions ``[B, ...]``) to ``folder``.
+    an image stack ``uint8 [B, C, H, W]`` -> actions ``[B, ...]``) to ``folder``. ``entries``: a Dict env's
+    entries and where each lies in the observation vector: the exported programs then take them as inputs of
+    those names (``NamedEntries``), the env's own observation.
 
     Writes ``policy.onnx`` (unless ONNX cannot express the module: then a warning), ``policy.pt2``
     and ``policy.json``, each atomically; with ``step``, also ``step_NNNNNNN.onnx/.pt2``, keeping the
@@ -97,9 +113,15 @@ def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], fol
     for parameter in module.parameters():
         parameter.requires_grad_(False)
     shape = (observation_dim,) if isinstance(observation_dim, int) else tuple(observation_dim)
-    example = torch.zeros(2, *shape, dtype=dtype)
+    sizes = {name: stop - start for name, (start, stop) in entries.items()} if entries else {"observation": shape}
+    if entries:
+        module = NamedEntries(module, sizes)
+    examples = tuple(torch.zeros(2, *(size if isinstance(size, tuple) else (size,)), dtype=dtype)
+                     for size in sizes.values())
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
-    program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},), strict=False)
+    dynamic = tuple({0: batch} for _ in examples)
+    # NamedEntries.forward(*entries): one parameter, whose shapes are the tuple of its entries'
+    program = torch.export.export(module, examples, dynamic_shapes=(dynamic,) if entries else dynamic, strict=False)
     pt2 = io.BytesIO()
     torch.export.save(program, pt2)
     files = {".pt2": pt2.getvalue(), ".onnx": _onnx_model(module, shape, dtype)}
@@ -118,14 +140,30 @@ def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], fol
     steps = available_steps(folder)
     write_json_atomic(folder / "policy.json", {
         "observation_dim": shape[0] if len(shape) == 1 else None, "observation_shape": list(shape),
-        "observation_dtype": str(dtype).removeprefix("torch."), **info, "step": step, "steps": steps,
-        "env_recipe": _env_recipe(info.get("env"), info.get("env_kwargs") or {}),
+        "observation_dtype": str(dtype).removeprefix("torch."),
+        "inputs": {name: [size] if isinstance(size, int) else list(size) for name, size in sizes.items()},
+        **info, "step": step, "steps": steps,
+        "env_recipe": _env_recipe(info.get("env"), info.get("env_kwargs") or {}, _observations_said(sizes, shape, dtype,
+                                                                                                   info)),
         "files": {name: text for name, text in FILES.items() if (folder / name).exists() or name.startswith("step_") and steps},
     })
     return folder / ("policy.pt2" if onnx_model is None else "policy.onnx")
 
 
-def _env_recipe(env: str | None, kwargs: dict[str, Any]) -> dict[str, Any]:
+def _observations_said(sizes: dict, shape: tuple[int, ...], dtype: torch.dtype, info: dict) -> str:
+    """What the exported policy takes, in words, for ``policy.json``."""
+    if len(sizes) > 1:
+        return (f"the env's own Dict observation: its entries {', '.join(sizes)} as float32 inputs of those names "
+                "(rlpipe's loader also takes them joined in that order)")
+    if len(shape) == 3:
+        stack = info.get("frame_stack", 1)
+        return (f"the env's image as {str(dtype).removeprefix('torch.')} [C, H, W] = {list(shape)}, channels first"
+                + (f", its last {stack} frames stacked on C (oldest first)" if stack > 1 else ""))
+    return "the env's own, as float32 (no normalisation)"
+
+
+def _env_recipe(env: str | None, kwargs: dict[str, Any], observations: str = "the env's own, as float32 "
+                "(no normalisation)") -> dict[str, Any]:
     """How a person makes the env the policy acts in, with gymnasium alone (and rlpipe for Minitaur), or with
     the trainer's own module for an env named ``module:Target``."""
     from rlpipe.envs import EnvError, resolve_env_id
@@ -139,7 +177,6 @@ def _env_recipe(env: str | None, kwargs: dict[str, Any]) -> dict[str, Any]:
         return {"gymnasium_id": None, "imports": [], "make": None,
                 "note": f"{env!r} is not a gymnasium id: the env came from the trainer's own code"}
     args = ", ".join(f"{k}={v!r}" for k, v in kwargs.items())
-    observations = "the env's own, as float32 (no normalisation)"
     if is_user_env(env):
         module, _, name = env.partition(":")
         if gym_id.startswith(f"{NAMESPACE}/"):  # a class or function of the trainer's module: called as rlpipe did
@@ -165,9 +202,13 @@ def _onnx_model(module: nn.Module, shape: tuple[int, ...], dtype: torch.dtype) -
     try:
         with warnings.catch_warnings(), stderr_kept_on_success():  # compat: torch 2.13 logs the graph
             warnings.simplefilter("ignore")  # its DeprecationWarning, and tracer notes on TensorDict code
-            torch.onnx.export(module, (torch.zeros(2, *shape, dtype=dtype),), buffer, dynamo=False,
-                              opset_version=ONNX_OPSET, input_names=["observation"], output_names=["action"],
-                              dynamic_axes={"observation": {0: "batch"}, "action": {0: "batch"}})
+            named = isinstance(module, NamedEntries)  # a Dict env's entries, one input each
+            inputs = (tuple(torch.zeros(2, size) for size in module.sizes.values()) if named
+                      else (torch.zeros(2, *shape, dtype=dtype),))
+            names = list(module.sizes) if named else ["observation"]
+            torch.onnx.export(module, inputs, buffer, dynamo=False, opset_version=ONNX_OPSET, input_names=names,
+                              output_names=["action"],
+                              dynamic_axes={**{n: {0: "batch"} for n in names}, "action": {0: "batch"}})
         data = buffer.getvalue()
         onnx.checker.check_model(onnx.load_from_string(data), full_check=True)
         _check_same_actions(module, data, shape, dtype)
@@ -188,7 +229,7 @@ def _check_same_actions(module: nn.Module, onnx_model: bytes, shape: tuple[int, 
     else:
         observations = torch.randint(0, 256, (8, *shape), generator=generator).to(dtype)
     with torch.no_grad():
-        expected = module(observations)
+        expected = module.module(observations) if isinstance(module, NamedEntries) else module(observations)
     got = OnnxPolicy(onnx_model)(observations)
     if got.dtype.is_floating_point:
         torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-5, check_dtype=False)
@@ -207,11 +248,23 @@ class ExportedPolicy(nn.Module):
     """
 
     path: Path
+    entry_sizes: dict[str, int] | None = None
+    """a Dict env's entries the policy takes by name, in the env's order (None: one observation input)"""
     observation_ndim: int = 1
     """dimensions of one observation: 1 for a vector, 3 for an image stack [C, H, W]"""
     observation_dtype: torch.dtype = torch.float32
 
     def forward(self, observation):
+        """Actions for ``observation``: one observation or a batch, the env's own (a Dict env's as a mapping of its
+        entries, or as the joined vector the networks read), torch (gives torch) or numpy (gives numpy)."""
+        if isinstance(observation, Mapping):
+            if self.entry_sizes is None:
+                raise ValueError("this policy takes one observation, not a mapping of entries")
+            parts = [observation[name] for name in self.entry_sizes]
+            as_torch = isinstance(parts[0], torch.Tensor)
+            joined = torch.cat([torch.as_tensor(np.asarray(p) if not as_torch else p, dtype=torch.float32).reshape(
+                *np.shape(p)[:-1] if not as_torch else p.shape[:-1], -1) for p in parts], -1)
+            return self.forward(joined if as_torch else joined.numpy())
         as_numpy = not isinstance(observation, torch.Tensor)
         obs = torch.as_tensor(np.asarray(observation) if as_numpy else observation, dtype=self.observation_dtype)
         ndim = self.observation_ndim
@@ -247,15 +300,24 @@ class OnnxPolicy(ExportedPolicy):
         # From bytes, not a path: weights stored outside the file ("external data") have nothing to
         # resolve against, so a crafted model cannot make the runtime read other files.
         self.session = onnxruntime.InferenceSession(model, options, providers=["CPUExecutionProvider"])
-        model_input = self.session.get_inputs()[0]
+        inputs = self.session.get_inputs()
+        model_input = inputs[0]
         self.input_name = model_input.name
+        if len(inputs) > 1:  # a Dict env's entries, by name (NamedEntries)
+            self.entry_sizes = {i.name: int(i.shape[-1]) for i in inputs}
         # the model says what it takes: float32 vectors, or uint8 image stacks [B, C, H, W]
         self.observation_dtype = _ONNX_DTYPES.get(model_input.type, torch.float32)
         self.observation_ndim = max(1, len(model_input.shape) - 1)
 
     def act(self, observations: torch.Tensor) -> torch.Tensor:
         observations = np.ascontiguousarray(observations.numpy())
-        return torch.from_numpy(self.session.run(None, {self.input_name: observations})[0])
+        if self.entry_sizes is None:
+            feed = {self.input_name: observations}
+        else:
+            cuts = np.cumsum(list(self.entry_sizes.values()))[:-1]
+            feed = {name: np.ascontiguousarray(part)
+                    for name, part in zip(self.entry_sizes, np.split(observations, cuts, axis=-1))}
+        return torch.from_numpy(self.session.run(None, feed)[0])
 
 
 class TorchExportPolicy(ExportedPolicy):
@@ -266,7 +328,9 @@ class TorchExportPolicy(ExportedPolicy):
         self.program = program
 
     def act(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.program(observations)
+        if self.entry_sizes is None:
+            return self.program(observations)
+        return self.program(*observations.split(list(self.entry_sizes.values()), -1))
 
 
 def load_policy(folder: Path, *, step: int | None = None, trust: bool = False) -> tuple[ExportedPolicy, dict]:
@@ -297,24 +361,27 @@ def load_policy(folder: Path, *, step: int | None = None, trust: bool = False) -
         raise InputError(f"{folder / 'policy.json'}: observation_dtype {info.get('observation_dtype')!r} is not a torch "
                          "dtype; expected the file an export wrote (e.g. 'float32', 'uint8')")
     if onnx_path.exists():
-        policy = _load(onnx_path, lambda: OnnxPolicy(onnx_path.read_bytes()), shape, dtype)
+        policy = _load(onnx_path, lambda: OnnxPolicy(onnx_path.read_bytes()), shape, dtype, info)
     elif pt2_path.exists():
         if not trust:
             raise InputError(
                 f"{pt2_path}: this policy exists only as a torch.export archive, and loading one unpickles parts of it, "
                 f"which can run code; pass --trust (trust=True) to load it if you trust where it came from "
                 f"(a policy.onnx, data only, would load without)")
-        policy = _load(pt2_path, lambda: TorchExportPolicy(_torch_export_load(pt2_path)), shape, dtype)
+        policy = _load(pt2_path, lambda: TorchExportPolicy(_torch_export_load(pt2_path)), shape, dtype, info)
     else:
         raise InputError(f"{folder / 'policy.onnx'}: no exported policy; expected a run that finished or saved its policy")
     policy.path = onnx_path if onnx_path.exists() else pt2_path
     return policy, info
 
 
-def _load(path: Path, make, shape: list[int] | None, dtype: torch.dtype) -> ExportedPolicy:
+def _load(path: Path, make, shape: list[int] | None, dtype: torch.dtype, info: dict | None = None) -> ExportedPolicy:
     try:
         policy = make()
         policy.observation_dtype = dtype
+        inputs = (info or {}).get("inputs") or {}
+        if len(inputs) > 1:  # a Dict env's entries (the .pt2 program takes them one by one too)
+            policy.entry_sizes = {name: int(size[-1]) for name, size in inputs.items()}
         if shape:  # a file that loads but is not this run's policy fails here, not mid-episode
             policy.observation_ndim = len(shape)
             policy(torch.zeros(1, *shape, dtype=dtype))

@@ -216,7 +216,7 @@ class ExportTrigger(Trigger):
         with loop.clock.paused():
             export_policy(pipeline.exported_policy(), pipeline.observation_shape, loop.run_dir.policy_dir,
                           pipeline.export_info(), step=loop.state.iteration, keep=loop.config.policy_keep,
-                          dtype=pipeline.observation_dtype)
+                          dtype=pipeline.observation_dtype, entries=pipeline.observation_entries())
         self.exported_at = loop.state.iteration
 
     def final(self, loop: Loop) -> None:
