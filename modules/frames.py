@@ -43,19 +43,21 @@ class FrameReplayBuffer(ReplayBuffer):
         observation_key: the observation entry.
         frame_headroom: frames the ring holds beyond ``capacity`` (default: a sixteenth of it, and at
             least ``64 * (frame_stack + 1)``).
-        scratch_dir: keep the ring in a file there (memory-mapped) rather than in memory; None: in memory.
+        memmap: keep the ring in a file (memory-mapped, on disk) rather than in memory.
+        scratch_dir: where that file goes (None: the system's temporary folder); it is unlinked at once, so
+            nothing is left behind.
         **kwargs: TorchRL ``ReplayBuffer``'s (``storage`` for the rest of each transition, ``batch_size``).
 
     ``extend`` takes blocks with ``("collector", "traj_ids")`` (one id per episode) and ``("next", "done")``.
     """
 
     def __init__(self, *, capacity: int, frame_stack: int, channels: int, observation_key: str = "observation",
-                 frame_headroom: int | None = None, scratch_dir: str | None = None, **kwargs):
+                 frame_headroom: int | None = None, memmap: bool = False, scratch_dir: str | None = None, **kwargs):
         super().__init__(**kwargs)
         self.frame_stack, self.channels, self.observation_key = frame_stack, channels, observation_key
         headroom = frame_headroom if frame_headroom is not None else max(capacity // 16, 64 * (frame_stack + 1))
         self.frame_capacity = capacity + headroom
-        self.scratch_dir = scratch_dir
+        self.memmap, self.scratch_dir = memmap, scratch_dir
         self.frames: torch.Tensor | None = None  # [F, C, H, W], made at the first block
         self.generation = torch.full((self.frame_capacity,), -1, dtype=torch.long)
         self.written = 0  # frames written so far; the next goes to slot written % F
@@ -66,10 +68,11 @@ class FrameReplayBuffer(ReplayBuffer):
 
     def _allocate(self, frame: torch.Tensor) -> None:
         shape = (self.frame_capacity, *frame.shape)
-        if self.scratch_dir is None:
+        if not self.memmap:
             self.frames = torch.empty(shape, dtype=torch.uint8)
             return
-        os.makedirs(self.scratch_dir, exist_ok=True)
+        if self.scratch_dir is not None:
+            os.makedirs(self.scratch_dir, exist_ok=True)
         handle, path = tempfile.mkstemp(prefix="frames-", suffix=".u8", dir=self.scratch_dir)
         os.close(handle)
         size = int(torch.Size(shape).numel())

@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 import torch
 from tensordict import TensorDictBase
 from torch import nn
-from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
@@ -347,13 +347,15 @@ class OffPolicyPipeline:
 
     def make_replay_buffer(self) -> ReplayBuffer:
         cfg = self.config
-        storage = LazyTensorStorage(cfg.replay_buffer_capacity, device=self.device)
+        on_disk = cfg.replay_buffer_storage == "memmap"
+        storage = (LazyMemmapStorage(cfg.replay_buffer_capacity, device=self.device) if on_disk
+                   else LazyTensorStorage(cfg.replay_buffer_capacity, device=self.device))
         if self.hindsight is not None:
             return HindsightReplayBuffer(storage=storage, batch_size=cfg.batch_size, **self.hindsight)
         if self._stacks_frames():
             return FrameReplayBuffer(storage=storage, batch_size=cfg.batch_size, capacity=cfg.replay_buffer_capacity,
                                      frame_stack=cfg.frame_stack, channels=self.image_shape[0] // cfg.frame_stack,
-                                     observation_key=self.observation_key)
+                                     observation_key=self.observation_key, memmap=on_disk)
         return ReplayBuffer(storage=storage, batch_size=cfg.batch_size)
 
     def _stacks_frames(self) -> bool:

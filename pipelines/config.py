@@ -145,6 +145,16 @@ ENV_KWARGS = Check(lambda v: not set(v) & set(ENV_KWARGS_RESERVED),
                              f"`seed` key seeds the env, videos choose the render mode)")
 
 
+def duration_seconds(text: str | float | int) -> float | None:
+    """Seconds of a duration written ``90``, ``90s``, ``10m`` or ``2h`` (a positive number); None if it is not one."""
+    import re
+
+    found = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([smh]?)\s*", str(text))
+    if found is None or float(found.group(1)) <= 0:
+        return None
+    return float(found.group(1)) * {"": 1, "s": 1, "m": 60, "h": 3600}[found.group(2)]
+
+
 def env_options(cfg, *, rescaled: bool = True) -> dict[str, Any]:
     """The keywords of ``rlpipe.envs.make_env`` that the config sets besides the env's own (``env_kwargs``);
     ``rescaled=False`` leaves out the rescaling, which the exported policy does itself."""
@@ -296,6 +306,8 @@ class TrainConfig:
     """env steps collected before updates begin; each later step pays for 1/`collect_steps_per_iteration` updates (null: `initial_collect_steps`, as TF-Agents does)"""
     replay_buffer_capacity: int = checked(100_000, POSITIVE)
     """transitions kept; the oldest are evicted first"""
+    replay_buffer_storage: str = checked("memory", one_of("memory", "memmap"))
+    """where the replay buffer keeps its transitions: 'memory', or 'memmap' (files in the system's temporary folder, memory-mapped: TorchRL's LazyMemmapStorage, and the image frame ring in a file), for a buffer larger than the memory"""
     batch_size: int = checked(256, POSITIVE)
     """transitions per update, sampled uniformly"""
     replay_all_keys: bool = False
@@ -344,6 +356,9 @@ class TrainConfig:
     """device of the learner ('cpu', 'cuda', 'cuda:1', ...)"""
     initial_collect_policy: str = checked("random", one_of("random", "collect"))
     """policy of the `initial_collect_steps`: 'random' (uniform actions, the DQN and actor-learner SAC tutorials) or 'collect' (the exploring policy of the untrained networks, the older SAC tutorial's driver)"""
+    time_budget: str | None = checked(None, Check(lambda v: duration_seconds(v) is not None,
+                                                  "a duration such as 90s, 10m or 2h (a number alone: seconds), or null"))
+    """end the run once its wall-clock time (every session of a resumed run, evaluations and saving included) reaches this, at the end of the collected block that crosses it; null: no budget"""
     target_return: float | None = None
     """stop training once the mean return of the last `target_window` finished training episodes is at least this and a greedy evaluation of `target_eval_episodes` episodes confirms it (summary.json's "target" records when); null: train for `num_iterations`"""
     target_window: int = checked(5, POSITIVE)

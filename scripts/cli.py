@@ -184,6 +184,10 @@ def cmd_train(args) -> int:
     print(f"{s['iterations']} iterations, {s['frames']} env steps, {s['updates']} updates in {s['wall_time_s']:.0f} s "
           f"({s['env_steps_per_s'] or 0:.0f} env steps/s, {s['updates_per_s'] or 0:.0f} updates/s while training)")
     print(f"run directory: {result.run_dir}")
+    why = {"target": f"the target return {result.summary.get('target', {}).get('return')} was reached",
+           "time_budget": f"the time budget {getattr(pipeline.config, 'time_budget', '')} was spent",
+           "num_iterations": f"its last iteration came (num_iterations={s['iterations']})"}
+    print(f"stopped because {why.get(s['stopped_because'], s['stopped_because'])}")
     return 0
 
 

@@ -112,9 +112,11 @@ def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, devic
     per_block_transition = transition_bytes(env)
     obs_dim = int(env.observation_spec[obs].shape[-1]) if obs in env.observation_spec.keys() else 1
     c = cfg.collector
+    # a memory-mapped buffer (replay_buffer_storage=memmap) lives on disk: the page cache holds what it can
+    in_memory = getattr(cfg, "replay_buffer_storage", "memory") == "memory"
     parts: list[tuple[str, str, int]] = [
         ("replay_buffer_capacity", f"the replay buffer ({cfg.replay_buffer_capacity} transitions of "
-         f"{_human(per_transition)})", cfg.replay_buffer_capacity * per_transition),
+         f"{_human(per_transition)})", cfg.replay_buffer_capacity * per_transition if in_memory else 0),
         ("batch_size", f"the sampled batches ({cfg.batch_size} transitions)", 2 * cfg.batch_size * per_transition),
         ("collector.frames_per_batch", f"the collected blocks ({c.frames_per_batch} env steps per block)",
          (c.workers + 1) * c.frames_per_batch * per_block_transition),
@@ -133,7 +135,7 @@ def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, devic
     where = "this machine" if device.type == "cpu" else str(device)
     if key == "replay_buffer_capacity":
         fits = max(0, available - (total - need)) // per_transition
-        expected = f"expected replay_buffer_capacity at most about {fits}"
+        expected = f"expected replay_buffer_capacity at most about {fits}, or replay_buffer_storage=memmap (on disk)"
     else:
         expected = "expected smaller values"
     if key in networks:

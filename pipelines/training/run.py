@@ -98,6 +98,8 @@ class Run:
     def finish(self, loop: Loop) -> TrainResult:
         """summary.json and the report page of the finished run; what ``train`` hands back."""
         summary = self.summary(loop.state, loop.evaluations, loop.clock)
+        # why the run ended: a trigger's reason (the target, the time budget), else its last iteration
+        summary["stopped_because"] = loop.finished_early or "num_iterations"
         for trigger in loop.triggers.values():
             summary.update(getattr(trigger, "summary", lambda _: {})(loop))  # a trigger not made from ``Trigger``: none
         write_json_atomic(loop.run_dir.summary_path, summary)

@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.export import export_policy
-from rlpipe.pipelines.config import TrainConfig, env_options
+from rlpipe.pipelines.config import TrainConfig, duration_seconds, env_options
 from rlpipe.pipelines.training.evaluations import Evaluations, eval_line
 from rlpipe.pipelines.training.state import EVAL, EXPORT, LOG, SAVE, TARGET, VIDEO
 from rlpipe.pipelines.workers.evaluation import evaluate
@@ -61,7 +61,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "EVAL", "EXPORT", "LOG", "SAVE", "TARGET", "VIDEO",
-    "CheckpointTrigger", "EvalTrigger", "ExportTrigger", "IntervalTrigger", "LogTrigger", "TargetTrigger", "Trigger",
+    "CheckpointTrigger", "EvalTrigger", "ExportTrigger", "IntervalTrigger", "LogTrigger", "TargetTrigger",
+    "TimeBudgetTrigger", "Trigger",
     "VideoTrigger",
     "crossed", "default_triggers", "eval_line", "log_line",
 ]
@@ -356,6 +357,26 @@ class TargetTrigger(Trigger):
         }}
 
 
+class TimeBudgetTrigger(Trigger):
+    """``time_budget``: ends the run (``loop.finish_early("time_budget")``) at the end of the collected block in
+    which the run's wall-clock time, every session of a resumed run included, reaches the budget."""
+
+    name = "time_budget"
+
+    def __init__(self, seconds: float, text: str):
+        super().__init__(1)
+        self.seconds, self.text = seconds, text
+
+    def due(self, previous: int, now: int, last: int) -> bool:
+        return False  # polled after every block instead
+
+    def poll(self, loop: Loop) -> None:
+        if loop.finished_early is None and loop.clock.wall() >= self.seconds:
+            loop.echo(f"step = {loop.state.iteration}: time budget {self.text} reached after "
+                      f"{loop.clock.wall():.0f} s; training stops")
+            loop.finish_early("time_budget")
+
+
 def default_triggers(cfg: TrainConfig) -> list[Trigger]:
     """The tutorials' triggers, in the order they run within an iteration (and in the final firing)."""
     triggers = [
@@ -369,6 +390,8 @@ def default_triggers(cfg: TrainConfig) -> list[Trigger]:
     if cfg.target_return is not None:
         triggers.append(TargetTrigger(cfg.target_return, cfg.target_window, cfg.target_eval_episodes,
                                       cfg.target_recheck_episodes))
+    if cfg.time_budget is not None:
+        triggers.append(TimeBudgetTrigger(duration_seconds(cfg.time_budget), str(cfg.time_budget)))
     return triggers
 
 
