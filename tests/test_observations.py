@@ -7,6 +7,7 @@ The envs are a user's own, in a module on sys.path, named ``module:Class`` as on
 from __future__ import annotations
 
 import json
+import os
 import sys
 import textwrap
 
@@ -238,10 +239,14 @@ def test_frame_buffer_stores_each_frame_once_and_gives_back_the_stacks(envs_modu
     a, b = _image_steps(envs_module, 0, 0), _image_steps(envs_module, 1, 1000)
     blocks = [part for i in range(0, 120, 40) for part in (a[i:i + 40], b[i:i + 40])]
 
-    def buffer():
+    def buffer(memmap=False):
         return FrameReplayBuffer(storage=LazyTensorStorage(500), batch_size=32, capacity=500, frame_stack=3,
-                                 channels=3)
+                                 channels=3, memmap=memmap)
 
+    rb = buffer(memmap=True)  # replay_buffer_storage=memmap: the ring in a file, unlinked once mapped
+    for block in blocks[:1]:
+        rb.extend(block)
+    assert rb.frames.untyped_storage().filename is not None and not os.path.exists(rb.frames.untyped_storage().filename)
     rb = buffer()
     for block in blocks:
         rb.extend(block)
