@@ -145,6 +145,10 @@ ENV_KWARGS = Check(lambda v: not set(v) & set(ENV_KWARGS_RESERVED),
                              f"`seed` key seeds the env, videos choose the render mode)")
 
 
+LOGGERS = {"tensorboard": None, "csv": None, "wandb": "wandb", "mlflow": "mlflow"}
+"""the ``logger`` choices and the package each needs beyond rlpipe's own"""
+
+
 def duration_seconds(text: str | float | int) -> float | None:
     """Seconds of a duration written ``90``, ``90s``, ``10m`` or ``2h`` (a positive number); None if it is not one."""
     import re
@@ -330,6 +334,8 @@ class TrainConfig:
     """episodes of the random agent played once before training for its baseline return (RUN/baseline.json, the DQN tutorial's); -1: num_eval_episodes; 0: no baseline"""
     eval_in_background: bool = False
     """evaluate in a separate process on a snapshot of the policy while training goes on; results land at the iteration they were taken"""
+    logger: str = checked("tensorboard", one_of(*LOGGERS))
+    """where the metrics go besides RUN/metrics.csv (TorchRL's loggers): 'tensorboard' (RUN/tb), 'csv' (RUN/csv), 'wandb' (Weights & Biases, project 'rlpipe', files in RUN/wandb; WANDB_MODE=offline runs without a network; pip install 'rlpipe[wandb]') or 'mlflow' (an MLflow file store in RUN/mlruns; pip install 'rlpipe[mlflow]'); the run's config is logged once as its hyperparameters"""
     live_report: bool = True
     """refresh RUN/report.html and RUN/returns.png while the run goes on, at evaluations and log rows (the first of each at once, later ones within ~2% of the run's time); false: at the end only, and when the run stops early (a preset sized for time to a target: the first page costs about a second, a tenth of a Pendulum run)"""
     eval_timeout: float = checked(600.0, POSITIVE)
@@ -413,6 +419,10 @@ def validate(cfg, *, machine: bool = True) -> None:
     if cfg.cudagraph and str(cfg.device).split(":")[0] != "cuda":
         raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
                          "cudagraph=false or null on this device")
+    package = LOGGERS.get(cfg.logger)
+    if package and importlib.util.find_spec(package) is None:
+        raise InputError(f"logger={cfg.logger}: {package} is not installed; expected `pip install 'rlpipe[{cfg.logger}]'` "
+                         "(or logger=tensorboard)")
     c = cfg.collector
     needs = COLLECTOR_BACKENDS[c.backend]  # a known name: its field's rule ran above
     if needs.package and importlib.util.find_spec(needs.package) is None:

@@ -18,11 +18,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from torchrl.record.loggers import Logger, TensorboardLogger
+from torchrl.record.loggers import Logger
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.files import STORAGE_ERRNOS, FileWriteError, write_json_atomic
+from rlpipe.pipelines.artifacts.loggers import close_logger, run_logger
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_dir, notice
 from rlpipe.pipelines.config import config_to_dict
 from rlpipe.pipelines.errors import InputError
@@ -76,10 +77,11 @@ class Run:
                 return self._unchanged(run)
             finally:
                 run.close()
-        loop = None
+        loop, own_logger = None, None
         try:
-            with FileWriteError.on_failure(run.path / "tb"):
-                logger = logger or TensorboardLogger(exp_name="tb", log_dir=str(run.path))
+            if logger is None:
+                with FileWriteError.on_failure(run.path):
+                    logger = own_logger = run_logger(pipeline.config, run.path, fresh)
             loop = Loop(pipeline, run, metrics, fresh=fresh, evaluations=evaluations, triggers=triggers,
                         logger=logger, callbacks=callbacks, progress=progress)
             with torch_threads(pipeline.config.num_threads), running(loop.stop):
@@ -93,6 +95,8 @@ class Run:
         except FileWriteError as exc:
             raise self._stopped_writing(exc, loop) from exc
         finally:
+            if own_logger is not None:
+                close_logger(own_logger)
             run.close()
 
     def finish(self, loop: Loop) -> TrainResult:
