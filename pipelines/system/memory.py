@@ -135,7 +135,7 @@ def check_memory(cfg, env: EnvBase, observation_key: str, action_dim: int, devic
     where = "this machine" if device.type == "cpu" else str(device)
     if key == "replay_buffer_capacity":
         fits = max(0, available - (total - need)) // per_transition
-        expected = f"expected replay_buffer_capacity at most about {fits}, or replay_buffer_storage=memmap (on disk)"
+        expected = f"expected replay_buffer_storage=memmap (on disk), or replay_buffer_capacity at most about {fits}"
     else:
         expected = "expected smaller values"
     if key in networks:
