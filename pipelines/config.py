@@ -365,6 +365,14 @@ class TrainConfig:
     time_budget: str | None = checked(None, Check(lambda v: duration_seconds(v) is not None,
                                                   "a duration such as 90s, 10m or 2h (a number alone: seconds), or null"))
     """end the run once its wall-clock time (every session of a resumed run, evaluations and saving included) reaches this, at the end of the collected block that crosses it; null: no budget"""
+    plateau: float = checked(0.0, Check(lambda v: 0.0 <= v < 1.0, "a fraction of the run in [0, 1) (0: off)"))
+    """end the run at a plateau: once no greedy evaluation has beaten the best one for this fraction of the run's iterations so far, and for at least `plateau_evaluations` evaluations (0.5: the best came in the first half of the run); 0: off"""
+    plateau_evaluations: int = checked(5, POSITIVE)
+    """evaluations after the best one that a plateau needs at least (with `plateau`)"""
+    plateau_min_iterations: int = checked(0, NON_NEGATIVE)
+    """iterations before which a plateau does not end the run (a sparse-reward env may evaluate flat for a while before it learns)"""
+    keep_best: bool = False
+    """keep the weights of the best greedy evaluation so far (in every checkpoint) and export them as policy/policy.onnx at the end, the last policy beside it as policy/step_NNNNNNN.onnx; false: policy/ is the last policy"""
     target_return: float | None = None
     """stop training once the mean return of the last `target_window` finished training episodes is at least this and a greedy evaluation of `target_eval_episodes` episodes confirms it (summary.json's "target" records when); null: train for `num_iterations`"""
     target_window: int = checked(5, POSITIVE)

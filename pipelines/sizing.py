@@ -51,8 +51,12 @@ a task"), written once for every env:
   and SB3's train_freq): a classic-control step costs ~0.1 ms in the learner's process and an update ~0.7, so the
   updates are the run's time (Acrobot-v1, seeds 0-4: ~4,000 updates to -100 against ~8,000 at one a step, for
   ~1.7x the env steps; BENCHMARKS.md, "The sized default and the development suite");
-- a budget of 100 episodes of the time limit (of the random agent's episodes where the env has none), at
-  least 50,000 and at most 1,000,000 env steps, with a replay buffer that keeps them all.
+- schedules (DQN's epsilon) sized to 100 episodes of the time limit (of the random agent's episodes where the env
+  has none), at least 50,000 and at most 1,000,000 env steps; the run goes on past them while its greedy evaluations
+  improve: it ends at a plateau (``plateau``: no better evaluation over the last half of the run, from those 100
+  episodes on) or at a ceiling of 1,000 episodes, at most 1,000,000 env steps (the peers' length for the 1,000-step
+  MuJoCo envs), with a replay buffer that keeps them all; evaluations at most 10,000 env steps apart, and the best
+  one's policy is what ``policy/`` exports (``keep_best``).
 
 ``resolve_for_env`` is what ``rlpipe train`` asks first: for ``env=ID`` with no preset, or a tutorial preset
 (``sac``, ``td3``, ``dqn``) pointed at another env, the preset sized for that env and algorithm where one
@@ -83,6 +87,15 @@ LONG_EPISODE_N_STEP = 3
 """SAC's n-step returns where the limit is LONG_EPISODE steps or more and random episodes last a tenth of it"""
 LONG_RANDOM_EPISODE = 0.1
 """the fraction of the time limit from which a random agent's episodes count as long (for n-step returns)"""
+CEILING_EPISODES = 1000
+"""the env-step ceiling: 1,000 episodes of the time limit, at most 1,000,000 env steps (the peers' length for the
+1,000-step MuJoCo envs), at least the 100 episodes the schedules are sized to"""
+PLATEAU = 0.5
+"""the sized run ends once its best greedy evaluation lies in the first half of the run (``plateau``)"""
+EVAL_EVERY = 10_000
+"""env steps between the sized run's evaluations at most"""
+IMAGE_EVAL_EVERY = 50_000
+"""the same for an image env's DQN (an Atari evaluation's ten games cost what ~10,000 training env steps do)"""
 NO_TIME_LIMIT_STEPS = 1000
 """an episode of an env with no time limit is cut here when the random agent plays it"""
 
@@ -203,6 +216,12 @@ def _random_agent(env) -> tuple[int | None, tuple[float, float]]:
     return limit, (sum(returns) / len(returns), sum(lengths) / len(lengths))
 
 
+def _eval_interval(iterations: int, per_update: int, every: int = EVAL_EVERY) -> int:
+    """Iterations between evaluations: a tenth of the run, at least 1,000 iterations, at most ``every`` env steps
+    (the plateau rule and the best policy need evaluations throughout a long run)."""
+    return max(1000, min(_round_up(iterations / 10, 1000), every // per_update))
+
+
 def _round_up(x: float, unit: int) -> int:
     return int(math.ceil(x / unit) * unit)
 
@@ -217,7 +236,10 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     width = 64 if facts.observation_size <= 64 else min(256, 2 ** math.ceil(math.log2(facts.observation_size)))
     random_steps = min(5000, max(1000, _round_up(5 * facts.random_episode_length, 50)))
     episode = facts.time_limit or max(1, round(facts.random_episode_length))  # no limit: as long as it lasts
-    budget = min(1_000_000, max(50_000, 100 * episode))
+    # the schedules (epsilon's decay) are sized to 100 episodes; the run may go on to the ceiling, ended
+    # before it by a plateau of its greedy evaluations
+    horizon = min(1_000_000, max(50_000, 100 * episode))
+    budget = max(horizon, min(1_000_000, CEILING_EPISODES * episode))
     big_body = not facts.discrete and facts.action_size >= 3
     one_actuator = not facts.discrete and facts.action_size == 1
     in_process = not big_body or facts.cpus < 2
@@ -233,8 +255,9 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
     keys = dict(
         env=facts.env, num_iterations=iterations, initial_collect_steps=random_steps, replay_buffer_capacity=budget,
         initial_eval=False, baseline_episodes=0, live_report=not in_process, num_threads=1, num_eval_episodes=10,
-        eval_interval=max(1000, _round_up(iterations / 10, 1000)), log_interval=500 if budget <= 100_000 else 1000,
-        checkpoint_interval=min(25_000, iterations), policy_save_interval=iterations,
+        eval_interval=_eval_interval(iterations, per_update), log_interval=500 if budget <= 100_000 else 1000,
+        checkpoint_interval=min(25_000, iterations), policy_save_interval=iterations, plateau=PLATEAU, keep_best=True,
+        plateau_min_iterations=min(iterations, (horizon - random_steps) // per_update),
         collector=CollectorConfig(workers=1, sync=in_process),
     )
     net = [width, width]
@@ -271,7 +294,6 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
         # the MinAtar paper's DQN (Young & Tian 2019) for small grids, the Nature DQN's for pictures: Adam at their
         # rates, batch 32, a target copy every 1,000 env steps, epsilon to 0.01 (0.1 for MinAtar) over a tenth
         small = net == [128]
-        decay = max(5000, _round_up(budget / 10, 1000))
         rate, end = (2.5e-4, 0.1) if small else (1e-4, 0.01)
         per_update = 1 if small else 4
         budget = 1_000_000
@@ -281,19 +303,22 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
                     collect_steps_per_iteration=per_update, clip_rewards=not small)
         iterations = (budget - random_steps) // per_update
         keys.update(num_iterations=iterations, replay_buffer_capacity=100_000 if small else budget,
-                    log_interval=1000, eval_interval=max(1000, _round_up(iterations / 10, 1000)),
-                    checkpoint_interval=min(25_000, iterations), policy_save_interval=iterations)
+                    log_interval=1000, eval_interval=_eval_interval(iterations, per_update, IMAGE_EVAL_EVERY),
+                    checkpoint_interval=min(25_000, iterations), policy_save_interval=iterations,
+                    plateau_min_iterations=min(iterations, 2 * decay // per_update))
         chosen += [f"lr {rate:g}", f"epsilon 1 -> {end:g} over {decay:,} steps",
                    f"an update every {per_update} env steps" if per_update > 1 else "an update every env step",
                    "the " + ("MinAtar paper's" if small else "Nature DQN's") + " settings"]
     else:
-        decay = max(5000, _round_up(budget / 10, 1000))
+        decay = max(5000, _round_up(horizon / 10, 1000))
         keys.update(fc_layer_params=net, learning_rate=2.3e-3, gamma=0.99, epsilon_greedy=1.0, epsilon_greedy_end=0.04,
                     epsilon_decay_steps=decay, target_update_period=20, collect_steps_per_iteration=per_update)
         chosen += ["lr 0.0023", f"epsilon 1 -> 0.04 over {decay:,} steps", f"an update every {per_update} env steps"]
     if whole_episodes:
         chosen += [f"gamma {gamma:g} (random episodes run to the {facts.time_limit:,}-step limit)"]
-    chosen += [f"{random_steps:,} random steps", f"{budget:,} env steps"]
+    chosen += [f"{random_steps:,} random steps",
+               f"until a plateau (no better greedy evaluation over the last {PLATEAU:.0%} of the run) "
+               f"or {budget:,} env steps, the best evaluation's policy exported"]
     where = ("env in the learner's process" if in_process else
              f"env in a collector process ({facts.action_size} actuators; {facts.cpus} CPUs)")
     cfg = Config(**keys)

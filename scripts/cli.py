@@ -186,7 +186,12 @@ def cmd_train(args) -> int:
     print(f"run directory: {result.run_dir}")
     why = {"target": f"the target return {result.summary.get('target', {}).get('return')} was reached",
            "time_budget": f"the time budget {getattr(pipeline.config, 'time_budget', '')} was spent",
+           "plateau": (f"a plateau: no greedy evaluation beat step {s.get('best_evaluation', {}).get('step')}'s over "
+                       f"the last {getattr(pipeline.config, 'plateau', 0):g} of the run (plateau)"),
            "num_iterations": f"its last iteration came (num_iterations={s['iterations']})"}
+    best = s.get("best_evaluation")
+    if best and best["exported"]:
+        print(f"policy: the best greedy evaluation's, step {best['step']} (AverageReturn = {best['average_return']:.2f})")
     print(f"stopped because {why.get(s['stopped_because'], s['stopped_because'])}")
     return 0
 

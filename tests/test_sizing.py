@@ -107,7 +107,26 @@ def test_the_rule_is_a_function_of_the_facts_alone():
     assert (dqn.fc_layer_params, dqn.learning_rate, dqn.epsilon_greedy_end, dqn.target_update_period) == (
         [64, 64], 2.3e-3, 0.04, 20)
     assert dqn.initial_collect_steps == 2500 and "3 actions" in line
-    assert dqn.collect_steps_per_iteration == 4 and dqn.num_iterations * 4 + 2500 <= 50_000
+    assert dqn.collect_steps_per_iteration == 4 and dqn.num_iterations * 4 + 2500 <= 500_000
+    assert dqn.epsilon_decay_steps == 5000  # a tenth of 100 episodes, not of the ceiling
+
+
+@pytest.mark.unit
+def test_the_run_goes_on_past_100_episodes_to_a_plateau_or_a_ceiling_of_1000_episodes_and_exports_its_best():
+    hopper = EnvFacts("Hopper-v5", False, 11, 3, (-1.0,) * 3, (1.0,) * 3, 1000, 14.6, 22.0, 2)
+    for facts, ceiling in ((CHEETAH, 1_000_000), (hopper, 1_000_000), (REACHER, 50_000), (IDP, 1_000_000),
+                           (dataclasses.replace(REACHER, time_limit=200), 200_000)):
+        cfg, line = sized_config("sac", facts)
+        per_update = cfg.collect_steps_per_iteration
+        assert cfg.replay_buffer_capacity == ceiling, facts
+        assert cfg.initial_collect_steps + cfg.num_iterations * per_update <= ceiling
+        assert (cfg.plateau, cfg.keep_best) == (0.5, True)
+        # a plateau ends it only after the 100 episodes the schedules are sized to (no sooner than before)
+        horizon = min(1_000_000, max(50_000, 100 * facts.time_limit))
+        assert cfg.plateau_min_iterations * per_update + cfg.initial_collect_steps == horizon
+        assert 1000 <= cfg.eval_interval and cfg.eval_interval * per_update <= 10_000
+        assert f"until a plateau (no better greedy evaluation over the last 50% of the run) or {ceiling:,} env steps" in line
+    validate(sized_config("sac", CHEETAH)[0])
 
 
 def test_the_facts_are_measured_the_same_way_every_time():

@@ -23,7 +23,8 @@ _LIBRARIES = ("torch", "torchrl", "tensordict", "numpy", "gymnasium", "mujoco", 
 
 NOT_ARITHMETIC = frozenset({
     "num_iterations", "log_interval", "checkpoint_interval", "checkpoint_keep", "policy_save_interval", "policy_keep",
-    "video", "live_report", "eval_timeout", "collector.timeout", "collector.max_restarts",
+    "video", "live_report", "eval_timeout", "collector.timeout", "collector.max_restarts", "time_budget", "plateau",
+    "plateau_evaluations", "plateau_min_iterations", "keep_best",
 })
 """config keys that say how long a run goes on and how it is recorded or supervised, never what it computes:
 a resume may change them and stay exact (checkpoints and log rows are written at safe points)"""

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from tensordict import TensorDictBase
@@ -25,6 +25,8 @@ from rlpipe.pipelines.workers.factory import backend_class
 from rlpipe.pipelines.workers.supervision import WorkerFailure
 
 if TYPE_CHECKING:
+    from torch import nn
+
     from rlpipe.pipelines.training.loop import Loop
 
 __all__ = ["Evaluations", "eval_line"]
@@ -73,7 +75,7 @@ class Evaluations:
         with loop.clock.paused():
             loop.pipeline.eval_env.set_seed(eval_seed(loop.config.seed, at["step"]))
             result = evaluate(loop.pipeline.eval_env, policy, loop.config.num_eval_episodes, interrupt=loop.stop.check)
-        self.record(result, at)
+        self.record(result, at, weights if weights is not None else AsyncEvaluator.snapshot)
 
     def take(self, block: bool = False, feed: bool = True) -> None:
         """Record the background evaluations that are back (``block``: wait for all of them); an
@@ -82,8 +84,9 @@ class Evaluations:
         while self.background is not None:
             try:
                 with loop.clock.paused() if block else contextlib.nullcontext():
-                    for at, result in self.background.results(block=block, feed=feed, interrupt=loop.stop.check):
-                        self.record(result, at)
+                    for at, result, weights in self.background.results(block=block, feed=feed,
+                                                                       interrupt=loop.stop.check):
+                        self.record(result, at, weights)
                 return
             except WorkerFailure as failure:
                 self._restart_evaluator(failure)
@@ -128,9 +131,19 @@ class Evaluations:
             except (RuntimeError, ValueError, EOFError, OSError) as exc:
                 failure = WorkerFailure("evaluator", f"the evaluator did not start again: {exc}")
 
-    def record(self, result: dict[str, Any], at: dict[str, int]) -> None:
+    def record(self, result: dict[str, Any], at: dict[str, int],
+               weights: TensorDictBase | Callable[[nn.Module], TensorDictBase] | None = None) -> None:
+        """An evaluation's result, taken at ``at`` of the policy's ``weights`` (or of the policy as it is now,
+        ``weights`` then being the function that snapshots it): its metrics row and live line, the best one so far
+        (``keep_best``: with its weights), and a plateau (``plateau``) that ends the run."""
         loop = self.loop
         loop.evaluations.append({**at, **result})
+        best = loop.state.best
+        if best is None or result["average_return"] > best["return"]:
+            if callable(weights):
+                weights = weights(loop.pipeline.policy)
+            kept = weights.detach().clone() if loop.config.keep_best and weights is not None else None
+            loop.state.best = {"at": dict(at), "return": float(result["average_return"]), "weights": kept}
         success = {"success_rate": result["success_rate"]} if "success_rate" in result else {}
         loop.log({"average_return": result["average_return"],
                   "average_episode_length": result["average_episode_length"], **success,
@@ -140,6 +153,22 @@ class Evaluations:
             with loop.clock.paused():  # returns.png from the evaluations in memory, and the page: at a bounded cost
                 loop.page.evaluated()
         loop.bar.set_postfix(avg_return=f"{loop.last_return:.1f}", refresh=False)
+        self._plateau(at)
+
+    def _plateau(self, at: dict[str, int]) -> None:
+        """End the run (``finish_early("plateau")``) when, from ``plateau_min_iterations`` on, the best evaluation
+        lies ``plateau`` of the run's iterations back and at least ``plateau_evaluations`` evaluations ago."""
+        loop, cfg = self.loop, self.loop.config
+        if (not cfg.plateau or loop.finished_early is not None or at["step"] >= cfg.num_iterations
+                or at["step"] < cfg.plateau_min_iterations):
+            return
+        best_step = loop.state.best["at"]["step"]
+        since = sum(1 for e in loop.evaluations if e["step"] > best_step)
+        if since >= cfg.plateau_evaluations and at["step"] - best_step >= cfg.plateau * at["step"]:
+            loop.echo(f"step = {at['step']}: plateau: the best greedy evaluation ({loop.state.best['return']:.6g}, "
+                      f"step {best_step}) is {since} evaluations and {at['step'] - best_step} iterations back, "
+                      f"over {cfg.plateau:g} of the run; training stops")
+            loop.finish_early("plateau")
 
     def measure_random_baseline(self) -> None:
         """The random agent's return on the eval env (the DQN tutorial's baseline), once per run: RUN/baseline.json.

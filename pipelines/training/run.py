@@ -35,7 +35,7 @@ from rlpipe.pipelines.training.meters import Clock
 from rlpipe.pipelines.training.page import ReportPage
 from rlpipe.pipelines.training.state import EVAL, RunState
 from rlpipe.pipelines.training.threads import choose_threads, torch_threads
-from rlpipe.pipelines.training.triggers import Trigger, default_triggers
+from rlpipe.pipelines.training.triggers import Trigger, default_triggers, kept_best
 from rlpipe.pipelines.workers.factory import backend_class
 
 if TYPE_CHECKING:
@@ -104,6 +104,10 @@ class Run:
         summary = self.summary(loop.state, loop.evaluations, loop.clock)
         # why the run ended: a trigger's reason (the target, the time budget), else its last iteration
         summary["stopped_because"] = loop.finished_early or "num_iterations"
+        best = loop.state.best
+        if best is not None:  # "exported": policy/policy.onnx is its policy (keep_best), not the last
+            summary["best_evaluation"] = {"step": best["at"]["step"], "frames": best["at"].get("frames"),
+                                          "average_return": best["return"], "exported": kept_best(loop) is not None}
         for trigger in loop.triggers.values():
             summary.update(getattr(trigger, "summary", lambda _: {})(loop))  # a trigger not made from ``Trigger``: none
         write_json_atomic(loop.run_dir.summary_path, summary)

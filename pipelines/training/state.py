@@ -71,6 +71,9 @@ class RunState:
     saved this state computed them; a resume compares its own with it"""
     config_changes: list[dict[str, Any]] = field(default_factory=list)
     """the config keys a resume changed: ``{"iteration": N, "changed": {key: [before, after]}}``, oldest first"""
+    best: dict[str, Any] | None = None
+    """the best greedy evaluation so far: ``{"at": position, "return": mean return, "weights": the policy's weights
+    (``keep_best``; else None)}``; a later one replaces it only by a higher return"""
 
     @classmethod
     def fresh(cls, cfg: TrainConfig) -> RunState:
@@ -124,6 +127,7 @@ class RunState:
             **({"inexact": self.inexact} if self.inexact is not None else {}),
             **({"arithmetic": self.arithmetic} if self.arithmetic is not None else {}),
             **({"config_changes": self.config_changes} if self.config_changes else {}),
+            **({"best": _best_state(self.best)} if self.best is not None else {}),
             **({"interval": self.interval} if self.interval is not None else {}),
             **({"workers": self.workers} if self.workers is not None else {}),
             **({"backend_metrics": self.backend_metrics} if self.backend_metrics is not None else {}),
@@ -144,9 +148,19 @@ class RunState:
         self.inexact = state.get("inexact")
         self.arithmetic = state.get("arithmetic")  # a checkpoint without it: None (a resume says it is not exact)
         self.config_changes = list(state.get("config_changes", []))
+        best = state.get("best")
+        self.best = None if best is None else {
+            "at": dict(best["at"]), "return": float(best["return"]),
+            "weights": None if best.get("weights") is None else TensorDict(best["weights"]).unflatten_keys("/")}
         self.interval = state.get("interval")
         self.workers = state.get("workers")
         self.backend_metrics = state.get("backend_metrics")
         # a checkpoint without trajectories: ids from 0, as its collector numbered them
         trajectories = state.get("trajectories", {})
         self.traj_offset, self.traj_next = int(trajectories.get("offset", 0)), int(trajectories.get("next", 0))
+
+
+def _best_state(best: dict[str, Any]) -> dict[str, Any]:
+    weights = best.get("weights")
+    return {"at": dict(best["at"]), "return": best["return"],
+            "weights": None if weights is None else dict(weights.flatten_keys("/").items())}

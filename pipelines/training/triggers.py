@@ -47,7 +47,7 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
-from rlpipe.pipelines.artifacts.export import export_policy
+from rlpipe.pipelines.artifacts.export import export_policy, step_name
 from rlpipe.pipelines.config import TrainConfig, duration_seconds, env_options
 from rlpipe.pipelines.training.evaluations import Evaluations, eval_line
 from rlpipe.pipelines.training.state import EVAL, EXPORT, LOG, SAVE, TARGET, VIDEO
@@ -223,6 +223,41 @@ class ExportTrigger(Trigger):
     def final(self, loop: Loop) -> None:
         if self.exported_at != loop.state.iteration:
             self(loop)
+        best = kept_best(loop)
+        if best is not None:
+            self.export_best(loop, best)
+
+    @staticmethod
+    def export_best(loop: Loop, best: dict[str, Any]) -> None:
+        """``keep_best``: ``policy.onnx/.pt2`` become the policy of the best evaluation (its weights put in the
+        policy for the export, then the last ones back); the last stays as its ``step_NNNNNNN`` files."""
+        pipeline = loop.pipeline
+        device = next(pipeline.policy.parameters()).device
+        last = best["weights"].to(device).to_module(pipeline.policy, return_swap=True)
+        try:
+            module = pipeline.exported_policy()
+        finally:
+            last.to_module(pipeline.policy)
+        info = {**pipeline.export_info(), "chosen": "best", "best": {
+            "step": best["at"]["step"], "env_steps": best["at"].get("frames"), "average_return": best["return"],
+            "last_step": loop.state.iteration, "last_average_return": loop.last_return}}
+        with loop.clock.paused():
+            export_policy(module, pipeline.observation_shape, loop.run_dir.policy_dir, info,
+                          dtype=pipeline.observation_dtype, entries=pipeline.observation_entries())
+        loop.echo(f"policy: the best greedy evaluation's (step {best['at']['step']}, AverageReturn "
+                  f"{best['return']:.6g}; the last, {loop.last_return:.6g}, is "
+                  f"policy/{step_name(loop.state.iteration, '.onnx')})")
+
+
+def kept_best(loop: Loop) -> dict[str, Any] | None:
+    """The best evaluation's record when ``keep_best`` makes it the exported policy: kept with its weights and
+    better than the last evaluation (else None: the last policy is the best)."""
+    best = loop.state.best
+    if not loop.config.keep_best or best is None or best.get("weights") is None or not loop.evaluations:
+        return None
+    if best["at"]["step"] == loop.state.iteration or best["return"] <= loop.evaluations[-1]["average_return"]:
+        return None
+    return best
 
 
 class CheckpointTrigger(Trigger):

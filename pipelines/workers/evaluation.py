@@ -177,7 +177,7 @@ class AsyncEvaluator:
             self._send(at, weights)
 
     def results(self, block: bool = False, feed: bool = True, interrupt: Callable[[], None] | None = None):
-        """Yield ``(position, result)`` of the evaluations that are back, oldest first.
+        """Yield ``(position, result, weights)`` of the evaluations that are back, oldest first.
 
         ``block``: wait for all of them (calling ``interrupt`` between polls); ``feed=False``: only
         take the one in flight, if it is back, and hand out no new request. Raises ``WorkerFailure``
@@ -199,10 +199,10 @@ class AsyncEvaluator:
                 if interrupt is not None:
                     interrupt()
                 continue
-            at, _ = self._in_flight
+            at, weights = self._in_flight
             self._in_flight = None
             self.pending.popleft()
-            yield at, result
+            yield at, result, weights
 
     def _overdue(self) -> WorkerFailure | None:
         """The failure of the evaluation in flight if it is past ``timeout``, else None."""
