@@ -92,5 +92,7 @@ def test_a_plateau_ends_the_run_and_the_best_evaluation_is_the_exported_policy(t
     best, info = load_policy(run / "policy")
     last, _ = load_policy(run / "policy", step=500)
     assert info["chosen"] == "best" and info["best"]["step"] == 0 and info["best"]["last_step"] == 500
+    page = (run / "report.html").read_text()  # the page says which policy was exported, and marks it
+    assert "exported policy" in page and "step 0, AverageReturn" in page and "plateau" in page
     observations = np.random.default_rng(0).uniform(-1, 1, (64, 2)).astype(np.float32)
     assert not np.allclose(best(observations), last(observations))  # 400 updates apart

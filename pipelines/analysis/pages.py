@@ -158,15 +158,6 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
 
     frame = pd.DataFrame(rows) if rows else pd.DataFrame(columns=["step", "average_return"])
     evals = pd.DataFrame(eval_rows) if eval_rows else pd.DataFrame(columns=["step", "average_return"])
-    figures = {
-        "returns": _svg_uri(run_returns_figure(
-            evals, title, baseline["average_return"] if baseline else None,
-            f"random agent ({baseline['episodes']} episodes)" if baseline else "random agent")),
-        "losses": _svg_uri(run_series_figure(frame, loss_columns, "Losses (mean over each log interval)",
-                                             {c: c.removeprefix("loss_") for c in loss_columns})),
-        "speed": _svg_uri(run_series_figure(frame, list(_SPEED_COLUMNS), "Speed (training time only)",
-                                            _SPEED_COLUMNS)),
-    }
     last_log = log_rows[-1] if log_rows else {}
     iteration = max((int(float(r["step"])) for r in rows), default=0)  # background evaluations land late
     of = f"{iteration:,} of {config.get('num_iterations', 0):,}"
@@ -174,6 +165,18 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
         running = RunDir(run).being_written()
     if running or (summary or {}).get("iterations") != iteration:
         summary = None  # not finished (any more): its figures are not the run's
+    exported_best = (summary or {}).get("best_evaluation")  # keep_best: the policy exported is this evaluation's
+    exported_best = exported_best if exported_best and exported_best.get("exported") else None
+    figures = {
+        "returns": _svg_uri(run_returns_figure(
+            evals, title, baseline["average_return"] if baseline else None,
+            f"random agent ({baseline['episodes']} episodes)" if baseline else "random agent",
+            best=(exported_best["step"], exported_best["average_return"]) if exported_best else None)),
+        "losses": _svg_uri(run_series_figure(frame, loss_columns, "Losses (mean over each log interval)",
+                                             {c: c.removeprefix("loss_") for c in loss_columns})),
+        "speed": _svg_uri(run_series_figure(frame, list(_SPEED_COLUMNS), "Speed (training time only)",
+                                            _SPEED_COLUMNS)),
+    }
     stopped = not summary and not running
     facts = [
         ("status", "finished" if summary else f"at iteration {of}" if running else
@@ -187,6 +190,12 @@ def write_run_report(run_dir: str | os.PathLike, out: str | os.PathLike | None =
         facts.insert(2, ("final SuccessRate" if summary else "last SuccessRate", eval_rows[-1].get("success_rate", "n/a")))
     if stopped:
         facts.append(("to continue it", f"rlpipe train {algo} --resume {run.resolve()}"))
+    if summary and summary.get("stopped_because"):
+        facts.append(("stopped because", summary["stopped_because"]))
+    if summary and exported_best:
+        facts.append(("exported policy", f"the best evaluation's: step {exported_best['step']:,}, AverageReturn "
+                                         f"{_fmt(exported_best['average_return'])} (the last is "
+                                         f"policy/step_{summary['iterations']:07d}.onnx)"))
     if summary:
         facts += [
             ("iterations / env steps / updates", f"{summary['iterations']:,} / {summary['frames']:,} / {summary['updates']:,}"),

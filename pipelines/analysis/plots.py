@@ -354,14 +354,18 @@ def figure_svg(fig: Figure) -> str:
 
 
 def run_returns_figure(evaluations: pd.DataFrame, title: str, baseline: float | None = None,
-                       baseline_label: str = "random agent") -> Figure:
-    """A run's return curve (the tutorials' plot), with the random agent's return as a dashed line."""
+                       baseline_label: str = "random agent", best: tuple[float, float] | None = None) -> Figure:
+    """A run's return curve (the tutorials' plot), with the random agent's return as a dashed line and, where
+    ``best`` (step, return) is given, the evaluation whose policy the run exported marked with a star."""
     xs, ys = _xy(evaluations)
     fig = _new_figure((7.0, 4.0))
     ax = fig.add_subplot()
     if xs.size:
         ax.plot(xs, ys, marker=_marker(xs.size), markersize=4, linewidth=1.8, color="tab:blue",
                 label="trained policy (AverageReturn)")
+    if best is not None:
+        ax.plot([best[0]], [best[1]], marker="*", markersize=14, linestyle="none", color="tab:orange",
+                label=f"exported policy: the best evaluation (step {best[0]:,.0f})")
     else:
         ax.text(0.5, 0.5, "no evaluation yet", ha="center", va="center", transform=ax.transAxes)
     if baseline is not None and math.isfinite(baseline):
