@@ -236,16 +236,17 @@ def test_the_background_evaluator_beside_the_backend_evaluates_the_snapshot_it_i
                                             pending=pending, start_timeout=300, watchdog=watchdog)
         try:
             worker = evaluator.worker_pid
-            evaluator.ask({"step": 1, "frames": 1, "updates": 0}, evaluator.snapshot(pipeline.policy))
+            sent = evaluator.snapshot(pipeline.policy)
+            evaluator.ask({"step": 1, "frames": 1, "updates": 0}, sent)
             with time_limit(600):
-                (at, result), = list(evaluator.results(block=True))
+                (at, result, evaluated), = list(evaluator.results(block=True))
         finally:
             evaluator.close()
     finally:
         watchdog.close()
         if held is not None:
             held.close()
-    assert at["step"] == 1 and not pending
+    assert at["step"] == 1 and not pending and evaluated is sent
     assert result["average_episode_length"] == 200 and -2000 < result["average_return"] <= 0, result  # Pendulum's
     assert worker != os.getpid() and wait_until(lambda: not _running(worker), 120)
 

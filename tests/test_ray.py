@@ -373,9 +373,10 @@ def test_an_evaluation_on_the_ray_actor_is_the_one_the_learner_makes(local_ray):
         with torch.no_grad():  # the learner goes on: the snapshot is what is evaluated
             for p in pipeline.policy.parameters():
                 p.add_(0.5)
-        (at, result), = list(evaluator.results(block=True))
+        (at, result, evaluated), = list(evaluator.results(block=True))
     finally:
         evaluator.close()
+    assert evaluated is weights  # what keep_best keeps when this evaluation is the best
     policy = copy.deepcopy(pipeline.policy)
     weights.to_module(policy)
     # each evaluation's episodes come from the run's seed and that evaluation's step (issue 23)
