@@ -15,6 +15,8 @@
                                 [--threads SIDE=N ...] [--target-return R] [--cap-scale X] [--cap SIDE=STEPS ...]
                                 [--side-seeds SIDE=N ...] [--seed FIRST] [--preset P] [--also-preset P] [--no-crossq]
                                 [--torchrl-sota DIR] [key=value ...]
+    rlpipe bench anytime --envs ID ... [--algos sac] [--budget 10m] [--marks 10] [--peers sbx sb3 | none] [--seeds 3]
+                         [--seed FIRST] [--eval-episodes 10] [--threads SIDE=N ...] [--preset P] [key=value ...]
 
 ``profile`` is not a comparison: it runs ``rlpipe train PRESET`` under py-spy once learning has
 started and prints the share of each part (replay sample, update forward/backward, optimiser,
@@ -31,6 +33,9 @@ measured, beside the floor and the stacks stored as they come (``scripts/bench/r
 ``time-to-return``: seconds from launching a command to a trained agent (a target return, judged
 the same way for every side), rlpipe's presets against CleanRL, SB3, SBX and TorchRL's own recipes, interleaved over seeds
 (``scripts/bench/time_to_return.py``; issue 21).
+``anytime``: the greedy return each side has at fixed wall-clock times within ``--budget``, rlpipe's default run
+(its exported policy and its last) against SBX/SB3 with RL-Zoo's settings, with 95% bands across seeds
+(``scripts/bench/anytime.py``).
 
 Each prints a Markdown table (paste it into BENCHMARKS.md with the command) and, with ``--json``,
 writes the raw figures. These machines are shared and noisy: compare the ratios within one run.
@@ -56,7 +61,8 @@ from pathlib import Path
 def add_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks: speed and learning against named peers")
     bench.add_argument("target", choices=["dqn", "td3", "sac", "minitaur", "floor", "cleanrl", "gpu", "profile",
-                                          "collect", "ray", "time-to-return", "threads", "replay-memory"])
+                                          "collect", "ray", "time-to-return", "threads", "replay-memory",
+                                          "anytime"])
     bench.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for the rlpipe runs (profile: PRESET first)")
     bench.add_argument("--seeds", type=int, help="seeds per side (default 3; time-to-return: 5)")
     bench.add_argument("--preset", help="preset to run (default: the target's tutorial preset)")
@@ -109,6 +115,11 @@ def add_parser(sub) -> None:
                        "tfagents=1: the Minitaur tutorial's run, timed once per page revision as issue 21 allows)")
     bench.add_argument("--no-crossq", action="store_true", help="time-to-return: leave out the CrossQ side "
                        "(played by default on every task that has a CrossQ preset)")
+    bench.add_argument("--budget", default="10m", help="anytime: each run's wall-clock time (600, 90s, 10m, 2h; "
+                       "default 10m)")
+    bench.add_argument("--marks", type=int, default=10, help="anytime: evaluation times, evenly spaced over --budget "
+                       "(default 10)")
+    bench.add_argument("--eval-episodes", type=int, default=10, help="anytime: greedy episodes per evaluation (default 10)")
     bench.set_defaults(func=run)
 
 
@@ -117,6 +128,10 @@ def run(args) -> int:
 
     if args.seeds is None:
         args.seeds = 5 if args.target == "time-to-return" else 3
+    if args.target == "anytime":  # refused before anything is built or written
+        from rlpipe.scripts.bench.anytime import check_args as check_anytime_args
+
+        check_anytime_args(args)
     if args.seeds <= 0:
         raise InputError(f"--seeds={args.seeds}: expected a positive integer")
     if args.target == "time-to-return":  # refused before anything is built or written

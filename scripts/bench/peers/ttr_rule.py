@@ -125,3 +125,61 @@ def register_minitaur(path: str | None) -> None:
     if "MinitaurBulletEnv-v0" not in gymnasium.registry:
         gymnasium.register(id="MinitaurBulletEnv-v0", entry_point="rlpipe_minitaur:MinitaurBulletEnv",
                            max_episode_steps=1000)
+
+
+ANYTIME_PREFIX = "ANYTIME "
+LAUNCH_ENV = "RLPIPE_BENCH_LAUNCH_UNIX"
+"""the environment variable in which ``rlpipe bench anytime`` hands a runner the moment just before its launch"""
+
+
+class Marks:
+    """``rlpipe bench anytime``'s rule, for every side's runner: at each of ``marks`` (seconds of the run's own
+    time since just before its command was launched, imports counted, the rule's evaluations left out) the policy
+    is played greedily for ``eval_episodes`` episodes on an env of its own, seeded by the mark alone
+    (``episode_seed``); the run stops after the last mark. The result is one line, ``ANYTIME {json}``."""
+
+    def __init__(self, marks: list[float], eval_episodes: int = 10, launch_unix: float | None = None):
+        import os
+
+        self.marks = [float(m) for m in marks]
+        self.eval_episodes = int(eval_episodes)
+        self.launch = float(launch_unix if launch_unix is not None else os.environ.get(LAUNCH_ENV, time.time()))
+        self.excluded = 0.0
+        self.points: list[dict] = []
+
+    @classmethod
+    def from_spec(cls, spec: dict) -> Marks | None:
+        return cls(spec["marks"], spec.get("eval_episodes", 10)) if spec.get("marks") else None
+
+    def elapsed(self) -> float:
+        """The run's own seconds so far: since just before the launch, less the rule's evaluations."""
+        return time.time() - self.launch - self.excluded
+
+    def due(self) -> bool:
+        return len(self.points) < len(self.marks) and self.elapsed() >= self.marks[len(self.points)]
+
+    def done(self) -> bool:
+        return len(self.points) >= len(self.marks)
+
+    def episode_seed(self, k: int) -> int:
+        """The seed of the mark's ``k``-th evaluation episode: the same for every side and every run seed."""
+        return 1_000_000 + 1_000 * len(self.points) + k
+
+    def record(self, evaluate: Callable[[], dict[str, tuple[list[float], list[int]]]], env_steps: int,
+               updates: int) -> None:
+        """Evaluate now (``evaluate()``: ``{policy name: (returns, lengths)}``), the time it takes left out."""
+        trained = self.elapsed()
+        began = time.time()
+        played = evaluate()
+        self.excluded += time.time() - began
+        point = {"mark_s": self.marks[len(self.points)], "trained_s": trained, "env_steps": int(env_steps),
+                 "updates": int(updates)}
+        for name, (returns, lengths) in played.items():
+            point[name] = {"return": sum(returns) / len(returns), "returns": list(map(float, returns)),
+                           "episode_length": sum(lengths) / len(lengths) if lengths else None}
+        self.points.append(point)
+
+    def emit(self, **extra) -> None:
+        print(ANYTIME_PREFIX + json.dumps({"points": self.points, "eval_episodes": self.eval_episodes,
+                                           "excluded_s": self.excluded, **extra}), flush=True)
+        sys.stderr.flush()

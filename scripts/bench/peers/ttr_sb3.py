@@ -11,6 +11,9 @@ deterministic evaluation reading its statistics frozen; ``replay_buffer_class``/
 zoo's HER settings, into SB3's ``HerReplayBuffer``). A Dict observation takes SB3's ``MultiInputPolicy``. A callback applies the shared rule (``ttr_rule.Rule``) to the
 Monitor's episode returns after every env step and stops ``learn`` once the target is confirmed by a
 deterministic evaluation (``model.predict(obs, deterministic=True)``) on an env of its own.
+
+With ``marks`` in the spec (``rlpipe bench anytime``), the callback applies ``ttr_rule.Marks`` instead: a greedy
+evaluation at each mark of wall-clock time, then the run stops after the last one.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import sys
 import time
 
 import numpy as np
-from ttr_rule import Rule, register_minitaur, versions
+from ttr_rule import Marks, Rule, register_minitaur, versions
 
 EVAL_SEED_OFFSET = 10_000
 _ROBOTICS = ("Fetch", "Hand", "PointMaze", "AntMaze", "Adroit", "FrankaKitchen")
@@ -153,10 +156,10 @@ def main(spec: dict) -> None:
 
     rule = Rule.from_spec(spec)
 
-    def evaluate(n: int) -> tuple[list[float], list[int]]:
+    def evaluate(n: int, seeds=None) -> tuple[list[float], list[int]]:
         returns, lengths = [], []
-        for _ in range(n):
-            obs, _ = eval_env.reset(seed=eval_seed[0])
+        for k in range(n):
+            obs, _ = eval_env.reset(seed=eval_seed[0] if seeds is None else seeds(k))
             eval_seed[0] += 1
             total, length, done = 0.0, 0, False
             while not done:
@@ -182,12 +185,27 @@ def main(spec: dict) -> None:
                 return True
             return not rule.check(evaluate, self.num_timesteps, getattr(self.model, "_n_updates", 0))
 
+    marks = Marks.from_spec(spec)
+
+    class Anytime(BaseCallback):
+        def _on_step(self) -> bool:
+            rule.step()
+            if marks.due():
+                marks.record(lambda: {"last": evaluate(marks.eval_episodes, marks.episode_seed)}, self.num_timesteps,
+                             getattr(self.model, "_n_updates", 0))
+            return not marks.done()
+
     import gymnasium
 
     policy = "MultiInputPolicy" if isinstance(env.observation_space, gymnasium.spaces.Dict) else "MlpPolicy"
     model = classes[algo](policy, env, seed=seed, verbose=0, **{k: v for k, v in hp.items() if k != "policy"})
     imported = time.time() - launch_import
-    model.learn(total_timesteps=int(spec["cap"]), callback=Target())
+    model.learn(total_timesteps=int(spec["cap"]), callback=Target() if marks is None else Anytime())
+    if marks is not None:
+        marks.emit(versions=versions(*names), lib=lib, hyperparams=spec.get("hyperparams"),
+                   hyperparams_source=spec.get("hyperparams_source"), threads=threads or "default", setup_s=imported,
+                   first_step_unix=rule.first_step_unix)
+        os._exit(0)
     rule.emit(model.num_timesteps, getattr(model, "_n_updates", 0), versions=versions(*names), lib=lib,
               hyperparams=spec.get("hyperparams"), hyperparams_source=spec.get("hyperparams_source"),
               threads=threads or "default", setup_s=imported)
