@@ -56,7 +56,8 @@ a task"), written once for every env:
   improve: it ends at a plateau (``plateau``: no better evaluation over the last half of the run, from those 100
   episodes on) or at a ceiling of 1,000 episodes, at most 1,000,000 env steps (the peers' length for the 1,000-step
   MuJoCo envs), with a replay buffer that keeps them all; evaluations at most 10,000 env steps apart, and the best
-  one's policy is what ``policy/`` exports (``keep_best``).
+  one's policy is what ``policy/`` exports (``keep_best``). With ``time_budget=`` the budget ends the run instead of a
+  plateau (the user's time is the run's length; the best policy is still the one exported).
 
 ``resolve_for_env`` is what ``rlpipe train`` asks first: for ``env=ID`` with no preset, or a tutorial preset
 (``sac``, ``td3``, ``dqn``) pointed at another env, the preset sized for that env and algorithm where one
@@ -70,7 +71,7 @@ import os
 from dataclasses import dataclass
 
 from rlpipe.modules.encoders import NATURE_MIN_SIZE
-from rlpipe.pipelines.config import CollectorConfig, TrainConfig, apply_overrides, flat_keys
+from rlpipe.pipelines.config import CollectorConfig, TrainConfig, apply_overrides, duration_seconds, flat_keys
 from rlpipe.pipelines.errors import InputError
 
 __all__ = ["EnvFacts", "Resolved", "measure", "resolve_for_env", "sized_config", "SIZED_ALGOS"]
@@ -226,8 +227,11 @@ def _round_up(x: float, unit: int) -> int:
     return int(math.ceil(x / unit) * unit)
 
 
-def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
-    """The config the rule gives ``algo`` on the env of ``facts``, and one line saying what and why."""
+def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None) -> tuple[TrainConfig, str]:
+    """The config the rule gives ``algo`` on the env of ``facts``, and one line saying what and why.
+
+    ``time_budget`` (the command's ``time_budget=``, e.g. ``10m``): the user's time is the run's length, so no
+    plateau ends it sooner (the best evaluation's policy is still the one exported)."""
     from rlpipe.pipelines import pipeline_class
 
     if algo not in SIZED_ALGOS:
@@ -316,9 +320,14 @@ def sized_config(algo: str, facts: EnvFacts) -> tuple[TrainConfig, str]:
         chosen += ["lr 0.0023", f"epsilon 1 -> 0.04 over {decay:,} steps", f"an update every {per_update} env steps"]
     if whole_episodes:
         chosen += [f"gamma {gamma:g} (random episodes run to the {facts.time_limit:,}-step limit)"]
-    chosen += [f"{random_steps:,} random steps",
-               f"until a plateau (no better greedy evaluation over the last {PLATEAU:.0%} of the run) "
-               f"or {budget:,} env steps, the best evaluation's policy exported"]
+    chosen += [f"{random_steps:,} random steps"]
+    if time_budget:
+        keys.update(plateau=0.0)
+        chosen += [f"until the time budget {time_budget} or {budget:,} env steps (no plateau stop: the time is "
+                   "yours), the best evaluation's policy exported"]
+    else:
+        chosen += [f"until a plateau (no better greedy evaluation over the last {PLATEAU:.0%} of the run) "
+                   f"or {budget:,} env steps, the best evaluation's policy exported"]
     where = ("env in the learner's process" if in_process else
              f"env in a collector process ({facts.action_size} actuators; {facts.cpus} CPUs)")
     cfg = Config(**keys)
@@ -400,7 +409,9 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
     kind = kind or measure(wanted, play=False)
     if kind.discrete != (pipeline_class(algo).action_space == "discrete"):
         return None  # the pipeline says, in its own line, which action space the algorithm needs
-    cfg, line = sized_config(algo, measure(wanted))
+    budget = next((o.partition("=")[2].strip() for o in reversed(overrides) if _key(o) == "time_budget"), None)
+    budget = budget if budget is not None and duration_seconds(budget) else None  # null; a bad one: its own line
+    cfg, line = sized_config(algo, measure(wanted), time_budget=budget)
     return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"])
 
 

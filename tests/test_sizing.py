@@ -129,6 +129,18 @@ def test_the_run_goes_on_past_100_episodes_to_a_plateau_or_a_ceiling_of_1000_epi
     validate(sized_config("sac", CHEETAH)[0])
 
 
+def test_a_time_budget_is_the_runs_length_no_plateau_ends_it_sooner():
+    resolved = resolve_for_env("env=Reacher-v5", ["time_budget=10m"])
+    cfg = apply_overrides(resolved.config, resolved.overrides)
+    assert (cfg.plateau, cfg.keep_best, cfg.time_budget) == (0.0, True, "10m")
+    assert "until the time budget 10m or 50,000 env steps (no plateau stop" in resolved.lines[-1]
+    # the user's own plateau= still wins; no budget (or time_budget=null): the plateau rule
+    resolved = resolve_for_env("env=Reacher-v5", ["time_budget=10m", "plateau=0.3"])
+    assert apply_overrides(resolved.config, resolved.overrides).plateau == 0.3
+    for off in ([], ["time_budget=null"]):
+        assert resolve_for_env("env=Reacher-v5", off).config.plateau == 0.5
+
+
 def test_the_facts_are_measured_the_same_way_every_time():
     cfg = apply_overrides(TrainConfig(), ["env=Reacher-v5"])
     first, second = measure(cfg), measure(cfg)
