@@ -437,20 +437,27 @@ def main(argv: list[str] | None = None, *, fork_server: bool | None = None) -> i
     when run as the program (``argv`` None), not when called from a program of its own with ``argv``.
 
     What cannot be shown is dropped (the reader of a pipe gone, the terminal closed, the descriptors closed): the
-    command goes on and ends with its own status."""
+    command goes on and ends with its own status. As the program, any number of stop signals end it as the first
+    asked (``runtime.hold_stops_to_exit``): 130, 143 or 129 and one line, never a traceback."""
     try:  # rlpipe.pipelines (numpy, the configs): the first import that takes time
-        from rlpipe.pipelines.system.runtime import open_closed_descriptors, output_dropped_when_gone
+        from rlpipe.pipelines.system import runtime
     except KeyboardInterrupt:
         with contextlib.suppress(OSError):
             os.write(2, b"rlpipe: interrupted\n")  # unbuffered: nothing is left to fail at the interpreter's exit
         return 130
-    open_closed_descriptors()
-    with output_dropped_when_gone():
+    program = argv is None  # the rlpipe program: its stops are held to its exit (a caller's own Python: not)
+    if program:
+        runtime.hold_stops_to_exit()
+    runtime.open_closed_descriptors()
+    with runtime.output_dropped_when_gone():
         try:
-            return _command(argv, fork_server)
-        except KeyboardInterrupt:  # while the command starts (its imports take seconds), or before or after a run
-            print("rlpipe: interrupted", file=sys.stderr)  # (a run's own Ctrl-C is answered in cmd_train)
-            return 130
+            status = _command(argv, fork_server)
+        except KeyboardInterrupt as exc:  # while the command starts (its imports take seconds), or around a run
+            signum = getattr(exc, "signum", signal.SIGINT)  # (a run's own stop is answered in cmd_train)
+            by = f" by {signal.Signals(signum).name}" if signum != signal.SIGINT else ""
+            print(f"rlpipe: interrupted{by}", file=sys.stderr)
+            status = 128 + int(signum)
+        return runtime.command_returned(status) if program else status
 
 
 def _command(argv: list[str] | None, fork_server: bool | None) -> int:

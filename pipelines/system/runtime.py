@@ -19,10 +19,11 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 __all__ = [
     "STOP_SIGNALS", "DeferredInterrupt", "DroppingStream", "Interrupted", "Stopped", "dropping", "fault_point", "fault_set",
-    "gc_frozen", "keep_freed_memory", "open_closed_descriptors", "output_dropped_when_gone", "say",
+    "command_returned", "gc_frozen", "hold_stops_to_exit", "keep_freed_memory", "open_closed_descriptors", "output_dropped_when_gone", "say",
     "WORKER_MODULES", "start_fork_server", "start_resource_tracker", "stop_signals_blocked",
 ]
 
@@ -91,7 +92,9 @@ class DeferredInterrupt:
             # None: the handler was not set from Python; the default one is the closest to it
             if previous is None:
                 previous = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
-            signal.signal(signum, previous)
+            # in a program that holds its stops to the exit (the rlpipe command), a stop once taken is its answer
+            # to every later one: the default action would end it by the signal, a KeyboardInterrupt in any code
+            signal.signal(signum, _latch if _held["on"] and _held["first"] is not None else previous)
         self._previous = {}
 
     # A second signal this soon after the first is the same stop delivered twice (the terminal's to
@@ -101,6 +104,8 @@ class DeferredInterrupt:
     def _handle(self, signum, frame) -> None:
         if self.immediate:
             raise Interrupted(signum)
+        if _held["first"] is None:
+            _held["first"] = signum
         if self.requested:
             if time.monotonic() - self._first < self.SAME_PRESS_S:
                 return
@@ -115,6 +120,78 @@ class DeferredInterrupt:
     def check(self) -> None:
         if self.requested:
             raise Stopped(self.signum)
+
+
+# --- a program's stops, held to its exit ----------------------------------------------------------------------
+
+# The first stop signal the process took ("first"), one taken once its command had returned ("late"), the status
+# the command returned, and whether the program holds its stops to the exit ("on": hold_stops_to_exit).
+_held: dict[str, Any] = {"on": False, "first": None, "late": None, "returned": None}
+
+
+def _latch(signum, frame) -> None:
+    """A stop signal after the one the program answers: noted, nothing else (see ``hold_stops_to_exit``)."""
+    if _held["first"] is None:
+        _held["first"] = signum
+    if _held["returned"] is not None and _held["late"] is None:
+        _held["late"] = signum
+
+
+def _signal_name(signum: int) -> str:
+    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+
+
+def hold_stops_to_exit() -> None:
+    """For a program (the ``rlpipe`` command, not a library call): any number of stop signals end it as the first
+    one asked, with one line and the status 128 + its number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP), never by the
+    signal's default action or a ``KeyboardInterrupt`` raised in code that does not expect one (a library's
+    exit hook). ``DeferredInterrupt`` answers the first; from then on later ones are noted (``_latch``);
+    ``command_returned`` gives the status; a stop during the interpreter's exit is answered by the exit hook
+    registered here (first, so it runs after every other)."""
+    import atexit
+
+    _held["on"] = True
+    atexit.register(_exit_as_signalled)
+    for signum in STOP_SIGNALS:  # outside a run's DeferredInterrupt: the first raises, as Ctrl-C always did
+        if signal.getsignal(signum) in (signal.SIG_DFL, signal.default_int_handler):
+            signal.signal(signum, _first_raises)
+
+
+def _first_raises(signum, frame) -> None:
+    """A stop signal where no run is under way (the command's imports, its work around a run): the first raises
+    ``Interrupted`` (a ``KeyboardInterrupt``: Ctrl-C's default), the later ones are noted."""
+    if _held["first"] is not None:
+        return _latch(signum, frame)
+    _held["first"] = signum
+    raise Interrupted(signum)
+
+
+def command_returned(status: int) -> int:
+    """The program's exit status once its command returned ``status``; from here on every stop signal is noted,
+    not obeyed. A stop taken during a command that went on to finish (it came after the last safe point: the end of
+    a run's work) is said, and the status is the signal's."""
+    for signum in STOP_SIGNALS:
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, _latch)
+    first = _held["first"]
+    if first is not None and status == 0:
+        say(f"rlpipe: {_signal_name(first)} came after the command's work was done: nothing was left to save")
+        status = 128 + int(first)
+    _held["returned"] = status
+    return status
+
+
+def _exit_as_signalled() -> None:
+    late = _held["late"]
+    if late is not None and _held["returned"] == 0:
+        say(f"rlpipe: {_signal_name(late)} while exiting: the command had finished, nothing was left to save")
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(128 + int(late))
+    for signum in STOP_SIGNALS:  # the interpreter's last steps: ignored (it restores the default for a Python handler)
+        if signal.getsignal(signum) is _latch:
+            signal.signal(signum, signal.SIG_IGN)
 
 
 # --- output that no one may be reading any more ---------------------------------------------------------
