@@ -269,11 +269,11 @@ def tables(figures: dict[str, Any]) -> str:
             cells = []
             for i in range(len(marks)):
                 mean = c["mean"][i]
-                band = f" [{c['low'][i]:.0f}, {c['high'][i]:.0f}]" if c["low"][i] is not None else ""
-                cells.append("—" if mean is None else f"{mean:.0f}{band}")
+                band = f" [{_r(c['low'][i])}, {_r(c['high'][i])}]" if c["low"][i] is not None else ""
+                cells.append("—" if mean is None else f"{_r(mean)}{band}")
             lines.append(f"| {curve} (mean [95% CI]) | " + " | ".join(cells) + " |")
             for seed, values in c["seeds"].items():
-                lines.append(f"| {curve}, seed {seed} | " + " | ".join("—" if v is None else f"{v:.0f}" for v in values)
+                lines.append(f"| {curve}, seed {seed} | " + " | ".join("—" if v is None else _r(v) for v in values)
                              + " |")
         for peer in PEERS:
             rows = sooner(figures, env, peer)
@@ -283,10 +283,14 @@ def tables(figures: dict[str, Any]) -> str:
                     at = (f"at {r['at_s']:.0f} s ({figures['budget_s'] / r['at_s']:.1f}x sooner)" if r["at_s"]
                           else "not within the budget")
                     lines.append(f"- seed {r['seed']}: {peer}'s return at {figures['budget_s']:.0f} s, "
-                                 f"{r['peer_return']:.0f}; rlpipe's exported policy had it {at}; rlpipe's at the "
-                                 f"budget {r['rlpipe_return']:.0f}")
+                                 f"{_r(r['peer_return'])}; rlpipe's exported policy had it {at}; rlpipe's at the "
+                                 f"budget {_r(r['rlpipe_return'])}")
     lines += ["", f"Curves with their bands: {figures['png']}"]
     return "\n".join(lines)
+
+
+def _r(x: float) -> str:
+    return f"{x:.0f}" if abs(x) >= 100 else f"{x:.1f}"
 
 
 def plot(figures: dict[str, Any], path: Path) -> Path:

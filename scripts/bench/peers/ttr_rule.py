@@ -166,14 +166,15 @@ class Marks:
         return 1_000_000 + 1_000 * len(self.points) + k
 
     def record(self, evaluate: Callable[[], dict[str, tuple[list[float], list[int]]]], env_steps: int,
-               updates: int) -> None:
-        """Evaluate now (``evaluate()``: ``{policy name: (returns, lengths)}``), the time it takes left out."""
+               updates: int, **extra) -> None:
+        """Evaluate now (``evaluate()``: ``{policy name: (returns, lengths)}``), the time it takes left out;
+        ``extra``: more fields of the point (``ended``: the run had ended by itself, why)."""
         trained = self.elapsed()
         began = time.time()
         played = evaluate()
         self.excluded += time.time() - began
         point = {"mark_s": self.marks[len(self.points)], "trained_s": trained, "env_steps": int(env_steps),
-                 "updates": int(updates)}
+                 "updates": int(updates), **extra}
         for name, (returns, lengths) in played.items():
             point[name] = {"return": sum(returns) / len(returns), "returns": list(map(float, returns)),
                            "episode_length": sum(lengths) / len(lengths) if lengths else None}
