@@ -16,7 +16,7 @@ import subprocess
 import threading
 
 import pytest
-from test_output_gone import HOLD, N, RUN, start, wait_held
+from test_output_gone import HOLD, RUN, N, start, wait_held
 
 
 def _storm(proc: subprocess.Popen, signum: int, every_s: float = 0.01) -> threading.Thread:

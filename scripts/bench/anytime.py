@@ -56,12 +56,9 @@ def check_args(args) -> tuple[float, list[float], list[str]]:
 
     if not getattr(args, "envs", None):
         raise InputError("anytime: expected --envs ID ... (the envs to train, e.g. --envs Hopper-v5)")
-    try:
-        budget = duration_seconds(args.budget)
-    except (ValueError, TypeError) as exc:
-        raise InputError(f"--budget {args.budget}: expected a duration such as 600, 90s, 10m or 2h") from exc
-    if not budget > 0:
-        raise InputError(f"--budget {args.budget}: expected a positive duration")
+    budget = duration_seconds(args.budget)
+    if budget is None:
+        raise InputError(f"--budget {args.budget}: expected a positive duration such as 600, 90s, 10m or 2h")
     if args.marks is None or args.marks < 1:
         raise InputError(f"--marks {args.marks}: expected a positive count of evaluation times")
     if args.eval_episodes < 1:
