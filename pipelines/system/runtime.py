@@ -102,10 +102,11 @@ class DeferredInterrupt:
     SAME_PRESS_S = 2.0
 
     def _handle(self, signum, frame) -> None:
+        seen, _held["first"] = _held["first"], _held["first"] or signum
         if self.immediate:
+            if _held["on"] and seen is not None:
+                return  # the program answers its first stop already (hold_stops_to_exit)
             raise Interrupted(signum)
-        if _held["first"] is None:
-            _held["first"] = signum
         if self.requested:
             if time.monotonic() - self._first < self.SAME_PRESS_S:
                 return
