@@ -8,7 +8,7 @@ writes ``docs/benchmarks/index.md`` (one table per question, each with its plot)
 from the committed JSON, so a figure on the site is always one a command wrote down.
 
 Which JSON answers which question is chosen below (``TIME_TO_TARGET``, ``UPDATES``, ``COLLECTION``,
-``GPU``): for each task and peer, the newest command that timed that pair; the older ones stay in
+``GPU``, ``ANYTIME``): for each task and peer, the newest command that timed that pair; the older ones stay in
 BENCHMARKS.md's log. A figure is never typed here: the script reads it from the file.
 """
 
@@ -333,6 +333,34 @@ def gpu() -> tuple[list[str], dict]:
     return lines, {case: [rate[case, mode] for mode in GPU_MODES] for case in cases}
 
 
+ANYTIME = ("2026-12-06-41bb2df-hopper-sbx.json",)
+"""``rlpipe bench anytime``'s files under scripts/results/anytime/: the return each side had at each wall-clock mark"""
+ANYTIME_HEADING = "The best agent in ten minutes: Hopper-v5, return against wall-clock (`rlpipe bench anytime`)"
+
+
+def anytime(link: str) -> list[str]:
+    """Per env of each ANYTIME file: every curve's mean greedy return and its 95% interval at five of its marks."""
+    lines = []
+    for name in ANYTIME:
+        data = _load("anytime", name)
+        marks = data["marks_s"]
+        shown = sorted({round(i * (len(marks) - 1) / 4) for i in range(5)})
+        seeds = data["seeds"]
+        for env in data["envs"]:
+            lines += [f"{env}, {len(seeds)} seeds ({seeds[0]}-{seeds[-1]}), {_when(name)} "
+                      f"([the command and every seed]({link}#{slug(ANYTIME_HEADING)})):", "",
+                      "| curve (mean [95% CI]) | " + " | ".join(f"{marks[i]:.0f} s" for i in shown) + " |",
+                      "|---|" + "---|" * len(shown)]
+            for curve, c in data["curves"][env].items():
+                cells = [("—" if c["mean"][i] is None else f"{c['mean'][i]:.0f}")
+                         + (f" [{c['low'][i]:.0f}, {c['high'][i]:.0f}]" if c["low"][i] is not None else "")
+                         for i in shown]
+                label = {"rlpipe": "rlpipe, exported (the kept best)", "rlpipe (last)": "rlpipe, the last policy"}
+                lines.append(f"| {label.get(curve, PEER_NAMES.get(curve, curve))} | " + " | ".join(cells) + " |")
+            lines.append("")
+    return lines
+
+
 def summary_block() -> str:
     """The summary BENCHMARKS.md opens with."""
     table, _ = time_to_target(None)
@@ -365,6 +393,12 @@ def index_page() -> str:
         "### Env steps per second", "",
         *col, "",
         "![Env steps per second, one env](collection.png)", "",
+        "## The best agent in the time you have", "",
+        "`rlpipe train env=ID time_budget=10m` as a user types it against the peer, each evaluated greedily at fixed "
+        "times of its own clock (from its launch, imports counted, the benchmark's evaluations left out) on the same "
+        "10 episodes; rlpipe's exported policy is what `policy/` would hold had the run ended there.", "",
+        *anytime("log.md"),
+        "![Greedy return against wall-clock time, mean and 95% band over seeds](anytime.png)", "",
         "## The training loop on a GPU", "",
         *gpu_lines, "",
         "![The training loop on a GPU](gpu.png)", "",
@@ -441,6 +475,10 @@ def draw(out: Path) -> list[Path]:
     ax.set_ylabel("env steps (= updates) per second")
     ax.legend(fontsize=8)
     save(fig, "gpu.png")
+
+    from rlpipe.scripts.bench import anytime as anytime_bench
+
+    written.append(anytime_bench.plot(_load("anytime", ANYTIME[-1]), out / "anytime.png"))
     return written
 
 
