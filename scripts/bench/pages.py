@@ -107,8 +107,6 @@ TIME_TO_TARGET = [
          "2026-12-03-23b0abf-lunarlander-sbx.json", "lunarlandercontinuous-sac", "sbx"),
     Pair("LunarLanderContinuous-v3 SAC to 200, sized default", "TorchRL's own recipes against rlpipe",
          "2026-12-03-fb86c42-torchrl-long.json", "lunarlandercontinuous-sac", "torchrl"),
-    Pair("Hopper-v5 SAC to 500, sized default (off the suite)", "The sized default and the development suite",
-         "2026-12-02-efd41b6-hopper-sized-sbx.json", "Hopper-v5", "sbx"),
     Pair("Acrobot-v1 DQN to -100, tuned 30 min", "The sized default and the development suite",
          "2026-12-02-d36e01a-acrobot-tuned-sbx.json", "acrobot-dqn", "sbx"),
     Pair("InvertedDoublePendulum-v5 SAC to 9,000, tuned 30 min", "The sized default and the development suite",
