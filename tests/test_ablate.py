@@ -275,6 +275,7 @@ TINY = ["ablate", "td3", "--envs", "Pendulum-v1", "--seeds", "1", "--steps", "30
 TINY_RUNS = [(variant, 0) for variant in ("full", "no_target_policy_smoothing")]  # in flight together (--workers 2)
 
 
+@pytest.mark.slow
 def test_killed_study_continues_to_the_results_of_an_uninterrupted_one(tmp_path):
     reference, stopped = tmp_path / "reference", tmp_path / "stopped"
     done = subprocess.run([*CLI, *TINY, "--out", str(reference)], capture_output=True, text=True, timeout=600)

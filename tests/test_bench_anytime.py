@@ -60,6 +60,7 @@ def test_bad_input_is_one_line_and_nothing_is_written(tmp_path, capsys, argv, sa
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_a_tiny_run_evaluates_rlpipes_exported_and_last_policy_at_each_mark(tmp_path, capsys):
     out, figures = tmp_path / "bench", tmp_path / "anytime.json"
     code = main(["bench", "anytime", "--envs", "Reacher-v5", "--budget", "16", "--marks", "2", "--peers", "none",

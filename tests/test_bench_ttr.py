@@ -152,6 +152,7 @@ def test_the_peers_load_minitaur_from_its_file_without_torch_or_rlpipe(tmp_path)
     assert "stepped (28,) float" in done.stdout
 
 
+@pytest.mark.slow
 def test_a_tiny_run_of_the_harness_times_rlpipe_to_a_low_target(tmp_path, capsys):
     from rlpipe.scripts.cli import main
 
@@ -173,6 +174,7 @@ def test_a_tiny_run_of_the_harness_times_rlpipe_to_a_low_target(tmp_path, capsys
     assert Path(data["png"]).stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_a_stopped_bench_ends_the_run_under_way_and_keeps_the_runs_it_finished(tmp_path):
     # Ctrl-C (the fault hook's SIGINT to the bench's process group) while the second run is under way
     out, figures = tmp_path / "bench", tmp_path / "ttr.json"
@@ -275,6 +277,7 @@ def test_the_torchrl_peer_needs_a_checkout_of_the_installed_release(dqn_checkout
         ttr.check_args(SimpleNamespace(**{**vars(args), "tasks": ["pendulum-sac"]}))
 
 
+@pytest.mark.slow
 def test_the_torchrl_peer_runs_torchrls_script_and_is_timed_by_the_rule(dqn_checkout, tmp_path):
     from importlib.metadata import version
 

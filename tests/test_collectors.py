@@ -377,12 +377,14 @@ def assert_clean_ctrl_c(stop: dict) -> None:
     assert last.startswith("rlpipe: interrupted") and "--resume" in last, stop["stderr"][-3000:]
 
 
+@pytest.mark.slow
 def test_ctrl_c_with_a_background_evaluation_pending_exits_at_once(interrupted):
     first = interrupted["first"]
     assert len(first["workers_before"]) >= 3  # 2 collector workers, the evaluator's
     assert_clean_ctrl_c(first)
 
 
+@pytest.mark.slow
 def test_workers_are_forked_from_the_fork_server_deaf_to_stop_signals(interrupted):
     """`rlpipe train` starts its workers from a fork server (torch and TorchRL imported once, not per worker),
     each with the stop signals blocked as a spawned worker has them: Ctrl-C to the group reaches the learner alone."""
@@ -393,6 +395,7 @@ def test_workers_are_forked_from_the_fork_server_deaf_to_stop_signals(interrupte
             assert {int(s) for s in STOP_SIGNALS} <= interrupted[stop]["blocked"][pid], (pid, interrupted[stop]["blocked"])
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_a_multi_worker_run_at_once(interrupted):
     second = interrupted["second"]
     # both collector workers (and the evaluator's, running the evaluation saved by the first Ctrl-C)
@@ -401,6 +404,7 @@ def test_ctrl_c_stops_a_multi_worker_run_at_once(interrupted):
     assert not interrupted["summary_before_end"]
 
 
+@pytest.mark.slow
 def test_ctrl_c_checkpoints_where_it_stopped_and_resume_finishes(interrupted):
     run, first, second = interrupted["run"], interrupted["first"], interrupted["second"]
     # each Ctrl-C saved a checkpoint of that moment (not only the one at iteration 0)
@@ -429,11 +433,13 @@ def test_ctrl_c_checkpoints_where_it_stopped_and_resume_finishes(interrupted):
     assert summary["final_average_return"] == pytest.approx(float(final["average_return"]), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_resumed_run_has_every_evaluation(interrupted):
     rows = read_rows(interrupted["run"] / "metrics.csv")
     assert [int(r["step"]) for r in eval_rows(rows)] == [0, 150, 300, 400]
 
 
+@pytest.mark.slow
 def test_async_workers_all_deliver_frames(interrupted):
     """Both MultiAsyncCollector workers fed the buffer, in each stretch between interrupts."""
     state = latest_state(interrupted["run"])
@@ -450,6 +456,7 @@ def test_async_workers_all_deliver_frames(interrupted):
                                  f"the buffer: {stretches(data)}") from None
 
 
+@pytest.mark.slow
 def test_trajectory_ids_are_not_reused_after_a_resume(interrupted):
     """Each resume starts new collector processes whose trajectory ids would begin at 0 again; a user's
     ``SliceSampler`` on ``("collector", "traj_ids")`` would then join episodes of two stretches into one.

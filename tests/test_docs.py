@@ -123,6 +123,7 @@ PAGES = {name: blocks for name, blocks in all_blocks().items() if checked(blocks
 # --- the site builds ----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_site_builds_strict_offline_with_every_key_and_command(tmp_path):
     site = tmp_path / "site"
     proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml"),
@@ -236,6 +237,7 @@ def check_command(argv: list[str]) -> None:
         resolve_env_id(args.env)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("page", sorted(PAGES))
 def test_every_code_block_of_the_page_runs(page, tmp_path, monkeypatch):
     from rlpipe.pipelines import presets

@@ -11,7 +11,8 @@ import pytest
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
-@pytest.mark.parametrize("logger", ["wandb", "mlflow", "csv"])
+@pytest.mark.parametrize("logger", [pytest.param("wandb", marks=pytest.mark.slow),
+                                    pytest.param("mlflow", marks=pytest.mark.slow), "csv"])
 def test_a_logger_chosen_on_the_command_line_gets_the_metrics_and_the_config(logger, tmp_path):
     """logger=wandb|mlflow|csv: TorchRL's logger of that name, for real (W&B offline, an MLflow file store),
     gets the evaluations' returns and, once, the run's config as hyperparameters."""

@@ -237,6 +237,7 @@ def test_a_newcomers_run_page_in_chromium(runs, browser):
         page.close()
 
 
+@pytest.mark.slow
 @needs_chromium
 def test_the_comparison_page_in_chromium(runs, browser):
     root = runs["root"]

@@ -224,6 +224,7 @@ def _stopped_and_resumed(args: list[str], stop: str, at: int, tmp_path: Path) ->
     return run
 
 
+@pytest.mark.slow
 def test_dqn_stopped_by_ctrl_c_and_resumed_equals_the_uninterrupted_run(uninterrupted, tmp_path):
     """In-process collection; Ctrl-C lands in the middle of a block's updates (iteration 151-200)."""
     _assert_same_run(uninterrupted(DQN_ARGS), _stopped_and_resumed(DQN_ARGS, "SIGINT", 150, tmp_path))

@@ -195,6 +195,7 @@ def test_a_run_killed_before_its_first_checkpoint_resumes_or_restarts_in_place(k
 # --- one writer per run directory ------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_second_writer_is_refused_naming_the_first_and_kill_9_leaves_no_stale_lock(tmp_path, monkeypatch, capsys):
     from rlpipe.scripts.cli import main
 
@@ -349,6 +350,7 @@ def facts_of(page: str) -> dict[str, str]:
             re.findall(r'<th class="text">(.*?)</th><td class="text">(.*?)</td>', table, re.S)}
 
 
+@pytest.mark.slow
 def test_a_stopped_runs_page_and_figures_tell_the_truth_through_its_resume(tmp_path):
     """Once: the page stayed at "at iteration 0" with empty losses until the next evaluation, said nothing of a
     stopped run, and offered `rlpipe video RUN` before there was a policy to film; after a resume, summary.json's

@@ -280,6 +280,7 @@ def test_ctrl_c_during_a_sac_update_checkpoints_and_resumes(run_dir, ctrl_c_on_c
 # --- Minitaur through the command line ------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_cli_trains_sac_on_minitaur_end_to_end(tmp_path):
     run = tmp_path / "run"
     command = [

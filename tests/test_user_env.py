@@ -214,6 +214,7 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(package, tmp_path, mon
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_bench_times_the_users_env_and_the_peers_make_it_with_its_kwargs(package, tmp_path):
     """`rlpipe bench time-to-return --envs PKG.envs:TinyArm`: the user's env is a task of its own (the sized default,
     its kwargs, the run's whole budget as the cap), and the SB3/SBX runner makes the same env with the same kwargs."""

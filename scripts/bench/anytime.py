@@ -23,10 +23,8 @@ from __future__ import annotations
 
 import json
 import os
-import shlex
 import signal
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -40,6 +38,7 @@ from rlpipe.scripts.bench.time_to_return import (
     _here_environ,
     _machine,
     _threads,
+    launch_and_wait,
     peer_launch,
 )
 
@@ -99,24 +98,7 @@ def _launch_rlpipe(task: Task, seed: int, marks: list[float], args, work: Path, 
 
 
 def _run(cmd: list[str], env: dict[str, str], cwd: Path, log: Path, timeout_s: float) -> dict[str, Any]:
-    cwd.mkdir(parents=True, exist_ok=True)
-    with log.open("w") as out:
-        out.write(f"$ {shlex.join(cmd)}\n")
-        out.flush()
-        env = {**env, LAUNCH_ENV: repr(time.time())}
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=cwd, start_new_session=True)
-        try:
-            rc = proc.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            rc = proc.wait()
-        except BaseException:  # a stop signal: the run is in a session of its own, so it is ended here
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-            raise
+    rc = launch_and_wait(cmd, {**env, LAUNCH_ENV: repr(time.time())}, cwd, log, timeout_s)
     found = None
     for line in log.read_text(errors="replace").splitlines():
         if line.startswith(ANYTIME_PREFIX):

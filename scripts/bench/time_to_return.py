@@ -467,19 +467,26 @@ def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work:
 def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S, index: int = 0) -> dict[str, Any]:
     """Launch, wait, and time it: seconds to the target (less unconfirmed evaluations), fixed costs.
     ``index``: the run's number in the command (1, 2, ...), where a test's fault point can stop it."""
-    launch.cwd.mkdir(parents=True, exist_ok=True)
+    start = time.time()
+    rc = launch_and_wait(launch.cmd, launch.env, launch.cwd, log, timeout_s, index)
+    return timed_result(launch, log, rc, start, time.time())
+
+
+def launch_and_wait(cmd: list[str], env: dict[str, str], cwd: Path, log: Path, timeout_s: float,
+                    index: int = 0) -> int:
+    """Run ``cmd`` in a session of its own with its output in ``log`` (the command line first); its exit status.
+    Past ``timeout_s`` it is killed with every process it started; a stop signal here ends it, then goes on up."""
+    cwd.mkdir(parents=True, exist_ok=True)
     with log.open("w") as out:
-        out.write(f"$ {shlex.join(launch.cmd)}\n")
+        out.write(f"$ {shlex.join(cmd)}\n")
         out.flush()
-        start = time.time()
-        proc = subprocess.Popen(launch.cmd, stdout=out, stderr=subprocess.STDOUT, env=launch.env, cwd=launch.cwd,
-                                start_new_session=True)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=cwd, start_new_session=True)
         try:
             fault_point("bench_run", index)  # tests: a stop signal while a run is under way
-            rc = proc.wait(timeout=timeout_s)
+            return proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)  # with the collector processes it started
-            rc = proc.wait()
+            return proc.wait()
         except BaseException:  # Ctrl-C: the run is in a session of its own (no terminal signal), so end it here
             os.killpg(proc.pid, signal.SIGTERM)
             try:
@@ -487,8 +494,6 @@ def run_one(launch: Launch, log: Path, timeout_s: float = RUN_TIMEOUT_S, index: 
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
             raise
-        end = time.time()
-    return timed_result(launch, log, rc, start, end)
 
 
 def timed_result(launch: Launch, log: Path, rc: int, start: float, end: float) -> dict[str, Any]:
