@@ -1,7 +1,9 @@
-"""``rlpipe tune``: search the settings that bring an algorithm to a target return soonest on an env.
+"""``rlpipe tune``: search the settings that bring an algorithm to a target return soonest on an env, or to
+the best return in a given time.
 
-    rlpipe tune ALGO[,ALGO] env=ID --target R [--budget 30m] [--seeds 2] [--workers N] [--trials N]
-                [--cap SECONDS] [--penalty SECONDS] [--confirm-seeds 2] [--out DIR] [key=value ...]
+    rlpipe tune ALGO[,ALGO] env=ID (--target R | --objective return-at=10m) [--budget 30m] [--seeds 2]
+                [--workers N] [--trials N] [--cap SECONDS] [--penalty SECONDS] [--confirm-seeds 2] [--out DIR]
+                [key=value ...]
 
 An Optuna study (TPE sampler) whose objective is a trial's seconds from launch to the target under the
 bench's rule (``rlpipe bench time-to-return``: the mean of the last 5 training episodes reaches the
@@ -11,6 +13,14 @@ counts as the cap plus ``--penalty``. Each trial's seeds are ``rlpipe train ALGO
 processes on this machine, ``--workers`` trials at a time, each process on one thread where several
 share the machine. A trial whose training return falls behind the best finished trial's at the same
 second is stopped (pruned). Several algorithms (``sac,crossq``) make the algorithm a searched setting.
+
+``--objective return-at=T`` searches for the best agent in ``T`` instead: each seed's run is ``rlpipe train ALGO
+env=ID time_budget=T keep_best=true ...`` (sized for that budget, as ``rlpipe train`` sizes it), and the trial's
+value is the mean over its seeds of the greedy evaluation return of the policy the run exports (its best
+evaluation's; the last one's where the user sets ``keep_best=false``), maximised. The best of a run's evaluations
+is a little optimistic (the highest of noisy estimates); ``rlpipe bench anytime`` plays the exported policy on
+episodes of its own. A trial whose training return falls behind the best trial's at the same second, past half
+of ``T``, is pruned; a run past ``T`` + its cap's margin is stopped and fails the trial.
 
 The study lives in ``OUT/study.db`` (SQLite). Ctrl-C ends the running trials (exit 130); rerunning the
 same command continues the study with what is left of ``--budget``, running again the trials an
@@ -29,6 +39,7 @@ import io
 import json
 import re
 import signal
+import statistics
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -47,13 +58,17 @@ def add_parser(sub) -> None:
     tune.add_argument("overrides", nargs="*", metavar="key=value",
                       help="env=ID (required); ray.address=ADDR: the trials' runs on that Ray cluster, one CPU each "
                            "(empty: a local Ray instance); any other key: an override of every trial")
-    tune.add_argument("--target", type=float, required=True, help="the return to reach")
+    tune.add_argument("--target", type=float, default=None, help="the return to reach (the objective: time to it)")
+    tune.add_argument("--objective", default=None, metavar="return-at=DURATION",
+                      help="return-at=10m: the greedy return of the exported policy after that time, maximised "
+                           "(in place of --target's time to the target)")
     tune.add_argument("--budget", default="30m", help="time for the search, such as 90s, 30m or 2h (default 30m)")
     tune.add_argument("--seeds", type=int, default=2, help="seeds per trial, run side by side (default 2, at least 2)")
     tune.add_argument("--workers", type=int, default=1, help="trials at a time (default 1)")
     tune.add_argument("--trials", type=int, default=None, help="stop once the study holds this many finished trials")
     tune.add_argument("--cap", type=float, default=None,
-                      help="seconds after which a seed's run stops, missed (default: a tenth of --budget, at least 60)")
+                      help="seconds after which a seed's run stops, missed (default: a tenth of --budget, at least 60; "
+                           "with return-at=T: T and a quarter, plus 60)")
     tune.add_argument("--penalty", type=float, default=None, help="seconds added to a missed run's cap (default: the cap)")
     tune.add_argument("--confirm-seeds", type=int, default=2, help="fresh seeds the best setting is timed on (default 2)")
     tune.add_argument("--out", type=Path, default=None, help="study directory (default runs/tune-ALGO-ENV)")
@@ -64,7 +79,8 @@ def add_parser(sub) -> None:
 class Plan:
     algos: list[str]
     env: str
-    target: float
+    target: float | None
+    """the return to reach soonest; None with ``return_at``"""
     overrides: list[str]
     """every trial's overrides (env= left out)"""
     seeds: int
@@ -77,11 +93,34 @@ class Plan:
     out: Path
     ray_address: str | None = None
     """``ray.address=``: the trials' runs are Ray actors on that cluster ('': a local Ray instance); None: processes here"""
+    return_at: str | None = None
+    """``--objective return-at=T``: T as written (``10m``); the objective is the return after T, maximised"""
 
     def study_settings(self) -> dict[str, Any]:
         """What a study is of: a rerun must match them to continue it."""
         return {k: v for k, v in asdict(self).items() if k in ("algos", "env", "target", "overrides", "seeds", "cap_s",
-                                                               "penalty_s")}
+                                                               "penalty_s", "return_at")}
+
+    @property
+    def direction(self) -> str:
+        return "maximize" if self.return_at else "minimize"
+
+    @property
+    def horizon_s(self) -> float | None:
+        """the seconds a trial's runs are given (``return_at``), None when they run to the target"""
+        return parse_budget(self.return_at) if self.return_at else None
+
+    def trial_overrides(self) -> list[str]:
+        """what every trial's runs add to the command's overrides: with ``return_at``, the time budget and the
+        best evaluation's policy kept (unless the command says otherwise)"""
+        if not self.return_at:
+            return []
+        keep = [] if any(o.split("=", 1)[0].strip() == "keep_best" for o in self.overrides) else ["keep_best=true"]
+        return [f"time_budget={self.return_at}", *keep]
+
+    def goal(self) -> str:
+        """what the study is for, in words: 'to -200' or 'the return at 10m'"""
+        return f"the return at {self.return_at}" if self.return_at else f"to {self.target:g}"
 
 
 def parse_budget(text: str) -> float:
@@ -130,19 +169,51 @@ def make_plan(args) -> Plan:
         if value is not None and value < least:
             raise InputError(f"{name}={value}: expected an integer of at least {least}")
     budget = parse_budget(args.budget)
+    return_at = _objective(args)
     saved = _saved_settings(out)
-    cap = args.cap if args.cap is not None else saved.get("cap_s", max(60.0, budget / 10))
+    default_cap = parse_budget(return_at) * 1.25 + 60 if return_at else max(60.0, budget / 10)
+    cap = args.cap if args.cap is not None else saved.get("cap_s", default_cap)
     penalty = args.penalty if args.penalty is not None else saved.get("penalty_s", cap)
     if not cap > 0 or penalty < 0:
         raise InputError(f"--cap {cap:g} --penalty {penalty:g}: expected a positive cap and a penalty of at least 0 seconds")
+    budget_keys = [f"time_budget={return_at}"] if return_at else []
     for algo in algos:
-        check_env(algo, base_config(algo, env[-1], overrides))  # an unknown key, a bad value, an env: its own line
+        # an unknown key, a bad value, an env: its own line
+        check_env(algo, base_config(algo, env[-1], [*overrides, *budget_keys]))
     if ray_address:
         from rlpipe.pipelines.workers.ray_runtime import check_address
 
         check_address(ray_address)
-    return Plan(algos, env[-1], float(args.target), overrides, args.seeds, cap, penalty, budget, args.workers,
-                args.trials, args.confirm_seeds, out.resolve(), ray_address)
+    return Plan(algos, env[-1], None if return_at else float(args.target), overrides, args.seeds, cap, penalty, budget,
+                args.workers, args.trials, args.confirm_seeds, out.resolve(), ray_address, return_at)
+
+
+def _objective(args) -> str | None:
+    """``--objective return-at=T``'s T (None: time to ``--target``), the pair checked: one or the other."""
+    from rlpipe.pipelines.errors import InputError
+
+    if args.objective is None:
+        if args.target is None:
+            raise InputError("no objective: expected --target R (the time to a return of R) or --objective "
+                             "return-at=DURATION (the return after that time, such as 10m)")
+        return None
+    kind, _, duration = args.objective.partition("=")
+    if kind.strip() != "return-at" or not duration.strip():
+        raise InputError(f"--objective {args.objective}: expected return-at=DURATION, such as return-at=10m "
+                         "(for the time to a return, --target R)")
+    try:
+        parse_budget(duration)
+    except InputError:
+        raise InputError(f"--objective {args.objective}: expected a positive duration after return-at=, such as "
+                         "90s, 10m or 2h") from None
+    if args.target is not None:
+        raise InputError(f"--target {args.target:g} and --objective {args.objective}: two objectives; expected one "
+                         "(the time to a target, or the return at a time)")
+    given = [o for o in args.overrides if o.split("=", 1)[0].strip() in ("time_budget", "target_return")]
+    if given:
+        raise InputError(f"{given[0]} with --objective {args.objective}: the objective sets each run's time budget; "
+                         "expected neither time_budget= nor target_return= among the overrides")
+    return duration.strip()
 
 
 def check_env(algo: str, cfg) -> None:
@@ -182,17 +253,20 @@ def base_config(algo: str, env: str, overrides: list[str]):
     """``rlpipe train ALGO env=ENV key=value ...``'s config: a trial's runs train it."""
     from rlpipe.pipelines.config import apply_overrides
 
-    return apply_overrides(_base(algo, env), [f"env={env}", *overrides])
+    budget = next((o.split("=", 1)[1] for o in reversed(overrides) if o.split("=", 1)[0].strip() == "time_budget"),
+                  None)
+    return apply_overrides(_base(algo, env, budget), [f"env={env}", *overrides])
 
 
 @functools.cache
-def _base(algo: str, env: str):
-    """What ``rlpipe train ALGO env=ENV`` starts from: the preset sized for the env, a config sized for it, or the
-    algorithm's own preset (``pipelines/sizing.py`` decides, as for ``rlpipe train``); sized once per command."""
+def _base(algo: str, env: str, time_budget: str | None = None):
+    """What ``rlpipe train ALGO env=ENV [time_budget=T]`` starts from: the preset sized for the env, a config
+    sized for it (and for the time budget), or the algorithm's own preset (``pipelines/sizing.py`` decides, as for
+    ``rlpipe train``); sized once per command."""
     from rlpipe.pipelines import resolve_preset
     from rlpipe.pipelines.sizing import resolve_for_env
 
-    sized = resolve_for_env(algo, [f"env={env}"])
+    sized = resolve_for_env(algo, [f"env={env}", *([f"time_budget={time_budget}"] if time_budget else [])])
     return sized.config if sized is not None else resolve_preset(algo)[1]
 
 
@@ -206,21 +280,21 @@ def open_study(plan: Plan):
     from rlpipe.pipelines.errors import InputError
     from rlpipe.scripts.tune_trials import BehindBestPruner
 
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    study = optuna.create_study(
-        storage=f"sqlite:///{(plan.out / 'study.db').resolve()}", study_name=STUDY, direction="minimize",
-        sampler=optuna.samplers.TPESampler(n_startup_trials=5, constant_liar=True), pruner=BehindBestPruner(),
-        load_if_exists=True)
     settings = json.loads(json.dumps(plan.study_settings()))
-    saved = study.user_attrs.get("settings")
-    if saved is None:
-        study.set_user_attr("settings", settings)
-        study.enqueue_trial(first_params(plan))
-    elif saved != settings:
+    saved = _saved_settings(plan.out) or None  # compared before Optuna opens it: a study's direction is its own
+    if saved is not None and any(saved.get(k) != settings[k] for k in settings):
         changed = next(k for k in settings if saved.get(k) != settings[k])
         raise InputError(f"{plan.out} holds a study with {changed}={saved.get(changed)!r}, not {settings[changed]!r}; "
-                         "expected the same algorithm, env, target, overrides, --seeds, --cap and --penalty to continue "
-                         "it, or another --out")
+                         "expected the same algorithm, env, objective, overrides, --seeds, --cap and --penalty to "
+                         "continue it, or another --out")
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(
+        storage=f"sqlite:///{(plan.out / 'study.db').resolve()}", study_name=STUDY, direction=plan.direction,
+        sampler=optuna.samplers.TPESampler(n_startup_trials=5, constant_liar=True),
+        pruner=BehindBestPruner(horizon_s=plan.horizon_s), load_if_exists=True)
+    if study.user_attrs.get("settings") is None:
+        study.set_user_attr("settings", settings)
+        study.enqueue_trial(first_params(plan))
     return study
 
 
@@ -230,7 +304,7 @@ def first_params(plan: Plan) -> dict[str, Any]:
     from rlpipe.scripts import tune_space
 
     algo = plan.algos[0]
-    params = tune_space.params_of(algo, base_config(algo, plan.env, plan.overrides))
+    params = tune_space.params_of(algo, base_config(algo, plan.env, [*plan.overrides, *plan.trial_overrides()]))
     return {"algo": algo, **params} if len(plan.algos) > 1 else params
 
 
@@ -240,7 +314,7 @@ def requeue_cut_short(study) -> list[int]:
 
     done = set(study.user_attrs.get("requeued", []))
     cut = [t for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING, TrialState.FAIL))
-           if t.number not in done and not t.user_attrs.get("refused")]
+           if t.number not in done and not t.user_attrs.get("refused") and not t.user_attrs.get("unevaluated")]
     for t in cut:
         if t.state == TrialState.RUNNING:  # its tuner died: one tuner holds the study at a time (the lock)
             study.tell(t.number, state=TrialState.FAIL)
@@ -260,23 +334,28 @@ def launch_trial(plan: Plan, number_of_processes: int, seeds: list[int], work: P
     """A trial's seed runs, launched: Optuna's next trial (``trial``: an asked one; ``params``: a fixed setting)."""
     from rlpipe.scripts import tune_space
     from rlpipe.scripts.bench.time_to_return import Task, rlpipe_launch
-    from rlpipe.scripts.tune_trials import RemoteRun, SeedRun, TrialRuns
+    from rlpipe.scripts.tune_trials import RemoteRun, SeedRun, TrialRuns, budget_launch, returned_result
 
     if params is None:
         algo, keys = tune_space.suggest(trial, plan.algos)
     else:
         algo = params.get("algo", plan.algos[0])
         keys = tune_space.overrides(algo, params)
-    cfg = base_config(algo, plan.env, [*plan.overrides, *keys])
-    cap_steps = cfg.initial_collect_steps + cfg.num_iterations * cfg.collect_steps_per_iteration
-    task = Task(plan.env, algo, plan.target, cap_steps, algo, (algo, ()))
     threads = 1 if number_of_processes > 1 else None
     Run = SeedRun if plan.ray_address is None else RemoteRun
     runs = []
     for seed in seeds:
-        launch = rlpipe_launch(task, "rlpipe", seed, plan.target, cap_steps, work / f"seed{seed}" / "run", threads,
+        run_dir, log = work / f"seed{seed}" / "run", work / f"seed{seed}" / "output.log"
+        if plan.return_at:
+            launch = budget_launch(algo, seed, run_dir, threads, [*plan.overrides, *plan.trial_overrides(), *keys])
+            runs.append(Run(launch, run_dir, log, plan.cap_s, returned_result))
+            continue
+        cfg = base_config(algo, plan.env, [*plan.overrides, *keys])
+        cap_steps = cfg.initial_collect_steps + cfg.num_iterations * cfg.collect_steps_per_iteration
+        task = Task(plan.env, algo, plan.target, cap_steps, algo, (algo, ()))
+        launch = rlpipe_launch(task, "rlpipe", seed, plan.target, cap_steps, run_dir, threads,
                                [*plan.overrides, *keys], preset=algo)
-        runs.append(Run(launch, work / f"seed{seed}" / "run", work / f"seed{seed}" / "output.log", plan.cap_s))
+        runs.append(Run(launch, run_dir, log, plan.cap_s))
     trial_runs = TrialRuns(trial, algo, keys, runs)
     trial_runs.begin()
     return trial_runs
@@ -352,6 +431,9 @@ def tell(study, plan: Plan, trial_runs) -> None:
         study.tell(trial, state=_state("FAIL"))
         raise InputError(f"trial {trial.number}'s runs refused their input: {results[0].get('error', '')} "
                          f"(log: {results[0]['log']})")
+    if plan.return_at:
+        _tell_return(study, plan, trial, results)
+        return
     times = [seconds(r, plan.cap_s, plan.penalty_s) for r in results]
     trial.set_user_attr("seconds", times)
     trial.set_user_attr("reached", [bool(r.get("reached")) for r in results])
@@ -360,6 +442,30 @@ def tell(study, plan: Plan, trial_runs) -> None:
     study.tell(trial, value)
     print(f"trial {trial.number}: {value:.1f} s (seeds: " + ", ".join(
         f"{t:.1f}" + ("" if r.get("reached") else " missed") for t, r in zip(times, results)) + ")", flush=True)
+
+
+def _tell_return(study, plan: Plan, trial, results: list[dict[str, Any]]) -> None:
+    """A return-at trial's end: the mean of its seeds' returns; a seed that ended with no evaluation (a crash, its
+    cap) fails the trial, which a rerun does not run again (its settings, not an interruption, ended it)."""
+    returns = [r.get("return") for r in results]
+    trial.set_user_attr("returns", returns)
+    trial.set_user_attr("nodes", [r.get("node") for r in results])
+    if any(v is None for v in returns):
+        trial.set_user_attr("unevaluated", True)
+        study.tell(trial, state=_state("FAIL"))
+        bad = next(r for r in results if r.get("return") is None)
+        print(f"trial {trial.number}: failed, a run ended with no evaluation: {bad.get('error', '')} "
+              f"(log: {bad['log']})", flush=True)
+        return
+    value = statistics.fmean(returns)
+    study.tell(trial, value)
+    print(f"trial {trial.number}: return {value:.1f} at {plan.return_at} (seeds: "
+          + ", ".join(f"{v:.1f}" for v in returns) + ")", flush=True)
+
+
+def value_text(plan: Plan, value: float) -> str:
+    """A trial's value in words: '41.2 s' (time to the target) or 'return 812.3' (the return at a time)."""
+    return f"return {value:.1f}" if plan.return_at else f"{value:.1f} s"
 
 
 # --- after the search ---------------------------------------------------------------------------------
@@ -375,7 +481,7 @@ def confirm(study, plan: Plan, stop) -> dict[str, Any] | None:
                          "shorter --cap")
     best = study.best_trial
     saved = study.user_attrs.get("confirmation")
-    if plan.confirm_seeds == 0 or (saved and saved["trial"] == best.number and len(saved["seconds"]) == plan.confirm_seeds):
+    if plan.confirm_seeds == 0 or (saved and saved["trial"] == best.number and len(saved["seeds"]) == plan.confirm_seeds):
         return saved
     seeds = list(range(CONFIRM_FIRST_SEED, CONFIRM_FIRST_SEED + plan.confirm_seeds))
     print(f"confirming trial {best.number} on fresh seeds {', '.join(map(str, seeds))}", flush=True)
@@ -389,6 +495,13 @@ def confirm(study, plan: Plan, stop) -> dict[str, Any] | None:
         time.sleep(POLL_S)
     results = trial_runs.results()
     trial_runs.close()
+    if plan.return_at:
+        returns = [r.get("return") for r in results]
+        got = [v for v in returns if v is not None]
+        confirmation = {"trial": best.number, "seeds": seeds, "returns": returns,
+                        "value": statistics.fmean(got) if got else None}
+        study.set_user_attr("confirmation", confirmation)
+        return confirmation
     confirmation = {"trial": best.number, "seeds": seeds,
                     "seconds": [seconds(r, plan.cap_s, plan.penalty_s) for r in results],
                     "reached": [bool(r.get("reached")) for r in results],
@@ -405,13 +518,17 @@ def write_preset(study, plan: Plan) -> Path:
 
     best = study.best_trial
     algo = best.params.get("algo", plan.algos[0])
-    cfg = base_config(algo, plan.env, [*plan.overrides, *tune_space.overrides(algo, best.params)])
+    cfg = base_config(algo, plan.env, [*plan.overrides, *plan.trial_overrides(), *tune_space.overrides(algo, best.params)])
     name = f"{algo}-{_slug(plan.env)}-tuned"
     path = plan.out / f"{name}.yaml"
-    info = PresetInfo(plan.env, (plan.target,), f"tuned by rlpipe tune for time to {plan.target:g}", True)
+    if plan.return_at:
+        info = PresetInfo(plan.env, (), f"tuned by rlpipe tune for the return at {plan.return_at}", True)
+    else:
+        info = PresetInfo(plan.env, (plan.target,), f"tuned by rlpipe tune for time to {plan.target:g}", True)
     presets.save(path, algo, cfg, info=info,
-                 comment=f"{name}: {plan.env} to {plan.target:g}, found by rlpipe tune (trial {best.number}: "
-                         f"{best.value:.1f} s over seeds 0-{plan.seeds - 1}); figures: {plan.out / 'tune.html'}")
+                 comment=f"{name}: {plan.env}, {plan.goal()}, found by rlpipe tune (trial {best.number}: "
+                         f"{value_text(plan, best.value)} over seeds 0-{plan.seeds - 1}); figures: "
+                         f"{plan.out / 'tune.html'}")
     return path
 
 
@@ -436,13 +553,20 @@ def run(args) -> int:
         preset = write_preset(study, plan)
         page = write_page(study, plan, confirmation, preset)
     best = study.best_trial
-    results = {"best_trial": best.number, "best_seconds": best.value, "best_params": best.params,
+    results = {"objective": f"return-at={plan.return_at}" if plan.return_at else f"time-to={plan.target:g}",
+               "best_trial": best.number, "best_value": best.value, "best_params": best.params,
                "confirmation": confirmation, "preset": str(preset), "page": str(page),
                "trials": len(study.trials), "finished": len(finished(study))}
+    results["best_return" if plan.return_at else "best_seconds"] = best.value
     (plan.out / "results.json").write_text(json.dumps(results, indent=1))
-    seen = f"; on fresh seeds {confirmation['seeds']}: {confirmation['value']:.1f} s" if confirmation else ""
-    print(f"best: trial {best.number}, {best.value:.1f} s to {plan.target:g} on seeds 0-{plan.seeds - 1}{seen} "
-          f"(mean of seeds; a miss counts {plan.cap_s + plan.penalty_s:g} s)")
+    seen = (f"; on fresh seeds {confirmation['seeds']}: {value_text(plan, confirmation['value'])}"
+            if confirmation and confirmation["value"] is not None else "")
+    if plan.return_at:
+        print(f"best: trial {best.number}, return {best.value:.1f} at {plan.return_at} on seeds 0-{plan.seeds - 1}"
+              f"{seen} (mean of seeds: the greedy return of the policy each run exports)")
+    else:
+        print(f"best: trial {best.number}, {best.value:.1f} s to {plan.target:g} on seeds 0-{plan.seeds - 1}{seen} "
+              f"(mean of seeds; a miss counts {plan.cap_s + plan.penalty_s:g} s)")
     print(f"preset: {preset} (rlpipe train {preset})")
     print(f"page: {page}")
     return 0

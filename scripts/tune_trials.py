@@ -2,7 +2,8 @@
 
 Each seed's run is the bench's rlpipe side (``bench/time_to_return.py`` ``rlpipe_launch``: the same
 command, ``target_return`` and step cap) timed by the bench's rule (``timed_result``: seconds from its
-launch to the target, less unconfirmed evaluations). While the runs go, the trial's curve (the mean
+launch to the target, less unconfirmed evaluations); for ``--objective return-at=T``, ``rlpipe train`` with
+``time_budget=T`` (``budget_launch``), read from its summary.json (``returned_result``). While the runs go, the trial's curve (the mean
 over its seeds of each run's latest training return, at each elapsed second) is reported to Optuna,
 and ``BehindBestPruner`` stops a trial whose curve falls behind the best finished trial's.
 """
@@ -11,18 +12,20 @@ from __future__ import annotations
 
 import csv
 import functools
+import json
 import os
 import signal
 import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import optuna
 
-from rlpipe.scripts.bench.time_to_return import Launch, timed_result
+from rlpipe.scripts.bench.time_to_return import Launch, _here_environ, _rlpipe_exe, _version, timed_result
 
 STOP_TIMEOUT_S = 10.0
 """a run stopped (pruned, past its cap, Ctrl-C) has this long to end on SIGTERM before SIGKILL: enough to write
@@ -34,8 +37,9 @@ class SeedRun:
     """One seed's ``rlpipe train`` process: launched in a session of its own (a Ctrl-C to the tuner's
     terminal is the tuner's to pass on), its return read from its metrics.csv, ended at ``cap_s``."""
 
-    def __init__(self, launch: Launch, run_dir: Path, log: Path, cap_s: float):
-        self.launch, self.run_dir, self.log, self.cap_s = launch, run_dir, log, cap_s
+    def __init__(self, launch: Launch, run_dir: Path, log: Path, cap_s: float,
+                 result_of: Callable[..., dict[str, Any]] = timed_result):
+        self.launch, self.run_dir, self.log, self.cap_s, self.result_of = launch, run_dir, log, cap_s, result_of
         self.proc: subprocess.Popen | None = None
         self.start = self.end = 0.0
         self.capped = False
@@ -87,8 +91,9 @@ class SeedRun:
             pass
 
     def result(self) -> dict[str, Any]:
-        """The bench's figures of the ended run (``seconds`` to the target, None where not reached)."""
-        result = timed_result(self.launch, self.log, self.proc.returncode, self.start, self.end)
+        """The ended run's figures: the bench's (``seconds`` to the target, None where not reached), or
+        ``returned_result``'s (``return``)."""
+        result = self.result_of(self.launch, self.log, self.proc.returncode, self.start, self.end)
         return {**result, "capped": self.capped, "node": _ray_node()}
 
 
@@ -117,10 +122,11 @@ class RemoteRun:
     """A ``SeedRun`` on a Ray actor (``ray.address=``): the same calls, on the node Ray places it on (one CPU).
     The run's command, paths and timing are the node's: a cluster's nodes share rlpipe's install path."""
 
-    def __init__(self, launch: Launch, run_dir: Path, log: Path, cap_s: float):
+    def __init__(self, launch: Launch, run_dir: Path, log: Path, cap_s: float,
+                 result_of: Callable[..., dict[str, Any]] = timed_result):
         import ray
 
-        self.actor = ray.remote(num_cpus=1)(SeedRun).remote(launch, run_dir, log, cap_s)
+        self.actor = ray.remote(num_cpus=1)(SeedRun).remote(launch, run_dir, log, cap_s, result_of)
 
     def _call(self, method: str, *args):
         import ray
@@ -146,6 +152,32 @@ class RemoteRun:
         import ray
 
         ray.kill(self.actor)
+
+
+def budget_launch(algo: str, seed: int, run_dir: Path, threads: int | None, overrides: list[str]) -> Launch:
+    """A return-at trial's seed: ``rlpipe train ALGO key=value ... seed=S`` (the overrides hold env= and
+    time_budget=), in the run's own folder."""
+    keys = [*overrides, f"seed={seed}", *([f"num_threads={threads}"] if threads else [])]
+    cmd = [*_rlpipe_exe(), "train", algo, *keys, "--out", str(run_dir), "--no-progress"]
+    return Launch(cmd, _here_environ(), run_dir.parent, f"`rlpipe train {algo} {' '.join(overrides)}`",
+                  lambda _log: None, {"rlpipe": _version()})
+
+
+def returned_result(launch: Launch, log: Path, rc: int, start: float, end: float) -> dict[str, Any]:
+    """An ended return-at run's figure: ``return``, the greedy evaluation return of the policy it exports (its kept
+    best evaluation's, else its last evaluation's), from its summary.json; None where it has none (a crash, its
+    cap), with the log's last line as ``error``."""
+    run_dir = Path(launch.cmd[launch.cmd.index("--out") + 1])
+    result: dict[str, Any] = {"rc": rc, "wall_s": end - start, "log": str(log), "return": None}
+    try:
+        summary = json.loads((run_dir / "summary.json").read_text())
+    except (OSError, ValueError) as exc:
+        lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()] if log.exists() else []
+        return {**result, "failed": True, "error": lines[-1] if lines else f"{type(exc).__name__}: {exc}"}
+    best = summary.get("best_evaluation") or {}
+    value = best.get("average_return") if best.get("exported") else summary.get("final_average_return")
+    return {**result, "failed": rc != 0, "return": value, "chosen": "best" if best.get("exported") else "last",
+            "stopped_because": summary.get("stopped_because"), "frames": summary.get("frames")}
 
 
 def seconds(result: dict[str, Any], cap_s: float, penalty_s: float) -> float:
@@ -206,11 +238,11 @@ class TrialRuns:
 
 class BehindBestPruner(optuna.pruners.BasePruner):
     """Prunes a trial whose curve (return at each elapsed second) is below the best finished trial's at the
-    same second, once it has run ``warmup`` of the best trial's time (the first seconds are imports and
-    random steps, where a curve says little)."""
+    same second, once it has run ``warmup`` of the best trial's time, or of ``horizon_s`` where every trial has
+    that long (the first seconds are imports and random steps, where a curve says little)."""
 
-    def __init__(self, warmup: float = 0.5):
-        self.warmup = warmup
+    def __init__(self, warmup: float = 0.5, horizon_s: float | None = None):
+        self.warmup, self.horizon_s = warmup, horizon_s
 
     def prune(self, study: optuna.study.Study, trial: optuna.trial.FrozenTrial) -> bool:
         step = trial.last_step
@@ -221,7 +253,7 @@ class BehindBestPruner(optuna.pruners.BasePruner):
         except ValueError:  # no finished trial yet
             return False
         curve = best.intermediate_values
-        if best.number == trial.number or not curve or step < self.warmup * best.value:
+        if best.number == trial.number or not curve or step < self.warmup * (self.horizon_s or best.value):
             return False
         reference = _at(curve, step)
         return reference is not None and trial.intermediate_values[step] < reference

@@ -140,6 +140,47 @@ def test_a_study_whose_tuner_was_killed_runs_the_trial_it_left_again_and_no_run_
     assert (out / "dqn-cartpole-v1-tuned.yaml").exists() and "confirmation" not in study.user_attrs
 
 
+@pytest.mark.slow
+def test_a_study_for_the_return_at_a_time_maximises_the_exported_policys_return_and_its_preset_keeps_the_budget(
+        tmp_path, capsys):
+    """``--objective return-at=T``: each run trains for T (``time_budget``) keeping its best evaluation, the trial is
+    the mean of the returns its runs export, the study maximises it, and the preset carries the budget."""
+    out = tmp_path / "study"
+    args = ["tune", "dqn", "env=CartPole-v1", "--objective", "return-at=8s", "--budget", "20m", "--trials", "1",
+            "--confirm-seeds", "0", "--out", str(out), "eval_interval=500", "num_eval_episodes=2", "log_interval=100"]
+    done = tune(args, tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    study = load(out)
+    assert study.direction == optuna.study.StudyDirection.MAXIMIZE
+    assert [t.state.name for t in study.trials] == ["COMPLETE"]  # one trial: a second could be pruned, by timing
+    for t in study.trials:
+        returns = []
+        for seed in (0, 1):
+            run = out / "trials" / f"{t.number:04d}" / f"seed{seed}" / "run"
+            summary = json.loads((run / "summary.json").read_text())
+            assert summary["stopped_because"] == "time_budget", summary
+            assert json.loads((run / "config.json").read_text())["config"]["keep_best"] is True  # return-at adds it
+            # the exported policy's return: the kept best evaluation's, or the last's where none beat it
+            best = summary["best_evaluation"]
+            returns.append(best["average_return"] if best["exported"] else summary["final_average_return"])
+            assert returns[-1] >= best["average_return"] - 1e-6
+        assert t.user_attrs["returns"] == pytest.approx(returns)
+        assert t.value == pytest.approx(sum(returns) / 2)
+    results = json.loads((out / "results.json").read_text())
+    assert results["objective"] == "return-at=8s" and results["best_return"] == study.best_value
+    assert f"return {study.best_value:.1f} at 8s" in done.stdout
+    capsys.readouterr()
+    assert main(["train", results["preset"], "--keys"]) == 0
+    keys = capsys.readouterr().out
+    assert 'time_budget="8s"\n' in keys and "keep_best=true\n" in keys
+    page = (out / "tune.html").read_text()
+    assert "the return at 8s" in page
+
+    # the same folder, asked for another objective: one line, the study untouched
+    other = tune([*args[:3], "--target", "100", *args[5:]], tmp_path)
+    assert other.returncode == 2 and "holds a study with target=None, not 100.0" in other.stderr, other.stderr
+
+
 def _finished(value: float, curve: dict[int, float]):
     return optuna.trial.create_trial(value=value, intermediate_values=curve, params={"x": 0.0},
                                      distributions={"x": optuna.distributions.FloatDistribution(0, 1)})
@@ -161,6 +202,17 @@ def test_a_trial_behind_the_best_trials_curve_at_the_same_second_is_pruned(repor
     assert trial.should_prune() is pruned
 
 
+@pytest.mark.parametrize("step, pruned", [(40, False), (60, True)])
+def test_with_a_horizon_pruning_waits_for_half_of_it(step, pruned):
+    """A return-at study: every trial runs the same time, so the wait before pruning is half of it (100 s here),
+    not half of the best trial's value (a return)."""
+    study = optuna.create_study(direction="maximize", pruner=BehindBestPruner(horizon_s=100))
+    study.add_trial(_finished(500.0, {0: 0.0, 40: 200.0, 60: 300.0}))
+    trial = study.ask()
+    trial.report(-10.0, step)
+    assert trial.should_prune() is pruned
+
+
 def test_a_miss_counts_as_the_cap_plus_the_penalty_and_a_trial_is_the_mean_of_its_seeds():
     results = [{"reached": True, "seconds": 20.0}, {"reached": False, "seconds": None}]
     assert trial_value(results, 60.0, 30.0) == (20.0 + 90.0) / 2
@@ -175,6 +227,14 @@ def test_a_miss_counts_as_the_cap_plus_the_penalty_and_a_trial_is_the_mean_of_it
     (["tune", "td3", "env=Pendulum-v1", "--target", "1", "--seeds", "1"], "--seeds=1: expected an integer of at least 2"),
     (["tune", "td3", "env=Pendulum-v1", "--target", "1", "bogus=3"], "unknown config key 'bogus'"),
     (["tune", "sac,dqn", "env=Pendulum-v1", "--target", "1"], "DQN needs a discrete action space; env 'Pendulum-v1'"),
+    (["tune", "td3", "env=Pendulum-v1"], "no objective: expected --target R (the time to a return of R) or --objective "
+                                         "return-at=DURATION"),
+    (["tune", "td3", "env=Pendulum-v1", "--objective", "return-at=10x"], "--objective return-at=10x: expected a "
+                                                                         "positive duration after return-at="),
+    (["tune", "td3", "env=Pendulum-v1", "--objective", "best"], "--objective best: expected return-at=DURATION"),
+    (["tune", "td3", "env=Pendulum-v1", "--target", "1", "--objective", "return-at=10m"], "two objectives"),
+    (["tune", "td3", "env=Pendulum-v1", "--objective", "return-at=10m", "time_budget=5m"],
+     "time_budget=5m with --objective return-at=10m: the objective sets each run's time budget"),
 ])
 def test_bad_input_is_one_line_and_exit_2_with_nothing_written(tmp_path, capsys, args, line):
     out = tmp_path / "study"
@@ -182,11 +242,3 @@ def test_bad_input_is_one_line_and_exit_2_with_nothing_written(tmp_path, capsys,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("rlpipe: error: ") and line in err[0], err
     assert not out.exists()
-
-
-def test_no_target_is_one_line_and_exit_2(capsys):
-    with pytest.raises(SystemExit) as stopped:
-        main(["tune", "td3", "env=Pendulum-v1"])
-    assert stopped.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["rlpipe: error: the following arguments are required: --target (see `rlpipe tune --help`)"]
