@@ -529,6 +529,7 @@ def _run_logged_past(args: list[str], run: Path, step: int, **popen):
             proc.wait()
 
 
+@pytest.mark.slow
 def test_resume_after_a_kill_has_every_evaluation_once(tmp_path):
     """kill -9 (no chance to save): --resume continues from the last periodic checkpoint, and the
     rows written after it are replaced, not repeated."""

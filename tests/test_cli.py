@@ -475,6 +475,7 @@ def test_a_crash_before_the_run_directory_exists_leaves_its_traceback_in_a_tempo
 # --- a run whose losses turn NaN --------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_run_whose_parameters_turn_nan_stops_with_its_last_finite_checkpoint_and_resumes(tmp_path):
     """A parameter poisoned after update 130 (rlpipe's fault hook): the run stops at that block's end
     with one line, saves nothing more, and --resume continues from iteration 100's checkpoint."""

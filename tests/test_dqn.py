@@ -330,6 +330,7 @@ def test_dqn_preset_learns_cartpole(tmp_path):
     assert result.summary["updates"] == 6000
 
 
+@pytest.mark.slow
 def test_compiled_update_gives_the_eager_parameters(tmp_path):
     # TorchRL warns that compiled (and CUDA-graphed) updates can silently differ: the same updates
     # on the same batches, eager and with compile=true, must leave the same parameters.

@@ -177,8 +177,10 @@ def test_a_study_for_the_return_at_a_time_maximises_the_exported_policys_return_
     assert "the return at 8s" in page
 
     # the same folder, asked for another objective: one line, the study untouched
-    other = tune([*args[:3], "--target", "100", *args[5:]], tmp_path)
-    assert other.returncode == 2 and "holds a study with target=None, not 100.0" in other.stderr, other.stderr
+    capsys.readouterr()
+    assert main([*args[:3], "--target", "100", *args[5:]]) == 2
+    assert "holds a study with target=None, not 100.0" in capsys.readouterr().err
+    assert len(load(out).trials) == 1
 
 
 def _finished(value: float, curve: dict[int, float]):
