@@ -518,7 +518,8 @@ def write_preset(study, plan: Plan) -> Path:
 
     best = study.best_trial
     algo = best.params.get("algo", plan.algos[0])
-    cfg = base_config(algo, plan.env, [*plan.overrides, *plan.trial_overrides(), *tune_space.overrides(algo, best.params)])
+    keys = [*plan.overrides, *plan.trial_overrides(), *tune_space.overrides(algo, best.params)]
+    cfg = base_config(algo, plan.env, keys)
     name = f"{algo}-{_slug(plan.env)}-tuned"
     path = plan.out / f"{name}.yaml"
     if plan.return_at:

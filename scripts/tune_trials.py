@@ -3,9 +3,9 @@
 Each seed's run is the bench's rlpipe side (``bench/time_to_return.py`` ``rlpipe_launch``: the same
 command, ``target_return`` and step cap) timed by the bench's rule (``timed_result``: seconds from its
 launch to the target, less unconfirmed evaluations); for ``--objective return-at=T``, ``rlpipe train`` with
-``time_budget=T`` (``budget_launch``), read from its summary.json (``returned_result``). While the runs go, the trial's curve (the mean
-over its seeds of each run's latest training return, at each elapsed second) is reported to Optuna,
-and ``BehindBestPruner`` stops a trial whose curve falls behind the best finished trial's.
+``time_budget=T`` (``budget_launch``), read from its summary.json (``returned_result``). While the runs go,
+the trial's curve (the mean over its seeds of each run's latest training return, at each elapsed second) is
+reported to Optuna, and ``BehindBestPruner`` stops a trial whose curve falls behind the best finished trial's.
 """
 
 from __future__ import annotations
