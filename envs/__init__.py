@@ -115,6 +115,7 @@ def make_env(
     rescale_observations: bool = False,
     observation_keys: list[str] | None = None,
     frame_stack: int = 1,
+    episodic_life: bool = False,
     **gym_kwargs,
 ) -> TransformedEnv:
     """A TorchRL env for ``env_id`` with ``StepCounter``, ``RewardSum``, ``InitTracker``, and
@@ -130,7 +131,8 @@ def make_env(
 
     A Dict observation becomes one float vector of the entries ``observation_keys`` names (default: all),
     an image stays uint8, channels first, with the last ``frame_stack`` frames stacked, and Atari ids get
-    the standard preprocessing (``rlpipe.envs.observations``).
+    the standard preprocessing (``rlpipe.envs.observations``); ``episodic_life`` (the training envs') ends an
+    Atari episode at each lost life.
 
     ``num_envs > 1`` makes one env of batch size ``[num_envs]``: gymnasium's ``SyncVectorEnv``
     stepping the copies in this process as one call, wrapped by TorchRL's ``GymWrapper`` (which
@@ -152,7 +154,7 @@ def make_env(
 
     def readable(gym_env: gymnasium.Env) -> gymnasium.Env:
         return observed(gym_env, label, observation_keys=observation_keys, frame_stack=frame_stack,
-                        rescale_observations=rescale_observations)
+                        rescale_observations=rescale_observations, episodic_life=episodic_life)
 
     with _extra_named(gym_id, env_id):
         if num_envs > 1:
@@ -181,12 +183,12 @@ def make_env(
 
 
 def observed(gym_env: gymnasium.Env, label: str, *, observation_keys: list[str] | None = None, frame_stack: int = 1,
-             rescale_observations: bool = False) -> gymnasium.Env:
+             rescale_observations: bool = False, episodic_life: bool = False) -> gymnasium.Env:
     """A gymnasium env (made with ``frameskip=1`` for Atari) with the wrappers ``make_env`` puts under TorchRL:
     its observation as the networks read it. ``label`` names the env in errors."""
     spec = getattr(gym_env, "spec", None)
     if spec is not None and is_atari(spec.id):
-        gym_env = atari_preprocessed(gym_env)
+        gym_env = atari_preprocessed(gym_env, episodic_life=episodic_life)
     gym_env = _flat_observations(gym_env, label, observation_keys, frame_stack)
     return _rescaled(gym_env, label, rescale_observations)
 

@@ -10,8 +10,10 @@
   ``frame_stack`` frames stacked on the channel axis (``ImageObservation``): ``uint8 [frame_stack * C, H, W]``.
   A convolutional encoder (``rlpipe.modules.encoders``) reads it.
 * **Atari** (``ALE/...`` ids): gymnasium's ``AtariPreprocessing`` as CleanRL's and SB3's Atari wrappers set
-  it up (no-op reset up to 30, frame skip 4 with max-pooling, 84x84 grey), before the frames are stacked.
-  Rewards stay the game's score; clipping them is the loss's business (``clip_rewards``).
+  it up (no-op reset up to 30, frame skip 4 with max-pooling, 84x84 grey), before the frames are stacked;
+  every life starts with FIRE pressed where the game has it (``FireOnLifeStart``), and in training a lost
+  life ends the episode while the game plays on at the next reset (``EpisodicLife``; evaluations play whole
+  games). Rewards stay the game's score; clipping them is the loss's business (``clip_rewards``).
 
 An entry that cannot be read (a Text space, an image inside a Dict beside other entries, a nested Dict)
 is one ``EnvError`` naming the entry and what is expected.
@@ -29,7 +31,7 @@ import numpy as np
 from gymnasium import spaces
 
 __all__ = [
-    "DictObservation", "ImageObservation", "GOAL_KEYS", "atari_preprocessed", "goal_env", "image_space",
+    "DictObservation", "EpisodicLife", "FireOnLifeStart", "ImageObservation", "GOAL_KEYS", "atari_preprocessed", "goal_env", "image_space",
     "is_atari", "is_image", "observation_layout", "register_optional_families",
 ]
 
@@ -181,12 +183,84 @@ def is_atari(gym_id: str) -> bool:
     return gym_id.startswith("ALE/")
 
 
-def atari_preprocessed(env: gymnasium.Env) -> gymnasium.Env:
+def atari_preprocessed(env: gymnasium.Env, *, episodic_life: bool = False) -> gymnasium.Env:
     """Atari as the Nature DQN paper, CleanRL's ``dqn_atari.py`` and SB3's ``AtariWrapper`` play it: no-op
-    resets (up to 30), 4 frames a step with the last two max-pooled, 84x84 grey. The env must be made with
-    ``frameskip=1`` (the preprocessing skips frames itself)."""
-    return gymnasium.wrappers.AtariPreprocessing(env, noop_max=30, frame_skip=4, screen_size=84,
-                                                 terminal_on_life_loss=False, grayscale_obs=True)
+    resets (up to 30), 4 frames a step with the last two max-pooled, 84x84 grey, FIRE at the start of each
+    life where the game has it; with ``episodic_life`` (training), a lost life ends the episode. The env
+    must be made with ``frameskip=1`` (the preprocessing skips frames itself)."""
+    env = gymnasium.wrappers.AtariPreprocessing(env, noop_max=30, frame_skip=4, screen_size=84,
+                                                terminal_on_life_loss=False, grayscale_obs=True)
+    if episodic_life:
+        env = EpisodicLife(env)
+    if "FIRE" in env.unwrapped.get_action_meanings():
+        env = FireOnLifeStart(env)
+    return env
+
+
+def _lives(env: gymnasium.Env) -> int:
+    return int(env.unwrapped.ale.lives())
+
+
+class EpisodicLife(gymnasium.Wrapper):
+    """A lost life ends the episode (``terminated``) for the learner, which then bootstraps no value past it; the
+    next ``reset`` carries on with the same game (one no-op step) unless the game itself was over. SB3's
+    ``EpisodicLifeEnv`` and CleanRL's ``dqn_atari.py`` train so; the Nature DQN paper too. An episode's return is
+    then one life's score: evaluations play without this wrapper and report whole games."""
+
+    def __init__(self, env: gymnasium.Env):
+        super().__init__(env)
+        self.lives = 0
+        self.game_over = True
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.game_over = terminated or truncated
+        lives = _lives(self.env)
+        if 0 < lives < self.lives:
+            terminated = True
+        self.lives = lives
+        return obs, reward, terminated, truncated, info
+
+    def reset(self, **kwargs):
+        if self.game_over:
+            obs, info = self.env.reset(**kwargs)
+        else:
+            obs, _, terminated, truncated, info = self.env.step(0)  # NOOP: the game goes on with its next life
+            if terminated or truncated:
+                obs, info = self.env.reset(**kwargs)
+        self.lives = _lives(self.env)
+        self.game_over = False
+        return obs, info
+
+
+class FireOnLifeStart(gymnasium.Wrapper):
+    """FIRE after each reset and each lost life, for games that wait for it to serve (Breakout, ...). SB3's and
+    CleanRL's ``FireResetEnv`` press it at reset, which with ``EpisodicLife`` is the start of every life; here an
+    evaluation's whole game gets the same, so a policy never learns to wait on a ball that is not served (a greedy
+    Breakout agent would otherwise stand still until the game's frame limit)."""
+
+    def __init__(self, env: gymnasium.Env):
+        super().__init__(env)
+        self.fire = env.unwrapped.get_action_meanings().index("FIRE")
+        self.lives = 0
+
+    def reset(self, **kwargs):
+        self.env.reset(**kwargs)
+        obs, _, terminated, truncated, info = self.env.step(self.fire)
+        if terminated or truncated:
+            obs, info = self.env.reset(**kwargs)
+        self.lives = _lives(self.env)
+        return obs, info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        lives = _lives(self.env)
+        if 0 < lives < self.lives and not (terminated or truncated):
+            obs, more, terminated, truncated, info = self.env.step(self.fire)
+            reward += more
+            lives = _lives(self.env)
+        self.lives = lives
+        return obs, reward, terminated, truncated, info
 
 
 def register_optional_families(env_id: str) -> None:

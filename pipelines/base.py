@@ -47,7 +47,7 @@ from rlpipe.envs import (
     observation_rescaling,
     resolve_env_id,
 )
-from rlpipe.envs.observations import GOAL_KEYS, goal_env
+from rlpipe.envs.observations import GOAL_KEYS, goal_env, is_atari
 from rlpipe.modules.encoders import make_image_encoder
 from rlpipe.modules.frames import FrameReplayBuffer
 from rlpipe.modules.hindsight import TRAJ_IDS, HindsightReplayBuffer
@@ -157,8 +157,11 @@ class OffPolicyPipeline:
         validate(cfg)
         self.device = torch.device(cfg.device)
         self.env_fn, self.env = factory_and_env(env, cfg)
-        # Evaluation plays one env copy: the collection env may be a vector of them.
-        self.eval_env_fn = self.env_fn if cfg.collector.envs_per_worker == 1 else functools.partial(
+        # Evaluation plays one env copy of whole episodes: the collection env may be a vector of them, or an Atari
+        # game whose training episodes end at each lost life.
+        own_differs = env is None and (cfg.collector.envs_per_worker > 1
+                                       or cfg.episodic_life and is_atari(resolve_env_id(cfg.env)))
+        self.eval_env_fn = self.env_fn if not own_differs else functools.partial(
             make_env, cfg.env, device="cpu", **env_options(cfg), **cfg.env_kwargs)
         self.eval_env = eval_env_of(eval_env, self.eval_env_fn)
         self.env.set_seed(cfg.seed)

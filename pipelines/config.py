@@ -138,7 +138,7 @@ LAYER_SIZES = Check(lambda v: bool(v) and all(n > 0 for n in v),
 
 
 ENV_KWARGS_RESERVED = ("seed", "device", "num_envs", "rescale_observations", "render_mode", "observation_keys",
-                       "frame_stack")
+                       "frame_stack", "episodic_life")
 """what ``rlpipe.envs.make_env`` takes itself: an env keyword of the same name could not reach the env"""
 ENV_KWARGS = Check(lambda v: not set(v) & set(ENV_KWARGS_RESERVED),
                    lambda v: f"keywords other than {', '.join(ENV_KWARGS_RESERVED)} (rlpipe sets those itself: the "
@@ -159,10 +159,13 @@ def duration_seconds(text: str | float | int) -> float | None:
     return float(found.group(1)) * {"": 1, "s": 1, "m": 60, "h": 3600}[found.group(2)]
 
 
-def env_options(cfg, *, rescaled: bool = True) -> dict[str, Any]:
+def env_options(cfg, *, rescaled: bool = True, training: bool = False) -> dict[str, Any]:
     """The keywords of ``rlpipe.envs.make_env`` that the config sets besides the env's own (``env_kwargs``);
-    ``rescaled=False`` leaves out the rescaling, which the exported policy does itself."""
+    ``rescaled=False`` leaves out the rescaling, which the exported policy does itself; ``training=True`` adds
+    what only the training envs do (an Atari episode ended at each lost life)."""
     options = {"observation_keys": cfg.observation_keys, "frame_stack": cfg.frame_stack}
+    if training:
+        options["episodic_life"] = cfg.episodic_life
     return {"rescale_observations": cfg.rescale_observations, **options} if rescaled else options
 
 
@@ -294,6 +297,8 @@ class TrainConfig:
     """the entries of a Dict observation the networks read, concatenated in the env's order (null: every entry); each a vector (a Box, or a discrete space read one-hot)"""
     frame_stack: int = checked(1, POSITIVE)
     """stack the last N frames of an image observation on its channel axis (4 for Atari, as the Nature DQN); 1 for vector observations"""
+    episodic_life: bool = True
+    """Atari (ALE/ ids): a lost life ends the training episode and the game goes on at the next reset, as SB3's AtariWrapper and CleanRL's dqn_atari.py train (the learner bootstraps no value past a lost life); training returns are then one life's score, while evaluations play whole games. Other envs: no effect"""
     her: bool | None = None
     """Hindsight Experience Replay: relabel a share (her_ratio) of each sampled batch with a goal the same episode achieved later (the "future" strategy) and the env's compute_reward; needs a goal env (achieved_goal, desired_goal, compute_reward); null: on for a goal env"""
     her_ratio: float = checked(0.8, PROBABILITY)

@@ -41,7 +41,7 @@ def factory_and_env(env: EnvArg, cfg: TrainConfig) -> tuple[Callable[[], EnvBase
                          "expected them unset (select and stack in your own env, e.g. TorchRL's CatTensors, CatFrames)")
     if env is None:
         factory = functools.partial(make_env, cfg.env, device="cpu", num_envs=cfg.collector.envs_per_worker,
-                                    **env_options(cfg), **cfg.env_kwargs)
+                                    **env_options(cfg, training=True), **cfg.env_kwargs)
     elif isinstance(env, EnvBase):
         if cfg.collector.workers > 1 or not cfg.collector.sync:
             raise InputError("collector.workers>1 or collector.sync=false: pass env as a function that makes the env")

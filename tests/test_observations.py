@@ -6,6 +6,7 @@ The envs are a user's own, in a module on sys.path, named ``module:Class`` as on
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import sys
@@ -16,7 +17,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from rlpipe.envs import EnvError, make_env
+from rlpipe.envs import EnvError, gym_env_under, make_env
+from rlpipe.envs.observations import EpisodicLife, FireOnLifeStart
 from rlpipe.modules.hindsight import STEPS_LEFT, TRAJ_IDS, HindsightReplayBuffer
 from rlpipe.pipelines import dqn, sac
 from rlpipe.pipelines.artifacts.export import load_policy
@@ -95,6 +97,47 @@ class PixPoint(gymnasium.Env):
         self.x = int(np.clip(self.x + int(action) - 1, 0, 47))
         self.t += 1
         return self._image(), float(self.x > 40), self.x > 40, self.t >= 30, {}
+
+
+class Lives:
+    def __init__(self, game):
+        self.game = game
+
+    def lives(self):
+        return self.game.lives
+
+
+class Serve(gymnasium.Env):
+    """A game of 3 lives in ALE's form (``ale.lives()``, ``get_action_meanings``): the ball is served by FIRE,
+    then a life is lost 5 steps later unless the player hits it (action 2), which pays 1."""
+
+    def __init__(self):
+        self.observation_space = spaces.Box(-1.0, 100.0, (2,), np.float32)
+        self.action_space = spaces.Discrete(3)
+        self.ale = Lives(self)
+
+    def get_action_meanings(self):
+        return ["NOOP", "FIRE", "HIT"]
+
+    def _obs(self):
+        return np.array([self.lives, self.in_play], np.float32)
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.lives, self.in_play, self.resets = 3, -1, getattr(self, "resets", 0) + 1
+        return self._obs(), {}
+
+    def step(self, action):
+        reward = 0.0
+        if self.in_play < 0 and action == 1:
+            self.in_play = 0
+        elif self.in_play >= 0:
+            self.in_play += 1
+            if action == 2:
+                reward, self.in_play = 1.0, 0
+            elif self.in_play >= 5:
+                self.lives, self.in_play = self.lives - 1, -1
+        return self._obs(), reward, self.lives == 0, False, {}
 '''
 
 
@@ -210,6 +253,50 @@ def test_image_env_trains_dqn_through_a_cnn_with_uint8_frames(envs_module, tmp_p
     policy, _ = load_policy(tmp_path / "run" / "policy")  # ONNX, checked against torch when written
     frames = make_env(f"{envs_module}:PixPoint", frame_stack=2).reset()["observation"]
     assert policy(frames.numpy()).shape == ()
+
+
+def test_atari_lives_end_training_episodes_and_fire_serves_every_life(envs_module):
+    """A game that waits for FIRE: each life starts served, so a policy that never fires still ends its game;
+    in training each lost life ends the episode and the next reset carries on with the same game."""
+    game = importlib.import_module(envs_module).Serve()
+    whole = FireOnLifeStart(game)  # evaluation
+    obs, _ = whole.reset(seed=0)
+    assert obs[1] == 0  # served
+    steps, done = 0, False
+    while not done:
+        obs, reward, done, _, _ = whole.step(0)
+        steps += 1
+    assert steps == 15 and game.lives == 0  # three lives, each served by the env, lost 5 steps later
+
+    lives = FireOnLifeStart(EpisodicLife(game))  # training
+    lives.reset(seed=0)
+    resets, lengths = game.resets, []
+    for _ in range(4):
+        n, done = 0, False
+        while not done:
+            _, _, done, _, _ = lives.step(0)
+            n += 1
+        lengths.append((n, game.lives))
+        lives.reset()
+    assert lengths[:3] == [(5, 2), (5, 1), (5, 0)]  # one life an episode
+    assert game.resets == resets + 1  # the game went on across the first two resets, restarted after the last life
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ale_py") is None, reason="needs rlpipe[atari] (ale-py)")
+def test_atari_trains_on_lives_and_evaluates_whole_games(tmp_path):
+    cfg = dqn.preset("dqn-atari")
+    cfg.replay_buffer_capacity = 1000
+    pipeline = dqn.DQN(cfg)
+    train_env, eval_env = (gym_env_under(e) for e in (pipeline.env, pipeline.eval_env))
+    assert any(isinstance(layer, EpisodicLife) for layer in _layers(train_env))
+    assert not any(isinstance(layer, EpisodicLife) for layer in _layers(eval_env))
+    assert any(isinstance(layer, FireOnLifeStart) for layer in _layers(eval_env))
+
+
+def _layers(env):
+    while env is not None:
+        yield env
+        env = getattr(env, "env", None)
 
 
 def test_small_images_get_the_small_encoder():

@@ -24,14 +24,28 @@ import time
 from pathlib import Path
 
 CASES = {"sac": ("Pendulum-v1", "HalfCheetah-v5"), "td3": ("Pendulum-v1", "HalfCheetah-v5"), "dqn": ("CartPole-v1",)}
-# env steps after learning_starts of the two timed runs (DQN makes one update per 10 of them)
-LENGTHS = {"sac": (300, 1800), "td3": (300, 1800), "dqn": (5000, 35000)}
+# env steps after learning_starts of the two timed runs (DQN makes one update per 10 of them, on Atari per 4)
+LENGTHS = {"sac": (300, 1800), "td3": (300, 1800), "dqn": (5000, 35000), "dqn_atari": (2000, 10000)}
+# DQN on an Atari id (``--algos dqn --envs ALE/Breakout-v5``) runs CleanRL's dqn_atari.py against rlpipe's
+# dqn-atari preset (its settings), both with these two changed: SB3's replay buffer, which the script uses,
+# allocates every slot at the start (1,000,000 stacks of 4x84x84 uint8 = 28 GB, more than this machine has), and
+# the random warm-up is shortened (it cancels between the two lengths). Exploration ends before learning starts
+# on both sides (CleanRL's schedule spans 10% of its run; rlpipe's is set to 2,000 steps), so every timed step
+# runs the Q-network.
+ATARI_ARGS = ("--learning-starts", "20000", "--buffer-size", "100000")
+
+
+def _is_atari(env_id: str) -> bool:
+    return env_id.startswith("ALE/") or env_id.endswith("NoFrameskip-v4")
 
 
 def rlpipe_overrides(algo: str, env_id: str, hp: dict, act_dim: int) -> tuple[str, list[str]]:
     """(preset, overrides) giving rlpipe CleanRL's hyperparameters ``hp`` (its script's defaults)."""
     quiet = ["eval_interval=0", "num_eval_episodes=5", "log_interval=500", "checkpoint_interval=1000000",
              "policy_save_interval=1000000"]
+    if algo == "dqn_atari":
+        return "dqn-atari", [f"env={env_id}", f"initial_collect_steps={hp['learning_starts']}",
+                             f"replay_buffer_capacity={int(hp['buffer_size'])}", "epsilon_decay_steps=2000", *quiet]
     if algo == "dqn":
         return "dqn-cleanrl", [f"env={env_id}", *quiet]
     common = [f"env={env_id}", f"initial_collect_steps={hp['learning_starts']}", f"gamma={hp['gamma']}",
@@ -98,11 +112,14 @@ def bench_cleanrl(args, out: Path) -> dict:
 
     algos = args.algos or list(CASES)
     rows, figures = [], {"cases": []}
-    for algo in algos:
-        hp = cleanrl.defaults(algo)
-        for env_id in (args.envs or CASES[algo]):
+    for name in algos:
+        for env_id in (args.envs or CASES[name]):
+            algo = "dqn_atari" if name == "dqn" and _is_atari(env_id) else name
+            extra = ATARI_ARGS if algo == "dqn_atari" else ()
+            hp = cleanrl.defaults(algo)
+            hp.update({k: type(hp[k])(v) for k, v in zip([f[2:].replace("-", "_") for f in extra[::2]], extra[1::2])})
             lengths = tuple(args.lengths) if args.lengths else LENGTHS[algo]
-            act_dim = 0 if algo == "dqn" else int(gymnasium.make(env_id).action_space.shape[-1])
+            act_dim = 0 if name == "dqn" else int(gymnasium.make(env_id).action_space.shape[-1])
             preset, overrides = rlpipe_overrides(algo, env_id, hp, act_dim)
             every = int(hp.get("train_frequency", 1))
             mine = {}
@@ -114,16 +131,17 @@ def bench_cleanrl(args, out: Path) -> dict:
             ours = max(mine.values(), key=lambda r: r["updates_per_s"])
             peers = {}
             for threads in (None, 1):
-                peers[threads or "default"] = peer = cleanrl.cleanrl_speed(algo, env_id, lengths, seed=args.seed, threads=threads)
+                peers[threads or "default"] = peer = cleanrl.cleanrl_speed(algo, env_id, lengths, seed=args.seed,
+                                                                           threads=threads, extra_args=extra)
                 print(f"  CleanRL {algo} {env_id} threads={threads or 'default'}: {peer['updates_per_s']:.1f} updates/s",
                       file=sys.stderr)
             best = max(p["updates_per_s"] for p in peers.values())
             peer_returns = peers["default"]["episodic_returns"]
-            figures["cases"].append({"algo": algo, "env": env_id, "lengths": lengths,
+            figures["cases"].append({"algo": name, "script": cleanrl.ALGOS[algo], "env": env_id, "lengths": lengths,
                                      "rlpipe": {str(k): v for k, v in mine.items()},
                                      "cleanrl": {str(k): v for k, v in peers.items()}})
             rows.append(
-                f"| {algo.upper()} | {env_id} | "
+                f"| {name.upper()} | {env_id} | "
                 f"{' / '.join(format(r['updates_per_s'], '.0f') for r in mine.values())} "
                 f"({ours['env_steps_per_s']:.0f}) | "
                 f"{peers['default']['updates_per_s']:.0f} ({peers['default']['env_steps_per_s']:.0f}) | "

@@ -49,7 +49,8 @@ from pathlib import Path
 
 from rlpipe.scripts.bench.peers import _venv
 
-ALGOS = {"sac": "sac_continuous_action.py", "td3": "td3_continuous_action.py", "dqn": "dqn.py"}
+ALGOS = {"sac": "sac_continuous_action.py", "td3": "td3_continuous_action.py", "dqn": "dqn.py",
+         "dqn_atari": "dqn_atari.py"}
 CLEANRL = "cleanrl==1.2.0"  # installed with --no-deps: its metadata pins stable-baselines3==1.2.0, wandb, ...
 # torch first, with its own dependencies: this exact spec takes the CPU build that lies on this disk.
 TORCH_PINS: tuple[str, ...] = (
@@ -102,6 +103,13 @@ PINS: tuple[str, ...] = (
     "pyopengl==3.1.10",
     "websockets==17.4",
     "imageio==2.38.1",
+    # dqn_atari.py: gymnasium 0.28.1's Atari envs come through shimmy 0.2.1 over ale-py 0.8.1 (the versions its
+    # install line names); cv2 for its ResizeObservation. ale-py 0.8.1 ships no ROMs: ``ALE_PY_ROM_DIR`` points it
+    # at the ROM files of the ale-py rlpipe[atari] installs (``_atari_roms``), which ale-py checks by MD5.
+    "ale-py==0.8.1",
+    "shimmy==0.2.1",
+    "importlib-resources==7.1.0",
+    "opencv-python-headless==5.1.0.95",
 )
 # The distributions whose versions a benchmark report names.
 REPORTED: tuple[str, ...] = ("cleanrl", "torch", "gym", "gymnasium", "stable-baselines3", "numpy", "mujoco", "tensorboard")
@@ -247,6 +255,17 @@ def _script(algo: str) -> Path:
     return root / _PATCHED / ALGOS[algo] if algo in ("sac", "td3") else _package_dir(root) / ALGOS[algo]
 
 
+def _atari_roms() -> str:
+    """The ROM folder of the ale-py installed beside rlpipe (``rlpipe[atari]``), for the peer's ale-py 0.8.1."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("ale_py")
+    roms = Path(spec.submodule_search_locations[0]) / "roms" if spec and spec.submodule_search_locations else None
+    if roms is None or not any(roms.glob("*.bin")):
+        raise RuntimeError("CleanRL's dqn_atari.py needs the Atari ROMs that ale-py ships: pip install -e \".[atari]\"")
+    return str(roms)
+
+
 def _literal(node: ast.expr) -> object:
     """A default as written in the script: a literal, or ``int(...)``/``float(...)`` of one (``int(1e6)``)."""
     if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("int", "float"):
@@ -310,7 +329,11 @@ def _python_version() -> str:
 
 
 def _script_env_id(algo: str, env_id: str) -> str:
-    """The id the script is given: for the gym-based SAC/TD3, a MuJoCo v5 id runs as the plugin's v4."""
+    """The id the script is given: for the gym-based SAC/TD3, a MuJoCo v5 id runs as the plugin's v4; for
+    dqn_atari.py, ``ALE/Game-v5`` runs as ``GameNoFrameskip-v4`` (its own default's form: no frame skip, no sticky
+    actions, which its wrappers and rlpipe's ``dqn-atari`` preset both set)."""
+    if algo == "dqn_atari" and env_id.startswith("ALE/"):
+        return env_id.removeprefix("ALE/").rpartition("-v")[0] + "NoFrameskip-v4"
     name, _, version = env_id.rpartition("-v")
     if algo in ("sac", "td3") and version == "5":
         return f"{name}-v4"
@@ -321,7 +344,7 @@ def _updates(algo: str, hp: dict, total: int) -> int:
     """Critic updates in a run: each ``global_step`` in (learning_starts, total) for SAC/TD3, and those that
     are multiples of ``train_frequency`` for DQN (its gradient steps)."""
     starts = int(hp["learning_starts"])
-    if algo == "dqn":
+    if algo in ("dqn", "dqn_atari"):
         every = int(hp["train_frequency"])
         return max(0, (total - 1) // every - starts // every)
     return max(0, total - 1 - starts)
@@ -386,6 +409,8 @@ def cleanrl_speed(algo: str, env_id: str, lengths: tuple[int, int], seed: int = 
     script_env = _script_env_id(algo, env_id)
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "PYTHONPATH", "PYTHONHOME")}
     run_env = {"PYTHONUNBUFFERED": "1"} | ({} if threads is None else {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
+    if algo == "dqn_atari":
+        run_env["ALE_PY_ROM_DIR"] = _atari_roms()
     flags = ["--track", "False", "--capture-video", "False"] + (["--save-model", "False"] if "save_model" in hp else [])
     deadline = time.monotonic() + timeout_s
     runs, episodes, command = [], [], ""
