@@ -180,25 +180,6 @@ def test_ctrl_c_with_an_evaluation_on_the_ray_actor_saves_it_as_owed(tmp_path):
     assert_no_leftovers(sid)
 
 
-@pytest.mark.slow
-def test_an_evaluator_actor_lost_past_max_restarts_saves_and_stops_with_one_line(tmp_path):
-    """No restart left (collector.max_restarts=0): a checkpoint, one line, exit 75, nothing left running;
-    the evaluation that was lost is saved as pending and made by --resume."""
-    run = tmp_path / "run"
-    proc, sid = train(["td3", *TINY, "collector.sync=false", "eval_in_background=true", "collector.max_restarts=0",
-                       "--out", "run"], tmp_path, env={"RLPIPE_FAULT": "evaluator_worker@150:SIGKILL"})
-    assert proc.returncode == 75, proc.stderr[-3000:]
-    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
-    last = proc.stderr.strip().splitlines()[-1]
-    assert last.startswith("rlpipe: error: the evaluator actor (pid") and "no restart left" in last, last
-    assert "checkpoint saved at iteration" in last and "--resume" in last, last
-    assert_no_leftovers(sid)
-    proc, sid = train(["td3", "--resume", "run"], tmp_path)
-    rows = assert_finished(run, proc)
-    assert [int(r["step"]) for r in rows if r["average_return"]] == [0, 150, 300]
-    assert_no_leftovers(sid)
-
-
 # collector.sync=false: the learner finds the actor lost at its next block (test_ray_faults' removed node
 # takes the weight push's path, sync=true)
 @pytest.mark.parametrize("sync", ["false"])

@@ -1,11 +1,12 @@
 """Ray collectors against faults, on a real Ray: a node of a cluster removed mid-run, the learner
-stopped by SIGTERM or killed (kill -9, also inside a checkpoint's write) and resumed, and what Ray
-processes outlive a killed learner; then SAC and TD3 learning Pendulum with Ray collectors.
+killed (kill -9, also inside a checkpoint's write) and resumed, and what Ray processes outlive a killed
+learner; then SAC learning Pendulum with Ray collectors. (A stop signal on a cluster run and its resume:
+tests/test_ray.py.)
 
 Runs are real ``rlpipe train`` processes, each in a session of its own: what a run's local Ray
 instance started is found by that session (other Ray instances may run on this machine at the
 same time), and a joined cluster's actors by their node's raylet (the cluster, conftest's ``ray_cluster``, is
-this file's own, shared by its last two tests, which run after the local-Ray ones).
+this file's own, used by its last test, which runs after the local-Ray ones).
 Faults come at exact points (``RLPIPE_FAULT``): a node is removed while the learner holds itself
 stopped (SIGSTOP) right after a block, never after a sleep.
 """
@@ -316,39 +317,7 @@ def test_learns_pendulum_with_ray_collectors(run_dir, pipeline, overrides, itera
     assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
 
 
-# --- on a cluster the file's tests share (conftest's ray_cluster): SIGTERM, kill -9, then --resume --------
-
-
-@pytest.mark.slow
-def test_sigterm_on_a_cluster_run_saves_exits_143_and_resume_finishes_there(ray_cluster, tmp_path):
-    """SIGTERM to the learner alone right after the block of iteration 100: it saves a checkpoint at its
-    next safe point and exits 143, leaving the cluster up and no process of its own; ``--resume`` joins the same
-    cluster and finishes; the counters go on from the checkpoint (frames and updates exactly the
-    run's), and no metrics row is lost or written twice."""
-    run = tmp_path / "run"
-    code, err, sid = train([*RUN, "collector.workers=2", "collector.sync=false", f"ray.address={ray_cluster.address}",
-                            "--out", "run"], tmp_path, fault="collected@100:SIGTERM:self")
-    assert code == 143, err[-3000:]
-    last = [line for line in err.splitlines() if line.startswith("rlpipe:")][-1]
-    assert last.startswith("rlpipe: interrupted by SIGTERM") and "--resume" in last, err[-3000:]
-    # its next safe point: the triggers of iteration 150 (no update is owed before 256 frames); the
-    # checkpoint saved there records them as owed, and --resume does them first
-    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_0000000150"
-    assert [int(r["step"]) for r in log_rows(metrics_rows(run))] == [50, 100]
-    assert_no_leftovers(sid)
-    poll_until(lambda: not collector_actors(ray_cluster), "the stopped run's actors are still there")
-    assert ray_cluster.remaining_processes_alive()
-
-    code, err, sid = train(["td3", "--resume", "run", "--no-progress"], tmp_path)
-    assert code == 0, err[-3000:]
-    rows = assert_whole_run(run)
-    # (the row of 150, owed by the stopped run, is written before the resumed run's actors start)
-    logged = [r for r in log_rows(rows) if r["step"] != "150"]
-    assert all(r["collector_restarts"] == "0" and r["workers_alive"] == "2" for r in logged), logged
-    # the weights' version goes on from the checkpoint's update count
-    assert [int(r["weight_version"]) for r in logged] == [int(r["updates"]) for r in logged]
-    assert_no_leftovers(sid)
-    assert ray_cluster.remaining_processes_alive()
+# --- on conftest's ray_cluster: kill -9, then --resume -----------------------------------------------------------
 
 
 @pytest.mark.slow

@@ -125,7 +125,7 @@ def bench_cleanrl(args, out: Path) -> dict:
             mine = {}
             for threads in sorted({1, os.cpu_count() or 1}):
                 mine[threads] = rlpipe_speed(preset, [*overrides, f"num_threads={threads}", *args.overrides], lengths,
-                                             every, args.seed, out / f"{algo}-{env_id}-threads{threads}")
+                                             every, args.seed, out / f"{algo}-{env_id.replace('/', '_')}-threads{threads}")
                 print(f"  rlpipe {algo} {env_id} learner threads={threads}: {mine[threads]['updates_per_s']:.1f} updates/s",
                       file=sys.stderr)
             ours = max(mine.values(), key=lambda r: r["updates_per_s"])
