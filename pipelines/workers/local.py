@@ -24,7 +24,7 @@ from torchrl.envs import EnvBase
 
 from rlpipe.envs import make_env
 from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
-from rlpipe.pipelines.config import TrainConfig, steps_in_learner
+from rlpipe.pipelines.config import ENV_KWARGS_RESERVED, TrainConfig, steps_in_learner
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
 from rlpipe.pipelines.workers.gym_collector import GymCollector, WorkerGymCollector, gym_env_of
 from rlpipe.pipelines.workers.snapshot import SNAPSHOT, SnapshotCollector, WorkerSnapshotCollector, why_not_exact
@@ -45,8 +45,7 @@ def direct_collection(config: TrainConfig, env_fn: Callable[[], EnvBase] | None,
     own TorchRL env keeps TorchRL's ``Collector``: its transforms are its own)."""
     c = config.collector
     made_here = (isinstance(env_fn, functools.partial) and env_fn.func is make_env and env_fn.args == (config.env,)
-                 and set(env_fn.keywords) - set(config.env_kwargs) <= {"device", "num_envs", "rescale_observations",
-                                                                          "observation_keys", "frame_stack"}
+                 and set(env_fn.keywords) - set(config.env_kwargs) <= set(ENV_KWARGS_RESERVED)
                  and env_fn.keywords.get("num_envs", 1) == 1)
     return c.direct and made_here and gym_env_of(env) is not None
 
