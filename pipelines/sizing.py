@@ -347,6 +347,8 @@ class Resolved:
     config: TrainConfig
     overrides: list[str]
     lines: list[str]
+    source: str = "the sizing rule (pipelines/sizing.py)"
+    """where the config's values come from, as ``rlpipe train ... --keys`` names it"""
 
 
 def _key(item: str) -> str:
@@ -396,14 +398,15 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
     else:
         first = []
     if resume:
-        return Resolved(algo, resolve_preset(algo)[1], overrides, [])
+        return Resolved(algo, resolve_preset(algo)[1], overrides, [], f"preset {algo}")
     fits = [p for p in presets.names() if _same_env(getattr(presets.info(p), "env", None) or "", wanted.env)
             and preset_info(p).sized and resolve_preset(p)[0] == algo]
     if fits:
         info = preset_info(fits[0])
         line = (f"rlpipe: {algo} on {wanted.env}: the settings of preset {fits[0]!r} ({info.task}), the preset "
                 f"sized for this env (`rlpipe train {fits[0]}`)")
-        return Resolved(algo, resolve_preset(fits[0])[1], overrides, [*first, line])
+        return Resolved(algo, resolve_preset(fits[0])[1], overrides, [*first, line], f"preset {fits[0]}, sized for "
+                        f"{wanted.env}")
     if algo not in SIZED_ALGOS:
         return None  # CrossQ: its tutorial preset and the hint of what sizes a run
     kind = kind or measure(wanted, play=False)
@@ -412,7 +415,7 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
     budget = next((o.partition("=")[2].strip() for o in reversed(overrides) if _key(o) == "time_budget"), None)
     budget = budget if budget is not None and duration_seconds(budget) else None  # null; a bad one: its own line
     cfg, line = sized_config(algo, measure(wanted), time_budget=budget)
-    return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"])
+    return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"], f"sized for {wanted.env} (pipelines/sizing.py)")
 
 
 def _same_env(a: str, b: str) -> bool:

@@ -117,6 +117,12 @@ def _positive(name: str, value: int) -> None:
         raise InputError(f"{name}={value}: expected a positive integer")
 
 
+def _value_of(cfg, key: str):
+    for part in key.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
 def cmd_train(args) -> int:
     from rlpipe.pipelines import device_hint, pipeline_class, resolve_preset, size_hint
     from rlpipe.pipelines.artifacts.rundir import RunDir, default_run_dir
@@ -142,13 +148,17 @@ def cmd_train(args) -> int:
         cfg = config_from_dict(Pipeline.Config, saved)
     cfg = apply_overrides(cfg, overrides)
     hint = None if args.resume is not None or sized else size_hint(args.preset, cfg)
-    if args.keys:  # the values this command would train with, overrides included
+    if args.keys:  # the values this command would train with, overrides included, and where each came from
         docs = field_docs(type(cfg))
+        named = {o.partition("=")[0].strip() for o in overrides}
+        base = (f"{args.resume}/config.json" if args.resume is not None else sized.source if sized
+                else f"preset {args.preset}")
+        default = Pipeline.Config()
         for key in flat_keys(type(cfg)):
-            value = cfg
-            for part in key.split("."):
-                value = getattr(value, part)
-            print(f"{key}={json.dumps(value)}\n    {docs.get(key, '')}")
+            value = _value_of(cfg, key)
+            source = ("command line" if any(n == key or n.startswith(key + ".") for n in named)
+                      else base if value != _value_of(default, key) else "default")
+            print(f"{key}={json.dumps(value)}\n    [{source}] {docs.get(key, '')}")
         for line in chosen:
             print(line, file=sys.stderr)
         if hint:

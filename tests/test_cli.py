@@ -193,10 +193,12 @@ def test_keys_lists_every_key_with_value_and_help(commands):
     assert "transitions per update" in out  # batch_size's help
 
 
-def test_keys_shows_the_values_the_overrides_give(commands):
+def test_keys_shows_the_values_the_overrides_give_and_where_each_came_from(commands):
     proc = commands[2]["keys-overridden"]
     assert proc.returncode == 0, proc.stderr
-    assert "\nbatch_size=7\n" in proc.stdout and "\ncollector.workers=3\n" in proc.stdout
+    assert "\nbatch_size=7\n    [command line] " in proc.stdout
+    assert "\ncollector.workers=3\n    [command line] " in proc.stdout
+    assert "\ngamma=1.0\n    [default] " in proc.stdout  # where each value came from
 
 
 # --- bad input: one line, exit 2, nothing written --------------------------------------------------

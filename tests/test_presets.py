@@ -104,11 +104,19 @@ def test_a_sized_preset_on_an_env_no_preset_knows_gets_the_keys_that_size_a_run(
 
     capfd.readouterr()
     assert main(["train", "sac-pendulum", "env=MountainCarContinuous-v0", "--keys"]) == 0
-    hints = [line for line in capfd.readouterr().err.splitlines() if line.startswith("rlpipe: hint:")]
+    out, err = capfd.readouterr()
+    assert 'env="MountainCarContinuous-v0"\n    [command line] ' in out
+    assert "\n    [preset sac-pendulum] " in out  # where the values came from: the preset as written, not sized
+    hints = [line for line in err.splitlines() if line.startswith("rlpipe: hint:")]
     assert len(hints) == 1, hints
     for key in ("actor_fc_layer_params", "critic_joint_fc_layer_params", "initial_collect_steps", "collector.sync",
                 "rlpipe train sac env=MountainCarContinuous-v0"):
         assert key in hints[0]
+    # the command the hint names: sized for the env, and --keys says so beside each value the rule set
+    assert main(["train", "sac", "env=MountainCarContinuous-v0", "seed=3", "--keys"]) == 0
+    out = capfd.readouterr().out
+    assert "\nseed=3\n    [command line] " in out and "\ngamma=0.99\n    [default] " in out
+    assert "\n    [sized for MountainCarContinuous-v0 (pipelines/sizing.py)] " in out
 
 
 def test_no_hint_on_the_presets_own_env():
