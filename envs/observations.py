@@ -31,8 +31,8 @@ import numpy as np
 from gymnasium import spaces
 
 __all__ = [
-    "DictObservation", "EpisodicLife", "FireOnLifeStart", "ImageObservation", "GOAL_KEYS", "atari_preprocessed", "goal_env", "image_space",
-    "is_atari", "is_image", "observation_layout", "register_optional_families",
+    "DictObservation", "EpisodicLife", "FireOnLifeStart", "ImageObservation", "GOAL_KEYS", "atari_preprocessed",
+    "goal_env", "image_space", "is_atari", "is_image", "observation_layout", "register_optional_families",
 ]
 
 GOAL_KEYS = ("achieved_goal", "desired_goal")

@@ -8,7 +8,9 @@ warm-up, process starts) cancels: updates/s = (U2 - U1) / (t2 - t1), wall clock 
 
 rlpipe runs on its presets' collection (SAC/TD3: the env steps in a collector process beside the
 learner; DQN: ``dqn-cleanrl``, 16 env copies stepped as one batch in that process) with its
-learner on one thread and on all cores (``num_threads``), the best of the two compared.
+learner on one thread and on all cores (``num_threads``), the best of the two compared. DQN on an ALE id
+(``--algos dqn --envs ALE/Breakout-v5``) is CleanRL's ``dqn_atari.py`` against the ``dqn-atari`` preset
+(``ATARI_ARGS``).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ ATARI_ARGS = ("--learning-starts", "20000", "--buffer-size", "100000")
 
 
 def _is_atari(env_id: str) -> bool:
-    return env_id.startswith("ALE/") or env_id.endswith("NoFrameskip-v4")
+    return env_id.startswith("ALE/")
 
 
 def rlpipe_overrides(algo: str, env_id: str, hp: dict, act_dim: int) -> tuple[str, list[str]]:
