@@ -140,8 +140,8 @@ _cluster = None  # the cluster while it is up
 @pytest.fixture
 def ray_cluster():
     """A Ray cluster of two nodes on this machine, a head and one more, a CPU each (test_ray, test_ray_faults,
-    test_tune_ray). Tests of one file that join one in a row share it (test_ray_faults' last two): it is shut down
-    after a test whose next test is in another file or does not join one. Each of them checks that its runs left it
+    test_tune_ray). Tests of one file that join one in a row share it: it is shut down after a test whose next test
+    is in another file or does not join one. Each of them checks that its runs left it
     up and without their actors."""
     global _cluster
     if _cluster is None:
