@@ -378,7 +378,7 @@ def search(study, plan: Plan, stop) -> list:
 
 
 def _search(study, plan: Plan, stop, running: list, spent_before: float, began: float) -> None:
-    from rlpipe.pipelines.system.runtime import fault_point
+    from rlpipe.pipelines.system.faults import fault_point
 
     processes = plan.workers * plan.seeds
     while True:

@@ -633,11 +633,11 @@ def test_without_an_atomic_exchange_a_checkpoint_set_aside_comes_back(tmp_path, 
 @pytest.mark.unit
 def test_a_full_disk_inside_a_save_is_one_error_and_keeps_the_previous(tmp_path, monkeypatch):
     from rlpipe.pipelines.artifacts.files import FileWriteError
-    from rlpipe.pipelines.system import runtime
+    from rlpipe.pipelines.system import faults
 
     folder = tmp_path / "checkpoints"
     ckpt.save_checkpoint(folder, 5, _small_state(1.0))
-    monkeypatch.setattr(runtime, "_FAULTS", ["checkpoint.write@6:ENOSPC"])
+    monkeypatch.setattr(faults, "_FAULTS", ["checkpoint.write@6:ENOSPC"])
     with pytest.raises(FileWriteError, match="No space left on device") as raised:
         ckpt.save_checkpoint(folder, 6, _small_state(2.0))
     assert isinstance(raised.value, InputError) and len(str(raised.value).splitlines()) == 1

@@ -3,7 +3,7 @@ or frozen (SIGSTOP) at an exact iteration is replaced and the run goes on; past
 ``collector.max_restarts`` the run saves a checkpoint and stops with one line (exit 75); SIGTERM and
 SIGHUP, to the learner alone or to its process group, save a checkpoint like Ctrl-C (exit 128 + the
 signal). Every run is a real ``rlpipe train`` process; faults come from the test hook
-(``RLPIPE_FAULT``, ``pipelines/system/runtime.py``) at exact points, and what outlives a run is read with psutil.
+(``RLPIPE_FAULT``, ``pipelines/system/faults.py``) at exact points, and what outlives a run is read with psutil.
 """
 
 from __future__ import annotations

@@ -39,7 +39,7 @@ from rlpipe.pipelines.artifacts.files import FileWriteError, fsync_path, remove_
 from rlpipe.pipelines.compat.torchrl import write_cursor
 from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.system.runtime import fault_point
+from rlpipe.pipelines.system.faults import fault_point
 
 __all__ = [
     "save_checkpoint", "load_checkpoint", "latest_checkpoint", "newest_whole", "remove_leftovers",

@@ -1,2 +1,2 @@
-"""The operating system's side: stop signals at safe points, the fault-injection hook, child
+"""The operating system's side: stop signals at safe points, the fault-injection hook (``faults``), child
 processes, and the memory a run will take against what the machine has."""

@@ -18,11 +18,10 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 __all__ = [
-    "STOP_SIGNALS", "DeferredInterrupt", "DroppingStream", "Interrupted", "Stopped", "dropping", "fault_point", "fault_set",
+    "STOP_SIGNALS", "DeferredInterrupt", "DroppingStream", "Interrupted", "Stopped", "dropping",
     "command_returned", "gc_frozen", "hold_stops_to_exit", "keep_freed_memory", "open_closed_descriptors", "output_dropped_when_gone", "say",
     "WORKER_MODULES", "start_fork_server", "start_resource_tracker", "stop_signals_blocked",
 ]
@@ -414,69 +413,3 @@ def stop_signals_blocked():
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
-
-
-# --- the test hook: a fault at an exact point of a run ------------------------------------------------
-
-# RLPIPE_FAULT="NAME@STEP" (or "NAME@STEP:SIGTERM", several steps "NAME@100,200:SIGKILL", several faults
-# separated by ";"): a process reaching point NAME at iteration STEP sends the signal (default SIGINT)
-# to its whole process group, as a terminal's Ctrl-C does (SIGSTOP holds it there until the group
-# gets SIGCONT), or to the one process the point is about (a worker), or, with a third field "self"
-# ("NAME@STEP:SIGTERM:self"), to itself alone. "NAME@STEP:ENOSPC" (any errno name) raises that
-# OSError there instead, as a full disk (or a refused write) would. "NAME@STEP:NAN" sends nothing:
-# fault_point returns True and the caller poisons its state (after an update: a parameter becomes NaN,
-# ``training.divergence.with_nan_fault``).
-# RLPIPE_FAULT_ONCE=PATH: only the first process to get there (it creates PATH and writes its command
-# line into it), so a study's other runs reaching the same point later do not press again.
-_FAULTS = [f for f in os.environ.get("RLPIPE_FAULT", "").split(";") if f]
-
-
-def fault_set(name: str) -> bool:
-    """Whether ``RLPIPE_FAULT`` names point ``name``: a point inside a hot loop is put there only then."""
-    return any(fault.partition(":")[0].partition("@")[0] == name for fault in _FAULTS)
-
-
-def fault_point(name: str, step: int, worker: Callable[[], int | None] | None = None) -> bool:
-    """Where tests inject a fault (see ``RLPIPE_FAULT`` above); does nothing in normal runs.
-
-    ``worker``: for a point about a worker process, a function giving its pid (called only when the
-    fault fires; None: no such worker now, and no signal). Returns True when the fault is one the
-    caller carries out itself (``:NAN``).
-    """
-    for fault in _FAULTS:
-        point, _, rest = fault.partition(":")
-        what, _, target = rest.partition(":")
-        point_name, _, steps = point.partition("@")
-        if point_name != name or str(step) not in steps.split(","):
-            continue
-        pid = os.getpid() if target == "self" else None
-        if worker is not None:
-            pid = worker()
-            if pid is None:
-                continue
-        if not _first_to_fire():
-            continue
-        if what == "NAN":
-            return True
-        if what.startswith("E"):
-            code = getattr(errno, what)
-            raise OSError(code, os.strerror(code))
-        signum = getattr(signal, what or "SIGINT")
-        if pid is None:
-            os.killpg(os.getpgrp(), signum)
-        else:
-            os.kill(pid, signum)
-    return False
-
-
-def _first_to_fire() -> bool:
-    marker = os.environ.get("RLPIPE_FAULT_ONCE")
-    if not marker:
-        return True
-    try:
-        fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-    except FileExistsError:
-        return False
-    with os.fdopen(fd, "w") as fh:
-        fh.write(" ".join(sys.argv) + "\n")
-    return True

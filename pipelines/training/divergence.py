@@ -1,22 +1,19 @@
-"""The divergence check: a loss or parameter that turned NaN or infinite stops the run, unsaved; and the
-fault hook that makes a run diverge at an exact update, for the tests of that check."""
+"""The divergence check: a loss or parameter that turned NaN or infinite stops the run, unsaved (the tests make a
+run diverge at an exact update through ``training.faults``)."""
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 
 import torch
-from tensordict import TensorDictBase
 from torch import nn
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.artifacts.rundir import RunDir
 from rlpipe.pipelines.errors import InputError, TrainingDiverged
-from rlpipe.pipelines.system.runtime import fault_point, fault_set
 from rlpipe.pipelines.training.state import RunState
 
-__all__ = ["check_finite", "with_nan_fault"]
+__all__ = ["check_finite"]
 
 
 def check_finite(loss_sums: Mapping[str, torch.Tensor], module: nn.Module, state: RunState, run: RunDir) -> None:
@@ -41,22 +38,3 @@ def check_finite(loss_sums: Mapping[str, torch.Tensor], module: nn.Module, state
         f"{', '.join(bad) or 'a parameter'} is not finite; stopped without saving: the last finite state is "
         f"{last}; expected finite losses: lower the learning rates, then continue with --resume {run.path}"
     )
-
-
-UpdateStep = Callable[[TensorDictBase, int], Mapping[str, torch.Tensor]]
-
-
-def with_nan_fault(update_step: UpdateStep, module: nn.Module) -> UpdateStep:
-    """``update_step`` itself, unless ``RLPIPE_FAULT`` sets the point ``update`` (``"update@N:NAN"``): then
-    ``update_step`` followed, after update N, by a parameter of ``module`` turned NaN, for ``check_finite``
-    to catch. Decided once, outside the updates: a run without that fault calls ``update_step`` directly."""
-    if not fault_set("update"):
-        return update_step
-
-    def poisoned(batch: TensorDictBase, index: int) -> Mapping[str, torch.Tensor]:
-        losses = update_step(batch, index)
-        if fault_point("update", index):
-            next(module.parameters()).data.fill_(math.nan)
-        return losses
-
-    return poisoned

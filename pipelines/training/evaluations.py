@@ -19,7 +19,8 @@ from torchrl.envs.utils import RandomPolicy
 
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import BASELINE_SEED_OFFSET, eval_seed
-from rlpipe.pipelines.system.runtime import fault_point, stop_signals_blocked
+from rlpipe.pipelines.system.faults import fault_point
+from rlpipe.pipelines.system.runtime import stop_signals_blocked
 from rlpipe.pipelines.workers.evaluation import AsyncEvaluator, evaluate
 from rlpipe.pipelines.workers.factory import backend_class
 from rlpipe.pipelines.workers.supervision import WorkerFailure

@@ -35,9 +35,8 @@ from torchrl.record.loggers import Logger
 
 from rlpipe.pipelines.artifacts.files import FileWriteError
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir
-from rlpipe.pipelines.system.runtime import Interrupted, Stopped, fault_point, stop_signals_blocked
+from rlpipe.pipelines.system.runtime import Interrupted, Stopped, stop_signals_blocked
 from rlpipe.pipelines.training.context import LIVE_LOG, LoopContext
-from rlpipe.pipelines.training.divergence import with_nan_fault
 from rlpipe.pipelines.training.nstep import n_step_transitions
 from rlpipe.pipelines.training.resume import TRAJ_IDS, ExactResume
 from rlpipe.pipelines.training.sampling import sample
@@ -157,9 +156,6 @@ class Loop(LoopContext):
                 yield batch
                 if self.finished_early is not None:
                     break
-                fault_point("collected", state.iteration)  # the learner, once the block's work is done
-                fault_point("collector_worker", state.iteration,
-                            worker=lambda: next(iter(self.collection.pids()), None))
                 if state.frames >= cfg.total_frames:
                     break
         finally:
@@ -209,7 +205,7 @@ class Loop(LoopContext):
 
     def pay_updates(self) -> None:
         """Make the updates the frames so far paid for; push the new weights to collector processes."""
-        update, made = with_nan_fault(self.pipeline.update_step, self.pipeline.loss_module), 0
+        update, made = self.pipeline.update_step, 0
         while self.state.limiter.owed:
             self.stop.check()
             losses = update(sample(self.pipeline.replay_buffer), self.state.updates + 1)

@@ -30,6 +30,7 @@ from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import DeferredInterrupt, gc_frozen, keep_freed_memory
 from rlpipe.pipelines.training.arithmetic import NOT_ARITHMETIC, arithmetic_record, changed_arithmetic
 from rlpipe.pipelines.training.context import LIVE_LOG
+from rlpipe.pipelines.training.faults import fault_triggers
 from rlpipe.pipelines.training.loop import Loop, TrainResult
 from rlpipe.pipelines.training.meters import Clock
 from rlpipe.pipelines.training.page import ReportPage
@@ -63,7 +64,7 @@ class Run:
               triggers: Sequence[Trigger] = ()) -> TrainResult:
         """``OffPolicyPipeline.train``: see there."""
         pipeline = self.pipeline
-        triggers = [*default_triggers(pipeline.config), *triggers]
+        triggers = [*default_triggers(pipeline.config), *triggers, *fault_triggers()]
         names = [t.name for t in triggers]
         if len(set(names)) != len(names):
             raise InputError(f"trigger names must be unique (they are saved in checkpoints); got {', '.join(names)}")

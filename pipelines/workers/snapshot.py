@@ -32,7 +32,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 
 from rlpipe.envs.snapshot import NotCapturable, capture, restore, why_not_capturable
 from rlpipe.pipelines.compat.torchrl import prompt_block_hand_over, ray_weight_sync_deadline
-from rlpipe.pipelines.system.runtime import fault_point
+from rlpipe.pipelines.system.faults import fault_point
 
 __all__ = ["SNAPSHOT", "SnapshotCollector", "WorkerSnapshotCollector", "gym_envs_of", "seed_worker", "why_not_exact"]
 

@@ -52,7 +52,8 @@ from typing import Any
 
 from rlpipe.pipelines.config import MAX_SEED
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.system.runtime import DeferredInterrupt, fault_point
+from rlpipe.pipelines.system.faults import fault_point
+from rlpipe.pipelines.system.runtime import DeferredInterrupt
 
 PEERS = ("cleanrl", "sb3", "sbx", "tfagents", "torchrl")
 SIDES = ("rlpipe", "preset", "crossq", *PEERS)
