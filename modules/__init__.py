@@ -2,18 +2,15 @@
 
 This package never imports ``rlpipe.pipelines``: everything here is a plain TorchRL/torch object.
 
-    actors, critics, qnetworks, exploration   policies and value networks (TensorDict modules); critics
-                      also holds CrossQ's batch-renormalised critic and a faster BatchRenorm1d
+    actors, critics, qnetworks   policies and value networks (TensorDict modules); critics also holds CrossQ's
+                      batch-renormalised critic and a faster BatchRenorm1d
     plain_policy      any TensorDict policy as a plain module on observation tensors (what torch.export takes)
-    tensor_policy     a collect policy as a function on one observation tensor (a collector's per-step call)
     td3_loss          TorchRL's TD3Loss with TD3's six ingredients as switches, and one TD3 step
-    sac_loss          TorchRL's SACLoss terms on plain tensors (LeanSACLoss), importance weights included
-    crossq_loss       TorchRL's CrossQLoss on plain tensors (LeanCrossQLoss), batch-renorm statistics included
-    dqn_loss          TorchRL's DQNLoss on plain tensors (LeanDQNLoss)
-    target_updates    SoftUpdate with a one-kernel step, for any loss with target networks
-    optim             LeanAdam: fused Adam without Optimizer.step's per-call Python;
-                      clip_gradient_norms: TF-Agents' per-tensor gradient clipping
-    tensor_nets       TorchRL MLPs run on plain tensors (one copy, or stacked twin critics at once)
+    encoders, frames, hindsight, normalization   images, frame-stacking replay, HER, running observation norms
+    fast/             the parts that re-implement a TorchRL or torch part for speed, each the stock part's equal,
+                      with their table and checks (``rlpipe.modules.fast``): the lean SAC, CrossQ and DQN losses,
+                      LeanAdam, ForeachSoftUpdate, the replay sample, the epsilon-greedy policy on tensors,
+                      collect policies as tensor functions, TorchRL MLPs on tensors
 """
 
 from rlpipe.modules.actors import (
@@ -25,10 +22,10 @@ from rlpipe.modules.actors import (
     make_tanh_normal_actor,
 )
 from rlpipe.modules.critics import BatchRenorm1d, make_batchrenorm_critic, make_qvalue_critic
-from rlpipe.modules.exploration import EGreedyQPolicy, epsilon_greedy
-from rlpipe.modules.optim import LeanAdam, clip_gradient_norms
+from rlpipe.modules.fast.exploration import EGreedyQPolicy, epsilon_greedy
+from rlpipe.modules.fast.optim import LeanAdam, clip_gradient_norms
+from rlpipe.modules.fast.target_updates import ForeachSoftUpdate, make_target_updater
 from rlpipe.modules.qnetworks import make_qvalue_actor
-from rlpipe.modules.target_updates import ForeachSoftUpdate, make_target_updater
 from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
 
 __all__ = [

@@ -94,11 +94,16 @@ class BatchRenorm1d(_TorchRLBatchRenorm1d):
 
     The count: TorchRL 0.14 caps it with a ``clamp_max`` that is not in place, so it grows on and the
     warm-up factor ``count // warmup_steps`` with it (2 after twice the warm-up), scaling the
-    corrections r - 1 and d by it; here it stops at ``warmup_steps`` (factor 1 from there on).
+    corrections r - 1 and d by it; here it stops at ``warmup_steps`` (factor 1 from there on), with ``fast``
+    false too (TorchRL's forward then, the count held after it).
     """
 
+    def __init__(self, *args, fast: bool = True, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.fast = fast
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if not self.training or x.dim() != 2:
+        if not self.fast or not self.training or x.dim() != 2:
             out = super().forward(x)
             if self.training and self.warmup_steps > 0:
                 self.num_batches_tracked.copy_(self.num_batches_tracked.clamp(max=self.warmup_steps))
@@ -145,6 +150,7 @@ def make_batchrenorm_critic(
     momentum: float = 0.01,
     eps: float = 1e-3,
     warmup_steps: int = 100_000,
+    fast: bool = True,
 ) -> ValueOperator:
     """CrossQ's Q(s, a): ``BatchRenorm1d`` over ``cat(observation, action)``, then per hidden layer
     Linear, ``BatchRenorm1d``, ReLU, and a Linear to ``"state_action_value"`` (sb3-contrib's layout;
@@ -152,10 +158,11 @@ def make_batchrenorm_critic(
 
     The running statistics and step counts are buffers: in the state dict, so in checkpoints. A
     forward pass in training mode moves them; TorchRL's ``CrossQLoss`` runs one only on the joint
-    (s, a) + (s', a') batch of the critic loss, and the actor's loss in eval mode.
+    (s, a) + (s', a') batch of the critic loss, and the actor's loss in eval mode. ``fast=False``: the norms'
+    training forward is TorchRL's own (``rlpipe.modules.fast``).
     """
     def norm(n: int) -> BatchRenorm1d:
-        return BatchRenorm1d(n, momentum=momentum, eps=eps, warmup_steps=warmup_steps)
+        return BatchRenorm1d(n, momentum=momentum, eps=eps, warmup_steps=warmup_steps, fast=fast)
 
     width = observation_dim + action_dim
     layers: list[nn.Module] = [norm(width)]

@@ -42,7 +42,7 @@ from torchrl.objectives import SoftUpdate, TD3Loss, ValueEstimators
 from torchrl.objectives.utils import distance_loss
 
 from rlpipe.modules.actors import TanhBoundedMLP
-from rlpipe.modules.tensor_nets import (
+from rlpipe.modules.fast.tensor_nets import (
     bootstrap_discount,
     cached_flat_params,
     importance_weights,
@@ -85,6 +85,8 @@ class TD3AblationLoss(TD3Loss):
         loss_function: critic regression loss; ``"l2"`` (the tutorial's MSE, default),
             ``"smooth_l1"`` (TD3Loss's default) or ``"l1"``.
         num_qvalue_nets: number of critics (2 for TD3).
+        on_tensors: run plain networks on tensors (``rlpipe.modules.fast.tensor_nets``); False: every network
+            through TensorDicts, as TorchRL's ``TD3Loss`` calls them (the same numbers, slower).
         **td3_kwargs: passed on to ``TD3Loss`` (``delay_actor``, ``delay_qvalue``, ...).
 
     The discount is TorchRL's: ``loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)``
@@ -103,6 +105,7 @@ class TD3AblationLoss(TD3Loss):
         noise_clip: float = 0.5,
         loss_function: str = "l2",
         num_qvalue_nets: int = 2,
+        on_tensors: bool = True,
         **td3_kwargs,
     ) -> None:
         stochastic_actor = isinstance(actor_network, ProbabilisticTensorDictSequential)
@@ -127,15 +130,16 @@ class TD3AblationLoss(TD3Loss):
         self.clipped_double_q = clipped_double_q
         # Converts normalised noise to action units, as the tutorial's (a - center) / radius does.
         self.register_buffer("action_radius", (self.max_action - self.min_action) / 2)
-        # Plain modules are called on tensors (fast); anything else through TensorDicts.
-        self._actor_on_tensors = is_plain_module(self.actor_network)
+        # Plain modules are called on tensors (fast); anything else, or every module with on_tensors=False
+        # (the pipelines' fast=false), through TensorDicts.
+        self._actor_on_tensors = on_tensors and is_plain_module(self.actor_network)
         self._actor_layers = (
             mlp_layers(self.actor_network.module.mlp, "mlp.")
             if self._actor_on_tensors and type(self.actor_network.module) is TanhBoundedMLP
             else None
         )
         self._critic_layers = (
-            mlp_layers(self.qvalue_network.module) if is_plain_module(self.qvalue_network) else None
+            mlp_layers(self.qvalue_network.module) if on_tensors and is_plain_module(self.qvalue_network) else None
         )
         if len(self.actor_network.in_keys) != 1:
             raise ValueError(
@@ -377,11 +381,11 @@ def td3_update(
         batch: a replay-buffer sample with the loss's keys (observation, action, ("next", ...));
             a prioritized buffer's importance weights in it weigh the losses, as in ``TD3Loss``.
         critic_optimizer: optimiser over ``loss.qvalue_network_params.parameters()`` (the
-            tutorial: ``torch.optim.Adam(..., lr=3e-4)``; ``rlpipe.modules.optim.LeanAdam``,
+            tutorial: ``torch.optim.Adam(..., lr=3e-4)``; ``rlpipe.modules.fast.optim.LeanAdam``,
             the same fused Adam with less Python per step, is what the TD3 pipeline uses).
         actor_optimizer: optimiser over ``loss.actor_network_params.parameters()``
             (``.parameters()`` leaves out the actor's bound buffers).
-        target_updater: ``rlpipe.modules.target_updates.make_target_updater(loss, ...)``.
+        target_updater: ``rlpipe.modules.fast.target_updates.make_target_updater(loss, ...)``.
         update_index: number of this update (1, 2, ...); a Python int, so under ``torch.compile``
             the delay decision selects one of two graphs instead of branching on a tensor.
         policy_delay: the tutorial's ``policy_freq`` (2).

@@ -48,11 +48,14 @@ from rlpipe.envs import (
     resolve_env_id,
 )
 from rlpipe.envs.observations import GOAL_KEYS, goal_env, is_atari
+from rlpipe.modules import fast as fast_parts
 from rlpipe.modules.encoders import make_image_encoder
+from rlpipe.modules.fast.optim import LeanAdam, clip_gradient_norms
+from rlpipe.modules.fast.sampling import sample
+from rlpipe.modules.fast.target_updates import make_target_updater
 from rlpipe.modules.frames import FrameReplayBuffer
 from rlpipe.modules.hindsight import TRAJ_IDS, HindsightReplayBuffer
 from rlpipe.modules.normalization import RunningObservationNorm
-from rlpipe.modules.optim import clip_gradient_norms
 from rlpipe.modules.plain_policy import OnRescaledObservations
 from rlpipe.pipelines import presets as preset_files
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
@@ -155,6 +158,11 @@ class OffPolicyPipeline:
         if not isinstance(cfg, self.Config):
             raise InputError(f"config is a {type(cfg).__name__}; expected {self.Config.__name__} for {self.algo}")
         validate(cfg)
+        changed = fast_parts.problems() if cfg.fast else []
+        if changed:
+            raise InputError(f"fast=true: rlpipe's fast parts (rlpipe.modules.fast) cannot vouch for this install: "
+                             f"{'; '.join(changed)}; expected fast=false (TorchRL's own parts), or torch 2.13 and "
+                             "torchrl 0.14")
         self.device = torch.device(cfg.device)
         self.env_fn, self.env = factory_and_env(env, cfg)
         # Evaluation plays one env copy of whole episodes: the collection env may be a vector of them, or an Atari
@@ -238,6 +246,20 @@ class OffPolicyPipeline:
         """A TorchRL target updater for the loss, or None."""
         return None
 
+    def adam(self, params, **kwargs) -> torch.optim.Adam:
+        """An Adam optimiser over ``params``: ``LeanAdam`` (the same steps), or torch's own with ``fast=false``."""
+        return (LeanAdam if self.config.fast else torch.optim.Adam)(list(params), **kwargs)
+
+    def soft_update(self, tau: float, target_networks: bool = True):
+        """The loss's target networks moved ``tau`` of the way to the online ones at each ``step()``:
+        ``ForeachSoftUpdate``, or TorchRL's ``SoftUpdate`` with ``fast=false`` (``make_target_updater``)."""
+        return make_target_updater(self.loss_module, tau, target_networks, fast=self.config.fast)
+
+    def sample(self) -> TensorDictBase:
+        """One replay batch: ``replay_buffer.sample()``, gathered directly where the buffer allows it unless
+        ``fast=false`` (``modules.fast.sampling``)."""
+        return sample(self.replay_buffer) if self.config.fast else self.replay_buffer.sample()
+
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         """Update ``update_index`` (1, 2, ...) on ``batch``; returns detached losses named as in ``loss_names``."""
         raise NotImplementedError
@@ -256,7 +278,7 @@ class OffPolicyPipeline:
             optimizer = self.optimizers[name]
             if clip is not None:
                 params = [p for group in optimizer.param_groups for p in group["params"]]
-                clip_gradient_norms(params, clip, stacked=name in stacked)
+                clip_gradient_norms(params, clip, stacked=name in stacked, fast=self.config.fast)
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
         return {name: loss.detach() for name, loss in losses.items()}

@@ -357,6 +357,8 @@ class TrainConfig:
     """at the end of training, film the trained policy to RUN/trained-agent.mp4 (as `rlpipe video RUN`) and show it on RUN/report.html"""
     checkpoint_keep: int = checked(2, NON_NEGATIVE)
     """checkpoints kept, newest first (the oldest goes once a new one is whole; `--resume` falls back on an older one if the newest is damaged); 0 keeps every one"""
+    fast: bool = True
+    """use rlpipe's fast parts, each the equal of the TorchRL or torch part it replaces (the lean losses, LeanAdam, ForeachSoftUpdate, the replay sample, collection and evaluation on the gymnasium env, the exploration policies on tensors: the table in rlpipe.modules.fast); false puts every stock TorchRL part back at once (the same learning, slower); a run with true refuses to start, in one line, on a TorchRL or torch whose private names these parts read have changed"""
     compile: bool = False
     """compile the update with torch.compile (faster per update for small networks, ~30 s to compile on CPU); on device=cuda also replays it as CUDA graphs (see `cudagraph`)"""
     cudagraph: bool | None = None

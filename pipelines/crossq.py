@@ -22,8 +22,7 @@ from torch import nn
 from torchrl.objectives import CrossQLoss
 
 from rlpipe.modules.critics import make_batchrenorm_critic
-from rlpipe.modules.crossq_loss import LeanCrossQLoss
-from rlpipe.modules.optim import LeanAdam
+from rlpipe.modules.fast.crossq_loss import LeanCrossQLoss
 from rlpipe.pipelines.config import LAYER_SIZES, NON_NEGATIVE, Check, checked
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.sac_family import SACFamilyConfig, SACFamilyPipeline, scale_rewards
@@ -101,12 +100,12 @@ class CrossQ(SACFamilyPipeline):
                              f"with {what}: expected sac or td3 (or normalize_observations=false)")
         return make_batchrenorm_critic(self.observation_dim, int(self.action_spec.shape[-1]), cfg.critic_fc_layer_params,
                                        observation_key=self.observation_key, momentum=cfg.batch_renorm_momentum,
-                                       warmup_steps=cfg.batch_renorm_warmup_steps)
+                                       warmup_steps=cfg.batch_renorm_warmup_steps, fast=cfg.fast)
 
     def make_loss(self, actor: nn.Module, qvalue: nn.Module) -> CrossQLoss:
         cfg, spec = self.config, self.action_spec
         target_entropy = cfg.target_entropy if cfg.target_entropy is not None else -float(spec.shape[-1])
-        return LeanCrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=cfg.initial_alpha,
+        return (LeanCrossQLoss if cfg.fast else CrossQLoss)(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=cfg.initial_alpha,
                               target_entropy=target_entropy, action_spec=spec)
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
@@ -114,10 +113,10 @@ class CrossQ(SACFamilyPipeline):
         betas = (cfg.adam_beta1, 0.999)
         # parameters() only: the critics' BatchRenorm statistics are buffers, moved by the forward pass
         return {
-            "actor": LeanAdam(list(loss.actor_network_params.parameters()), lr=cfg.actor_learning_rate, betas=betas),
-            "qvalue": LeanAdam(list(loss.qvalue_network_params.parameters()), lr=cfg.critic_learning_rate,
+            "actor": self.adam(loss.actor_network_params.parameters(), lr=cfg.actor_learning_rate, betas=betas),
+            "qvalue": self.adam(loss.qvalue_network_params.parameters(), lr=cfg.critic_learning_rate,
                                betas=betas),
-            "alpha": LeanAdam([loss.log_alpha], lr=cfg.alpha_learning_rate, betas=betas),
+            "alpha": self.adam([loss.log_alpha], lr=cfg.alpha_learning_rate, betas=betas),
         }
 
     def update_periods(self) -> list[int]:

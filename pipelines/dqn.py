@@ -23,11 +23,9 @@ from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss
 
 from rlpipe.modules import epsilon_greedy, make_qvalue_actor
-from rlpipe.modules.dqn_loss import LeanDQNLoss
-from rlpipe.modules.exploration import anneal_epsilon
-from rlpipe.modules.optim import LeanAdam
+from rlpipe.modules.fast.dqn_loss import LeanDQNLoss
+from rlpipe.modules.fast.exploration import anneal_epsilon
 from rlpipe.modules.plain_policy import TensorDictPolicy
-from rlpipe.modules.target_updates import make_target_updater
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import (
     GRADIENT_CLIPPING,
@@ -134,16 +132,16 @@ class DQN(OffPolicyPipeline):
             # A target network updated with tau=1 after every update equals the online network, so the
             # loss can read the online one directly: same result, two fewer copies per update.
             has_target = not (cfg.target_update_tau == 1.0 and cfg.target_update_period == 1)
-            # DQNLoss computed on tensors (modules/dqn_loss.py): the same numbers, ~1 ms less per update.
-            loss_module = LeanDQNLoss(actor, loss_function=cfg.td_errors_loss, delay_value=has_target,
+            # DQNLoss computed on tensors (modules/fast/dqn_loss.py): the same numbers, ~1 ms less per update.
+            loss_module = (LeanDQNLoss if cfg.fast else DQNLoss)(actor, loss_function=cfg.td_errors_loss, delay_value=has_target,
                                       double_dqn=cfg.double_dqn, action_space=spec)
             loss_module.make_value_estimator(gamma=cfg.gamma)
-        collect_policy = epsilon_greedy(actor, spec, cfg.epsilon_greedy, cfg.epsilon_greedy_end, cfg.epsilon_decay_steps)
+        collect_policy = epsilon_greedy(actor, spec, cfg.epsilon_greedy, cfg.epsilon_greedy_end, cfg.epsilon_decay_steps,
+                                        fast=cfg.fast)
         return Agent(policy=actor, collect_policy=collect_policy, loss_module=loss_module)
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        # Adam's fused kernel without Optimizer.step's per-call Python (modules/optim.py).
-        return {"q": LeanAdam(list(self.loss_module.parameters()), lr=self.config.learning_rate)}
+        return {"q": self.adam(self.loss_module.parameters(), lr=self.config.learning_rate)}
 
     def make_target_updater(self):
         if not self.loss_module.delay_value:
@@ -151,7 +149,7 @@ class DQN(OffPolicyPipeline):
         # TorchRL's HardUpdate is not used for tau=1: its step() copies on every second call only (a
         # Python counter), so targets moved every 2 * target_update_period updates; and that counter
         # is Python state a CUDA graph cannot replay. A lerp with weight 1 copies exactly.
-        return make_target_updater(self.loss_module, self.config.target_update_tau)
+        return self.soft_update(self.config.target_update_tau)
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         """The Q-network's TD step, then the target network every ``target_update_period`` updates."""
@@ -159,8 +157,7 @@ class DQN(OffPolicyPipeline):
         if self.config.clip_rewards:  # the batch's entry replaced, the buffer's tensor untouched
             batch.set(("next", "reward"), batch.get(("next", "reward")).sign())
         # LeanDQNLoss's forward without the module call and the TensorDict around its loss (~15 us an update)
-        lean = type(loss_module) is LeanDQNLoss and loss_module.lean and not (loss_module._forward_hooks
-                                                                            or loss_module._forward_pre_hooks)
+        lean = type(loss_module) is LeanDQNLoss and loss_module.lean_call
         loss = loss_module.lean_loss(batch) if lean else loss_module(batch)["loss"]
         stepped = self.gradient_step({"q": loss}, clip=self.config.gradient_clipping)
         if self.target_updater is not None and update_index % self.config.target_update_period == 0:
@@ -169,7 +166,7 @@ class DQN(OffPolicyPipeline):
 
     def on_frames(self, frames: int) -> None:
         if self.config.epsilon_greedy_end is not None:
-            anneal_epsilon(self.collect_policy[-1], frames)  # EGreedyModule.step's values, ~100x cheaper
+            anneal_epsilon(self.collect_policy[-1], frames, fast=self.config.fast)  # EGreedyModule.step's values
 
     def export_module(self) -> nn.Module:
         if isinstance(self.policy, QValueActor):

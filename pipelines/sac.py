@@ -21,9 +21,7 @@ from torch import nn
 from torchrl.objectives import SACLoss
 
 from rlpipe.modules.critics import INITIALIZERS, make_qvalue_critic
-from rlpipe.modules.optim import LeanAdam
-from rlpipe.modules.sac_loss import LeanSACLoss
-from rlpipe.modules.target_updates import make_target_updater
+from rlpipe.modules.fast.sac_loss import LeanSACLoss
 from rlpipe.pipelines.config import GRADIENT_CLIPPING, LAYER_SIZES, checked, one_of
 from rlpipe.pipelines.sac_family import SACFamilyConfig, SACFamilyPipeline, scale_rewards
 
@@ -86,21 +84,20 @@ class SAC(SACFamilyPipeline):
         cfg = self.config
         # SacAgent's default entropy target: -|A|/2
         target_entropy = cfg.target_entropy if cfg.target_entropy is not None else -self.action_spec.shape[-1] / 2
-        return LeanSACLoss(actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2, loss_function="l2",
-                           alpha_init=cfg.initial_alpha, target_entropy=target_entropy, delay_qvalue=True)
+        return (LeanSACLoss if cfg.fast else SACLoss)(
+            actor_network=actor, qvalue_network=qvalue, num_qvalue_nets=2, loss_function="l2",
+            alpha_init=cfg.initial_alpha, target_entropy=target_entropy, delay_qvalue=True)
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        # Adam's fused kernel without Optimizer.step's per-call Python (modules/optim.py); the
-        # same arithmetic as torch.optim.Adam(fused=True).
         cfg, loss = self.config, self.loss_module
         return {
-            "actor": LeanAdam(list(loss.actor_network_params.flatten_keys().values()), lr=cfg.actor_learning_rate),
-            "qvalue": LeanAdam(list(loss.qvalue_network_params.flatten_keys().values()), lr=cfg.critic_learning_rate),
-            "alpha": LeanAdam([loss.log_alpha], lr=cfg.alpha_learning_rate),
+            "actor": self.adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.actor_learning_rate),
+            "qvalue": self.adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.critic_learning_rate),
+            "alpha": self.adam([loss.log_alpha], lr=cfg.alpha_learning_rate),
         }
 
     def make_target_updater(self):
-        return make_target_updater(self.loss_module, self.config.target_update_tau)
+        return self.soft_update(self.config.target_update_tau)
 
     def update_periods(self) -> list[int]:
         return [self.config.policy_delay, self.config.target_update_period]

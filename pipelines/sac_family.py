@@ -14,12 +14,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
 from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
+from rlpipe.modules.fast.target_updates import lerp_
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline
 from rlpipe.pipelines.config import (
@@ -177,8 +177,7 @@ class SACFamilyPipeline(OffPolicyPipeline):
         """Move the averaged greedy policy's weights ``policy_average_tau`` of the way to the actor's
         (the updates call it after each actor step; nothing without ``policy_average_tau``)."""
         if self._averaged is not None:
-            with torch.no_grad():
-                torch._foreach_lerp_(self._averaged[0], self._averaged[1], self.config.policy_average_tau)
+            lerp_(*self._averaged, self.config.policy_average_tau, fast=self.config.fast)
 
     def on_frames(self, frames: int) -> None:
         # The schedules, functions of the frames collected (so a resumed run sets the same values), set

@@ -44,9 +44,7 @@ from rlpipe.modules.actors import (
     make_gaussian_actor,
 )
 from rlpipe.modules.critics import make_qvalue_critic
-from rlpipe.modules.optim import LeanAdam
 from rlpipe.modules.plain_policy import TensorDictPolicy
-from rlpipe.modules.target_updates import make_target_updater
 from rlpipe.modules.td3_loss import TD3AblationLoss
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import (
@@ -173,19 +171,18 @@ class TD3(OffPolicyPipeline):
                 clipped_double_q=cfg.clipped_double_q,
                 policy_noise=cfg.policy_noise,
                 noise_clip=cfg.noise_clip,
+                on_tensors=cfg.fast,
             )
             loss_module.make_value_estimator(gamma=cfg.gamma)
         return Agent(policy=actor, collect_policy=collect_policy, loss_module=loss_module)
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        # Fused Adam does the parameter update in one kernel (~10% of a TD3 update on this CPU), and
-        # LeanAdam calls it without Optimizer.step's per-call Python (another ~6%): see modules/optim.py.
         lr, loss = self.config.learning_rate, self.loss_module
-        return {"actor": LeanAdam(list(loss.actor_network_params.parameters()), lr=lr),
-                "qvalue": LeanAdam(list(loss.qvalue_network_params.parameters()), lr=lr)}
+        return {"actor": self.adam(loss.actor_network_params.parameters(), lr=lr),
+                "qvalue": self.adam(loss.qvalue_network_params.parameters(), lr=lr)}
 
     def make_target_updater(self):
-        return make_target_updater(self.loss_module, self.config.target_update_tau, self.config.target_networks)
+        return self.soft_update(self.config.target_update_tau, self.config.target_networks)
 
     def make_replay_buffer(self) -> ReplayBuffer:
         if self.config.experience_replay:

@@ -72,8 +72,8 @@ def test_gym_collectors_steps_land_in_the_same_parts():
               ("Collector.iterator", "/site-packages/torchrl/collectors/_single.py"),
               ("GymCollector.rollout", gc), ("GymCollector._rollout", gc))
     steps = ("GymCollector._steps", gc)  # its per-step loop
-    policy = (("_egreedy_step.<locals>.act", "/work/rlpipe/modules/tensor_policy.py"),
-              ("EGreedyQPolicy.act", "/work/rlpipe/modules/exploration.py"))
+    policy = (("_egreedy_step.<locals>.act", "/work/rlpipe/modules/fast/tensor_policy.py"),
+              ("EGreedyQPolicy.act", "/work/rlpipe/modules/fast/exploration.py"))
     assert bp.classify_worker((*worker, *policy)) == "collection policy"
     assert bp.classify_worker((*worker, steps, *policy)) == "collection policy"
     assert bp.classify_worker((*worker, ("CartPoleEnv.step", "/site-packages/gymnasium/envs/classic_control/cartpole.py"))
@@ -87,11 +87,11 @@ def test_gym_collectors_steps_land_in_the_same_parts():
     assert bp.classify_learner((*learner, ("TimeLimit.step", "/site-packages/gymnasium/wrappers/common.py"))) == \
         "env step (in-process collector)"
     assert bp.classify_learner((*learner, steps, *policy)) == "collection policy (in-process collector)"
-    # rlpipe's own replay sample (pipelines/training/sampling.py), not ReplayBuffer.sample
+    # rlpipe's own replay sample (modules/fast/sampling.py), not ReplayBuffer.sample
     updates = (("Loop.run", "/work/rlpipe/pipelines/training/loop.py"),
                ("Loop.pay_updates", "/work/rlpipe/pipelines/training/loop.py"))
-    assert bp.classify_learner((*updates, ("sample", "/work/rlpipe/pipelines/training/sampling.py"),
-                                ("_gather", "/work/rlpipe/pipelines/training/sampling.py"))) == "replay sample"
+    assert bp.classify_learner((*updates, ("sample", "/work/rlpipe/modules/fast/sampling.py"),
+                                ("_gather", "/work/rlpipe/modules/fast/sampling.py"))) == "replay sample"
 
 
 def test_processes_roles_and_shares():

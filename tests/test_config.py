@@ -439,7 +439,7 @@ def test_glorot_uniform_critics_as_tf_agents_initialises_them():
 def test_gradient_clipping_clips_each_tensor_as_tf_agents_does():
     import torch
 
-    from rlpipe.modules.optim import clip_gradient_norms
+    from rlpipe.modules.fast.optim import clip_gradient_norms
 
     a, b = torch.nn.Parameter(torch.zeros(2, 3)), torch.nn.Parameter(torch.zeros(4))
     a.grad, b.grad = torch.tensor([[3.0, 4.0, 0.0], [0.0, 0.0, 0.1]]), torch.full((4,), 10.0)

@@ -19,7 +19,7 @@ from torchrl.objectives import CrossQLoss
 
 from rlpipe.modules import TanhNormalMode
 from rlpipe.modules.critics import BatchRenorm1d
-from rlpipe.modules.crossq_loss import LeanCrossQLoss
+from rlpipe.modules.fast.crossq_loss import LeanCrossQLoss
 from rlpipe.pipelines import crossq, resolve_preset
 from rlpipe.pipelines.artifacts.checkpoint import latest_checkpoint, load_checkpoint
 from rlpipe.pipelines.config import apply_overrides

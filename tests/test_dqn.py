@@ -390,7 +390,7 @@ def test_gradient_clipping_clips_each_tensor_as_dqn_agent_does():
 @pytest.mark.parametrize("batch", [[], [16]])
 def test_the_collect_policy_on_tensors_gives_the_stock_sequences_actions_and_values(batch):
     # The dqn collect policy runs its Q-network, argmax and epsilon draw on tensors
-    # (modules/exploration.py: EGreedyQPolicy); TorchRL's QValueActor + EGreedyModule sequence on the
+    # (modules/fast/exploration.py: EGreedyQPolicy); TorchRL's QValueActor + EGreedyModule sequence on the
     # same generator state must write the same entries, exploring and greedy.
     from tensordict.nn import TensorDictSequential
     from torchrl.envs.utils import ExplorationType, set_exploration_type

@@ -11,7 +11,7 @@ from torchrl.data import Categorical
 from torchrl.objectives import DQNLoss
 
 from rlpipe.modules import make_qvalue_actor
-from rlpipe.modules.dqn_loss import LeanDQNLoss
+from rlpipe.modules.fast.dqn_loss import LeanDQNLoss
 
 pytestmark = pytest.mark.unit
 

@@ -15,7 +15,7 @@ from torchrl.envs import GymEnv
 from torchrl.objectives import DQNLoss
 
 from rlpipe.envs import make_env
-from rlpipe.modules.tensor_policy import tensor_step
+from rlpipe.modules.fast.tensor_policy import tensor_step
 from rlpipe.pipelines import pipeline_class, resolve_preset
 from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
 from rlpipe.pipelines.config import apply_overrides

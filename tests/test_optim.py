@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from rlpipe.modules.optim import LeanAdam
+from rlpipe.modules.fast.optim import LeanAdam
 
 
 def twin_models(seed: int = 0):

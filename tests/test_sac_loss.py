@@ -13,8 +13,8 @@ from torchrl.objectives import SACLoss
 
 from rlpipe.modules.actors import make_tanh_normal_actor
 from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.modules.fast.sac_loss import LeanSACLoss, tanh_normal_rsample
 from rlpipe.modules.normalization import RunningObservationNorm
-from rlpipe.modules.sac_loss import LeanSACLoss, tanh_normal_rsample
 
 pytestmark = pytest.mark.unit
 

@@ -1,4 +1,4 @@
-"""The loop's replay sample (``pipelines/training/sampling.sample``) gives what ``ReplayBuffer.sample`` gives."""
+"""The loop's replay sample (``modules/fast/sampling.sample``) gives what ``ReplayBuffer.sample`` gives."""
 
 import pytest
 import torch
@@ -6,7 +6,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
 from torchrl.envs.transforms import Compose, RenameTransform
 
-from rlpipe.pipelines.training.sampling import sample
+from rlpipe.modules.fast.sampling import sample
 
 
 def _transitions(n: int) -> TensorDict:

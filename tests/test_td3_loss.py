@@ -19,7 +19,7 @@ from rlpipe.modules.actors import (
     make_gaussian_actor,
 )
 from rlpipe.modules.critics import make_qvalue_critic
-from rlpipe.modules.target_updates import make_target_updater
+from rlpipe.modules.fast.target_updates import make_target_updater
 from rlpipe.modules.td3_loss import TD3AblationLoss, td3_update
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")

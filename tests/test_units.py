@@ -246,7 +246,7 @@ def test_epsilon_is_annealed_to_egreedymodules_own_values(init, end, steps):
     from torchrl.data import Categorical
     from torchrl.modules import EGreedyModule
 
-    from rlpipe.modules.exploration import anneal_epsilon
+    from rlpipe.modules.fast.exploration import anneal_epsilon
 
     stock, ours = (EGreedyModule(Categorical(2), eps_init=init, eps_end=end, annealing_num_steps=steps) for _ in "ab")
     rng, total = random.Random(0), 0
@@ -263,7 +263,7 @@ def test_module_forward_is_the_modules_forward_and_respects_hooks():
     module's own call while it has a forward hook."""
     from torchrl.modules import MLP, NormalParamExtractor
 
-    from rlpipe.modules.tensor_nets import module_forward
+    from rlpipe.modules.fast.tensor_nets import module_forward
 
     torch.manual_seed(0)
     for net in (MLP(in_features=4, out_features=2, num_cells=[16, 8]),

@@ -16,7 +16,7 @@ What it does not hold, and why:
   on a new collector's or evaluator's start-up (TorchRL reads a worker's first message with no
   timeout; ``workers.supervision.Watchdog`` with ``kill_new_children``), used by the supervisor and
   ``workers.backend.CollectorBackend.start_evaluator``.
-* below ``pipelines`` (``modules/`` and ``envs/`` never import it): ``modules/optim.py``'s ``LeanAdam``
+* below ``pipelines`` (``modules/`` and ``envs/`` never import it): ``modules/fast/optim.py``'s ``LeanAdam``
   calls torch 2.13's private ``torch._fused_adam_`` with that version's arguments (a speed path,
   checked bitwise against ``Adam`` by tests/test_optim.py at each upgrade).
 * features the libraries lack rather than bugs (ours until a version has them, nothing to patch):

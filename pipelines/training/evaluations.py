@@ -75,7 +75,8 @@ class Evaluations:
             weights.to_module(policy)
         with loop.clock.paused():
             loop.pipeline.eval_env.set_seed(eval_seed(loop.config.seed, at["step"]))
-            result = evaluate(loop.pipeline.eval_env, policy, loop.config.num_eval_episodes, interrupt=loop.stop.check)
+            result = evaluate(loop.pipeline.eval_env, policy, loop.config.num_eval_episodes, interrupt=loop.stop.check,
+                              direct=loop.config.fast)
         self.record(result, at, weights if weights is not None else AsyncEvaluator.snapshot)
 
     def take(self, block: bool = False, feed: bool = True) -> None:
@@ -192,7 +193,8 @@ class Evaluations:
         env = loop.pipeline.eval_env_fn()
         try:
             env.set_seed(cfg.seed + BASELINE_SEED_OFFSET)
-            result = evaluate(env, RandomPolicy(env.full_action_spec), episodes, interrupt=loop.stop.check)
+            result = evaluate(env, RandomPolicy(env.full_action_spec), episodes, interrupt=loop.stop.check,
+                              direct=loop.config.fast)
         finally:
             env.close()
             ckpt.set_rng_state(generators)

@@ -39,7 +39,6 @@ from rlpipe.pipelines.system.runtime import Interrupted, Stopped, stop_signals_b
 from rlpipe.pipelines.training.context import LIVE_LOG, LoopContext
 from rlpipe.pipelines.training.nstep import n_step_transitions
 from rlpipe.pipelines.training.resume import TRAJ_IDS, ExactResume
-from rlpipe.pipelines.training.sampling import sample
 from rlpipe.pipelines.workers.supervision import NoRestartLeft, SupervisedCollector, Watchdog
 
 if TYPE_CHECKING:
@@ -208,7 +207,7 @@ class Loop(LoopContext):
         update, made = self.pipeline.update_step, 0
         while self.state.limiter.owed:
             self.stop.check()
-            losses = update(sample(self.pipeline.replay_buffer), self.state.updates + 1)
+            losses = update(self.pipeline.sample(), self.state.updates + 1)
             self.state.updated()
             made += 1
             self.interval_stats.add_losses(losses)

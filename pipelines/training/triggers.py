@@ -359,7 +359,8 @@ class TargetTrigger(Trigger):
         met_unix = time.time()
         state = loop.state
         with loop.clock.paused():
-            result = evaluate(loop.pipeline.eval_env, loop.pipeline.policy, self.eval_episodes, interrupt=loop.stop.check)
+            result = evaluate(loop.pipeline.eval_env, loop.pipeline.policy, self.eval_episodes, interrupt=loop.stop.check,
+                              direct=loop.config.fast)
         seconds = time.time() - met_unix
         self.checks += 1
         self.eval_return = result["average_return"]

@@ -108,7 +108,7 @@ class CollectorBackend(abc.ABC):
 
         with watchdog.limit(start_timeout, kill_new_children()):
             return BackgroundEvaluator(env_fn, policy, config.num_eval_episodes, pending, timeout=config.eval_timeout,
-                                       seed=config.seed, start_timeout=start_timeout)
+                                       seed=config.seed, start_timeout=start_timeout, direct=config.fast)
 
     def start(self, total_frames: int, init_random_frames: int, seed: int | None = None,
               restore: dict[str, Any] | None = None) -> CollectorBackend:

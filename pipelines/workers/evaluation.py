@@ -23,7 +23,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rlpipe.envs import is_discrete
-from rlpipe.modules.tensor_policy import greedy_step
+from rlpipe.modules.fast.tensor_policy import greedy_step
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, eval_seed
 from rlpipe.pipelines.system.runtime import STOP_SIGNALS, stop_signals_blocked
 from rlpipe.pipelines.workers.gym_collector import gym_env_of
@@ -39,7 +39,8 @@ __all__ = ["AsyncEvaluator", "BackgroundEvaluator", "EvalActor", "evaluate"]
 
 
 @torch.no_grad()
-def evaluate(env: EnvBase, policy, num_episodes: int, max_steps: int = 100_000, interrupt=None) -> dict:
+def evaluate(env: EnvBase, policy, num_episodes: int, max_steps: int = 100_000, interrupt=None, *,
+             direct: bool = True) -> dict:
     """Run ``num_episodes`` full episodes of ``policy`` (deterministic) on ``env``.
 
     ``env`` may be batched (``SerialEnv``, ``ParallelEnv``): each rollout then plays one episode
@@ -52,9 +53,9 @@ def evaluate(env: EnvBase, policy, num_episodes: int, max_steps: int = 100_000, 
 
     On ``rlpipe.envs.make_env``'s one-copy env with a policy on the CPU, the episodes are played on the
     gymnasium env under it directly (``_evaluate_directly``): the same episodes and returns, number for
-    number, at a fraction of the cost.
+    number, at a fraction of the cost; ``direct=False`` (a run's ``fast=false``): TorchRL's ``env.rollout``.
     """
-    gym_env = gym_env_of(env)
+    gym_env = gym_env_of(env) if direct else None
     if gym_env is not None and not isinstance(env.action_spec_unbatched, OneHot) and _on_cpu(policy):
         return _evaluate_directly(env, gym_env, policy, num_episodes, max_steps, interrupt)
     return _evaluate_rollouts(env, policy, num_episodes, max_steps, interrupt)
@@ -250,13 +251,13 @@ class BackgroundEvaluator(AsyncEvaluator):
 
     def __init__(self, env_fn: Callable[[], EnvBase], policy: nn.Module, num_episodes: int,
                  pending: deque[tuple[dict, TensorDictBase]], timeout: float = 600.0, *, seed: int = 0,
-                 start_timeout: float = MIN_START_TIMEOUT_S):
+                 start_timeout: float = MIN_START_TIMEOUT_S, direct: bool = True):
         super().__init__(pending, timeout)
         self.num_episodes, self.seed = int(num_episodes), int(seed)
         ctx = torch.multiprocessing.get_context(torch.multiprocessing.get_start_method(allow_none=True) or "spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_evaluator_process, name="rlpipe-evaluator", daemon=True,
-                                 args=(child, env_fn, _PolicyCopy(policy), self.seed + EVAL_SEED_OFFSET))
+                                 args=(child, env_fn, _PolicyCopy(policy), self.seed + EVAL_SEED_OFFSET, direct))
         with stop_signals_blocked():
             self._proc.start()
         child.close()
@@ -320,7 +321,8 @@ class EvalActor:
     """The eval env and a CPU copy of the policy, evaluating the weights sent to it, each evaluation on its
     own seed: what ``BackgroundEvaluator``'s process and ``ray_eval.RayEvaluator``'s Ray actor run."""
 
-    def __init__(self, env_fn: Callable[[], EnvBase], policy_factory: Callable[[], nn.Module], seed: int):
+    def __init__(self, env_fn: Callable[[], EnvBase], policy_factory: Callable[[], nn.Module], seed: int,
+                 direct: bool = True):
         # Deaf to the stop signals, as the learner's other workers are (runtime.stop_signals_blocked):
         # a Ctrl-C to the terminal's process group reaches the learner, which stops this worker itself.
         for signum in STOP_SIGNALS:
@@ -329,6 +331,7 @@ class EvalActor:
         self.env = env_fn()
         self.env.set_seed(seed)
         self.policy = policy_factory()
+        self.direct = direct  # ``evaluate``'s
 
     def pid(self) -> int:
         return os.getpid()
@@ -338,16 +341,16 @@ class EvalActor:
         weights.to_module(self.policy)
         if seed is not None:
             self.env.set_seed(seed)
-        return evaluate(self.env, self.policy, num_episodes)
+        return evaluate(self.env, self.policy, num_episodes, direct=self.direct)
 
 
 def _evaluator_process(conn, env_fn: Callable[[], EnvBase], policy_factory: Callable[[], nn.Module],
-                       seed: int) -> None:
+                       seed: int, direct: bool) -> None:
     """``BackgroundEvaluator``'s process: an ``EvalActor``; "ready" once it is made, then one result (or
     "error" and the exception's first line, after which it ends) per request, until the pipe closes."""
     torch.set_num_threads(1)  # beside the learner's threads: episodes of one env, one step at a time
     try:
-        worker = EvalActor(env_fn, policy_factory, seed)
+        worker = EvalActor(env_fn, policy_factory, seed, direct)
     except Exception as exc:
         conn.send(("error", f"{type(exc).__name__}: {first_line(exc)}"))
         return

@@ -8,7 +8,7 @@ TensorDict reads and writes, 11% the policy through TensorDicts, the rest the co
 TensorDict copies). CleanRL's loop (``obs -> policy -> env.step``, numpy in and out) pays only the
 network and the env. TorchRL has no per-step path without TensorDicts (pytorch/rl#1247), so this
 collector steps the gymnasium env with numpy, calls the collect policy on one observation tensor
-(``rlpipe.modules.tensor_policy``: the built-in policies' own arithmetic, a user's policy through
+(``rlpipe.modules.fast.tensor_policy``: the built-in policies' own arithmetic, a user's policy through
 a TensorDict), writes each row into per-block numpy arrays, and hands each block out as a
 TensorDict with exactly the keys, shapes and dtypes TorchRL's ``Collector`` gives for the same env
 (``observation``, ``action``, the policy's outputs, ``step_count``, ``episode_reward``, ``is_init``,
@@ -40,7 +40,7 @@ from torchrl.envs.utils import set_exploration_type
 
 from rlpipe.envs import is_discrete
 from rlpipe.envs.snapshot import NotCapturable, capture, restore
-from rlpipe.modules.tensor_policy import tensor_step
+from rlpipe.modules.fast.tensor_policy import tensor_step
 from rlpipe.pipelines.compat.torchrl import prompt_block_hand_over
 from rlpipe.pipelines.workers.snapshot import SnapshotCollector, seed_worker
 

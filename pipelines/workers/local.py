@@ -42,12 +42,12 @@ __all__ = ["AsyncCollector", "LocalBackend", "direct_collection", "local_collect
 def direct_collection(config: TrainConfig, env_fn: Callable[[], EnvBase] | None, env: EnvBase | None) -> bool:
     """Whether the collectors step the gymnasium env directly (``GymCollector``, in this process or in each
     worker process): ``collector.direct`` and one-copy envs the pipeline makes from ``config.env`` (a user's
-    own TorchRL env keeps TorchRL's ``Collector``: its transforms are its own)."""
+    own TorchRL env keeps TorchRL's ``Collector``: its transforms are its own); never with ``fast=false``."""
     c = config.collector
     made_here = (isinstance(env_fn, functools.partial) and env_fn.func is make_env and env_fn.args == (config.env,)
                  and set(env_fn.keywords) - set(config.env_kwargs) <= set(ENV_KWARGS_RESERVED)
                  and env_fn.keywords.get("num_envs", 1) == 1)
-    return c.direct and made_here and gym_env_of(env) is not None
+    return config.fast and c.direct and made_here and gym_env_of(env) is not None
 
 
 class AsyncCollector(MultiAsyncCollector):

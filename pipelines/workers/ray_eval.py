@@ -72,7 +72,7 @@ class RayEvaluator(AsyncEvaluator):
         cpus = config.ray.num_cpus_per_worker
         check_cpus(ray, config, evaluator=True)
         remote = ray.remote(num_cpus=cpus, num_gpus=0, max_restarts=0, max_task_retries=0)(EvalActor)
-        self._actor = remote.remote(env_fn, _PolicyCopy(policy), config.seed + EVAL_SEED_OFFSET)
+        self._actor = remote.remote(env_fn, _PolicyCopy(policy), config.seed + EVAL_SEED_OFFSET, config.fast)
         try:
             ready, _ = ray.wait([ref := self._actor.pid.remote()], timeout=start_timeout)
             if not ready:

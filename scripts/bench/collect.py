@@ -196,7 +196,7 @@ def plain_loop_steps_per_s(preset: str, overrides: list[str], steps: int, seed: 
 
     import torch
 
-    from rlpipe.modules.exploration import EGreedyQPolicy
+    from rlpipe.modules.fast.exploration import EGreedyQPolicy
 
     pipeline = pipeline_for_collection(preset, [*overrides, "collector.backend=local", "collector.workers=1",
                                                 "collector.sync=true", "collector.envs_per_worker=1"])

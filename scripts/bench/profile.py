@@ -142,11 +142,11 @@ def classify_learner(stack: tuple[Frame, ...], in_process: bool = False) -> str:
     if top == "Loop.pay_updates":
         if _has(loop, "push_weights"):
             return "weight push to collectors"
-        if _has(loop, "ReplayBuffer.sample") or _has(loop, path="/training/sampling.py"):  # rlpipe's own gather
+        if _has(loop, "ReplayBuffer.sample") or _has(loop, path="/sampling.py"):  # rlpipe's own gather
             return "replay sample"
         if _has(loop, path="target_updates.py") or _has(loop, "Update.step"):
             return "update: target update"
-        if _has(loop, path="/modules/optim.py") or _has(loop, path="/torch/optim/") or _has(loop, "zero_grad"):
+        if _has(loop, path="/optim.py") or _has(loop, path="/torch/optim/") or _has(loop, "zero_grad"):
             return "update: optimiser step"
         if _has(loop, "Tensor.backward") or _has(loop, path="/torch/autograd/"):
             return "update: backward (autograd engine)"

@@ -112,17 +112,21 @@ class LeanAdam(torch.optim.Adam):
                 p.grad = None
 
 
-def clip_gradient_norms(params, max_norm: float, stacked: bool = False) -> None:
+def clip_gradient_norms(params, max_norm: float, stacked: bool = False, fast: bool = True) -> None:
     """Scale each parameter's gradient to a norm of at most ``max_norm``, one tensor at a time
     (``stacked``: each slice along the first dim, one per stacked network).
 
     TF-Agents' ``eager_utils.clip_gradient_norms`` (``tf.clip_by_norm`` per variable), which
     ``SacAgent``'s and ``DqnAgent``'s ``gradient_clipping`` apply; torch's ``clip_grad_norm_``
-    clips the norm of all gradients together instead, a different rule.
+    clips the norm of all gradients together instead, a different rule. ``fast=False``: one tensor op at a time
+    instead of torch's private ``_foreach`` kernels (the same numbers).
     """
     grads = [p.grad for p in params if p.grad is not None]
     if stacked:
         grads = [g for grad in grads for g in grad.unbind(0)]
-    if grads:
+    if grads and not fast:
+        for grad in grads:
+            grad.mul_(torch.clamp(max_norm / (grad.norm() + 1e-6), max=1.0))
+    elif grads:
         norms = torch._foreach_norm(grads)
         torch._foreach_mul_(grads, [torch.clamp(max_norm / (n + 1e-6), max=1.0) for n in norms])

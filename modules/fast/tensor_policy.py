@@ -22,9 +22,9 @@ from torchrl.data import Bounded, Composite
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule, QValueActor, QValueModule, TanhNormal
 
-from rlpipe.modules.exploration import EGreedyQPolicy
-from rlpipe.modules.sac_loss import tanh_normal_rsample
-from rlpipe.modules.tensor_nets import is_plain_module, module_forward
+from rlpipe.modules.fast.exploration import EGreedyQPolicy
+from rlpipe.modules.fast.sac_loss import tanh_normal_rsample
+from rlpipe.modules.fast.tensor_nets import is_plain_module, module_forward
 
 __all__ = ["GreedyStep", "TensorStep", "greedy_step", "tensor_step"]
 

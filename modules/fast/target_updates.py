@@ -7,7 +7,7 @@ import warnings
 import torch
 from torchrl.objectives import LossModule, SoftUpdate
 
-__all__ = ["ForeachSoftUpdate", "make_target_updater"]
+__all__ = ["ForeachSoftUpdate", "lerp_", "make_target_updater"]
 
 
 class ForeachSoftUpdate(SoftUpdate):
@@ -30,8 +30,10 @@ class ForeachSoftUpdate(SoftUpdate):
             torch._foreach_lerp_(pairs[0], pairs[1], 1 - self.eps)
 
 
-def make_target_updater(loss: LossModule, tau: float = 0.005, target_networks: bool = True) -> SoftUpdate:
-    """A ``ForeachSoftUpdate`` for any TorchRL loss with target networks: ``target <- lerp(target, online, tau)``.
+def make_target_updater(loss: LossModule, tau: float = 0.005, target_networks: bool = True,
+                        fast: bool = True) -> SoftUpdate:
+    """A ``ForeachSoftUpdate`` (``fast=False``: TorchRL's ``SoftUpdate``) for any TorchRL loss with target
+    networks: ``target <- lerp(target, online, tau)``.
 
     Args:
         loss: the loss whose target parameters to update (built with ``delay_*=True``), already on
@@ -46,4 +48,14 @@ def make_target_updater(loss: LossModule, tau: float = 0.005, target_networks: b
     with warnings.catch_warnings():
         # SoftUpdate warns for tau > 0.5 ("eps < 0.5"); tau = 1 is intended here.
         warnings.filterwarnings("ignore", message=".*eps value.*")
-        return ForeachSoftUpdate(loss, tau=tau)
+        return (ForeachSoftUpdate if fast else SoftUpdate)(loss, tau=tau)
+
+
+def lerp_(targets: list[torch.Tensor], sources: list[torch.Tensor], weight: float, fast: bool = True) -> None:
+    """``target.lerp_(source, weight)`` for each pair, in one ``_foreach`` kernel (``fast=False``: one at a time)."""
+    with torch.no_grad():
+        if fast:
+            torch._foreach_lerp_(targets, sources, weight)
+        else:
+            for target, source in zip(targets, sources):
+                target.lerp_(source, weight)

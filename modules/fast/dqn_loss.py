@@ -19,7 +19,7 @@ from torchrl.objectives import DQNLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
-from rlpipe.modules.tensor_nets import (
+from rlpipe.modules.fast.tensor_nets import (
     bootstrap_discount,
     cached_flat_params,
     is_plain_module,
@@ -50,6 +50,11 @@ class LeanDQNLoss(DQNLoss):
         """True when ``forward`` runs on tensors."""
         return (self._layers is not None and self.action_space == "categorical" and self.reduction == "mean"
                 and type(self.value_estimator) is TD0Estimator)
+
+    @property
+    def lean_call(self) -> bool:
+        """True when ``lean_loss`` may stand for the module call itself: ``lean``, and no forward hook to run."""
+        return self.lean and not (self._forward_hooks or self._forward_pre_hooks)
 
     def _q(self, params_name: str, observation: torch.Tensor) -> torch.Tensor:
         return run_mlp(self._layers, cached_flat_params(self, params_name, _PREFIX), observation)

@@ -38,7 +38,7 @@ from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
-from rlpipe.modules.tensor_nets import (
+from rlpipe.modules.fast.tensor_nets import (
     bootstrap_discount,
     cached_detached_params,
     cached_flat_params,

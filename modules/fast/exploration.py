@@ -13,7 +13,7 @@ from torchrl.data import Categorical, Composite
 from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import EGreedyModule, QValueActor, QValueModule
 
-from rlpipe.modules.tensor_nets import is_plain_module, module_forward
+from rlpipe.modules.fast.tensor_nets import is_plain_module, module_forward
 
 __all__ = ["EGreedyQPolicy", "anneal_epsilon", "epsilon_greedy"]
 
@@ -24,6 +24,7 @@ def epsilon_greedy(
     epsilon: float = 0.1,
     epsilon_end: float | None = None,
     annealing_steps: int = 1,
+    fast: bool = True,
 ) -> TensorDictSequential:
     """``policy`` followed by TorchRL's ``EGreedyModule``.
 
@@ -31,7 +32,8 @@ def epsilon_greedy(
     otherwise it decays linearly to ``epsilon_end`` over ``annealing_steps`` calls of ``.step()``.
     The greedy (evaluation) policy is ``policy`` itself, or this one under
     ``ExplorationType.DETERMINISTIC``. The result is an ``EGreedyQPolicy``: a
-    ``TensorDictSequential(policy, greedy)`` that runs on tensors when ``policy`` allows it.
+    ``TensorDictSequential(policy, greedy)`` that runs on tensors when ``policy`` allows it (``fast=False``: the
+    stock ``TensorDictSequential``, the same children and state dict).
     """
     greedy = EGreedyModule(
         action_spec,
@@ -39,7 +41,7 @@ def epsilon_greedy(
         eps_end=epsilon if epsilon_end is None else epsilon_end,
         annealing_num_steps=annealing_steps,
     )
-    return EGreedyQPolicy(policy, greedy)
+    return (EGreedyQPolicy if fast else TensorDictSequential)(policy, greedy)
 
 
 class EGreedyQPolicy(TensorDictSequential):
@@ -118,7 +120,7 @@ class EGreedyQPolicy(TensorDictSequential):
         return action, values, chosen
 
 
-def anneal_epsilon(module: EGreedyModule, frames: int) -> None:
+def anneal_epsilon(module: EGreedyModule, frames: int, fast: bool = True) -> None:
     """``module.step(frames)``: the same float32 values, computed on numpy scalars.
 
     TorchRL's ``EGreedyModule.step`` loops over the frames with four tensor ops each (~120 us for a
@@ -126,10 +128,10 @@ def anneal_epsilon(module: EGreedyModule, frames: int) -> None:
     same float32 arithmetic (``max(eps_end, eps - (eps_init - eps_end) / annealing_num_steps)`` per
     frame, each op rounded to float32 as torch rounds it) runs on numpy's float32 scalars and stops at
     the fixed point (epsilon at its end value). Anything but a float32 ``EGreedyModule`` on the CPU
-    goes through ``module.step``.
+    (or ``fast=False``) goes through ``module.step``.
     """
     eps = module.eps
-    if (type(module).step is not EGreedyModule.step or eps.dtype != torch.float32 or eps.device.type != "cpu"
+    if (not fast or type(module).step is not EGreedyModule.step or eps.dtype != torch.float32 or eps.device.type != "cpu"
             or module.eps_end.dtype != torch.float32 or module.eps_init.dtype != torch.float32):
         module.step(frames)
         return

@@ -34,8 +34,8 @@ from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
 from rlpipe.modules.critics import BatchRenorm1d, _Joined
-from rlpipe.modules.sac_loss import LeanTanhNormalActor
-from rlpipe.modules.tensor_nets import (
+from rlpipe.modules.fast.sac_loss import LeanTanhNormalActor
+from rlpipe.modules.fast.tensor_nets import (
     bootstrap_discount,
     cached_detached_params,
     cached_flat_params,
