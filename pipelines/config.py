@@ -90,6 +90,9 @@ class PresetInfo:
     """a few words on what the preset is: 'the Minitaur tutorial', 'sized for time to -200', ..."""
     sized: bool = True
     """tuned for time to its target on a small CPU machine (false: a tutorial's or a paper's settings, kept as written)"""
+    measured: tuple[tuple[str, Any], ...] = ()
+    """its measured time to its target, as ``rlpipe presets`` shows it: ``seconds``, ``date``, ``commit`` and, for a preset
+    with two targets, the ``target`` it is to (from a ``rlpipe bench time-to-return`` run; empty: not measured)"""
 
     @property
     def target(self) -> float | None:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import datetime
 import difflib
 import functools
 import importlib.resources
@@ -187,7 +188,7 @@ def save(path: str | os.PathLike, algo: str, config: TrainConfig, info: PresetIn
     data: dict[str, Any] = {"algo": algo}
     if info is not None:
         data["info"] = {"env": info.env, "targets": [float(t) for t in info.targets], "task": info.task,
-                        "sized": bool(info.sized)}
+                        "sized": bool(info.sized), **({"measured": dict(info.measured)} if info.measured else {})}
     data["config"] = _differences(config, Config())
     lines = (comment or f"{name}: {algo} on {config.env}").splitlines()
     body = "".join(f"# {line}".rstrip() + "\n" for line in lines)
@@ -267,7 +268,7 @@ def _info(data, config: TrainConfig, where: str) -> PresetInfo | None:
     env = data.get("env", config.env)
     targets = data.get("targets", [])
     targets = [targets] if isinstance(targets, int | float) and not isinstance(targets, bool) else targets
-    task, sized = data.get("task", ""), data.get("sized", True)
+    task, sized, measured = data.get("task", ""), data.get("sized", True), data.get("measured", {})
     if not isinstance(env, str) or not env:
         raise InputError(f"{where}: info.env={env!r}: expected a gymnasium env id such as Pendulum-v1")
     if not isinstance(targets, list) or not all(isinstance(t, int | float) and not isinstance(t, bool) for t in targets):
@@ -276,11 +277,25 @@ def _info(data, config: TrainConfig, where: str) -> PresetInfo | None:
         raise InputError(f"{where}: info.task={task!r}: expected a few words such as 'sized for time to -200'")
     if not isinstance(sized, bool):
         raise InputError(f"{where}: info.sized={sized!r}: expected true or false")
-    return PresetInfo(env, tuple(float(t) for t in targets), task, sized)
+    return PresetInfo(env, tuple(float(t) for t in targets), task, sized, _measured(measured, where))
+
+
+MEASURED_KEYS = {"seconds": (int, float), "target": (int, float), "date": (str, datetime.date), "commit": (str,)}
+
+
+def _measured(data, where: str) -> tuple[tuple[str, Any], ...]:
+    """``info.measured``: ``{seconds: 7.3, date: '2026-11-29', commit: c98d626}`` (``target`` too, for a preset with two)."""
+    expected = "expected a mapping such as {seconds: 7.3, date: '2026-11-29', commit: c98d626}"
+    if not isinstance(data, dict) or (data and "seconds" not in data):
+        raise InputError(f"{where}: info.measured={data!r}: {expected}")
+    for key, value in data.items():
+        if key not in MEASURED_KEYS or not isinstance(value, MEASURED_KEYS[key]) or isinstance(value, bool):
+            raise InputError(f"{where}: info.measured.{key}={value!r}: {expected}")
+    return tuple((key, str(value) if isinstance(value, datetime.date) else value) for key, value in data.items())
 
 
 def _as_info(info: PresetInfo) -> PresetInfo:
-    return PresetInfo(info.env, tuple(float(t) for t in info.targets), info.task, bool(info.sized))
+    return PresetInfo(info.env, tuple(float(t) for t in info.targets), info.task, bool(info.sized), info.measured)
 
 
 def _differences(config: TrainConfig, defaults: TrainConfig) -> dict:

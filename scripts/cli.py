@@ -378,21 +378,9 @@ def cmd_report(args) -> int:
     return 0
 
 
-PRESET_TIMES = Path(__file__).parent / "bench" / "preset_times.json"
-"""preset -> its measured time to target ({"seconds": ..., "commit": ..., "date": ...}, and "target": ... where
-the preset has two), filled in from
-`rlpipe bench time-to-return` runs; `rlpipe presets` shows it"""
-
-
-def preset_times() -> dict[str, dict]:
-    try:
-        return json.loads(PRESET_TIMES.read_text())
-    except (OSError, ValueError):
-        return {}
-
-
-def _measured(entry: dict | None) -> str:
-    if not entry or entry.get("seconds") is None:
+def _measured(entry: dict) -> str:
+    """A preset's measured time to its target, as its file's ``info.measured`` records it."""
+    if not entry:
         return "not measured yet"
     when = ", ".join(str(entry[k]) for k in ("date", "commit") if entry.get(k))
     to = f" to {entry['target']:g}" if entry.get("target") is not None else ""  # a preset with two targets
@@ -406,13 +394,12 @@ def cmd_presets(args) -> int:
         resolve_preset(args.show)  # a file that does not load: its one line, not its text
         print(presets.text(args.show), end="")
         return 0
-    times = preset_times()
     rows = [("preset", "algo", "env", "iterations", "target", "time to target", "what it is")]
     for name, algo in presets.names().items():
         info, cfg = preset_info(name), resolve_preset(name)[1]
         targets = " then ".join(f"{t:g}" for t in info.targets) if info and info.targets else "-"
         rows.append((name, algo, cfg.env, str(cfg.num_iterations), targets,
-                     _measured(times.get(name)) if info and info.targets else "-", info.task if info else ""))
+                     _measured(dict(info.measured)) if info and info.targets else "-", info.task if info else ""))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
     for row in rows:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)) + "  " + row[-1])

@@ -18,6 +18,7 @@ import yaml
 import rlpipe.envs  # noqa: F401  (registers MinitaurBulletEnv-v0)
 from rlpipe.pipelines import device_hint, pipeline_class, preset_info, presets, resolve_preset, size_hint, sized_presets
 from rlpipe.pipelines.config import PresetInfo, apply_overrides
+from rlpipe.pipelines.errors import InputError
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -64,21 +65,35 @@ def test_every_preset_has_its_task_and_the_sized_ones_are_found_by_env():
     assert sized_presets("Acrobot-v1") == []
 
 
-def test_rlpipe_presets_lists_each_with_its_task_and_measured_time(tmp_path, monkeypatch, capsys):
+def test_rlpipe_presets_lists_each_with_its_task_and_measured_time(capsys):
+    """Each preset file's ``info``: its task, and its measured time where ``info.measured`` records one."""
     from rlpipe.scripts import cli
 
-    times = tmp_path / "preset_times.json"
-    times.write_text(json.dumps({"sac-pendulum": {"seconds": 12.34, "date": "2026-11-25", "commit": "abc1234"},
-                                 "crossq-minitaur": {"seconds": 447.5, "target": 1.0}}))
-    monkeypatch.setattr(cli, "PRESET_TIMES", times)
     assert cli.main(["presets"]) == 0
     lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
     assert set(lines) == set(presets.names())
     for name, (env, targets) in SIZED.items():
         assert env in lines[name] and f"{targets[0]:g}" in lines[name], lines[name]
-    assert "12.3 s (2026-11-25, abc1234)" in lines["sac-pendulum"]
-    assert "not measured yet" in lines["td3-pendulum"]
-    assert "1 then 5" in lines["crossq-minitaur"] and "447.5 s to 1" in lines["crossq-minitaur"]  # which of its two
+    for name in presets.names():
+        measured = dict(preset_info(name).measured)
+        if measured:
+            assert f"{measured['seconds']:.1f} s" in lines[name] and measured["commit"] in lines[name], lines[name]
+    assert "(2026-11-29, c98d626)" in lines["sac-pendulum"]
+    assert "1 then 5" in lines["crossq-minitaur"] and "not measured yet" in lines["crossq-minitaur"]
+    assert "to 1" in lines["sac-minitaur"]  # a measured time says which target it is to, where it has one
+
+
+def test_a_preset_file_that_records_its_measured_time_reads_back_and_a_bad_one_is_one_line(tmp_path):
+    algo, cfg = resolve_preset("sac-pendulum")
+    info = dataclasses.replace(preset_info("sac-pendulum"), measured=(("seconds", 9.5), ("date", "2026-12-07"),
+                                                                      ("commit", "e8e6153")))
+    path = presets.save(tmp_path / "mine.yaml", algo, cfg, info)
+    assert preset_info(str(path)).measured == info.measured
+    assert "measured: {seconds: 9.5, date: '2026-12-07', commit: e8e6153}" in path.read_text()
+    path.write_text(path.read_text().replace("seconds: 9.5", "seconds: soon"))
+    with pytest.raises(InputError, match=r"info\.measured\.seconds='soon': expected a mapping such as") as bad:
+        resolve_preset(str(path))
+    assert len(str(bad.value).splitlines()) == 1
 
 
 def test_a_tutorial_preset_on_a_sized_env_trains_that_envs_sized_preset_and_says_so(tmp_path, monkeypatch, capfd):
@@ -183,7 +198,8 @@ def test_each_preset_file_resolves_to_the_settings_it_had_as_python():
         defaults = json.loads(json.dumps(dataclasses.asdict(type(cfg)())))
         assert algo == before["algo"], name
         assert as_data == _with_defaults(defaults, before["config"]), name
-        assert json.loads(json.dumps(dataclasses.asdict(preset_info(name)))) == before["info"], name
+        info = {k: v for k, v in dataclasses.asdict(preset_info(name)).items() if k != "measured"}  # a record, no setting
+        assert json.loads(json.dumps(info)) == before["info"], name
         assert pipeline_class(algo).preset(name) == cfg and name in pipeline_class(algo).presets
 
 

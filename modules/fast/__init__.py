@@ -7,31 +7,20 @@ pipeline) puts every stock part back at once: the stock losses, ``torch.optim.Ad
 ``ReplayBuffer.sample``, TorchRL's ``Collector`` over ``GymEnv``, ``env.rollout`` for evaluations, the stock
 exploration modules and ``BatchRenorm1d``. ``tests/test_fast.py`` trains one run each way.
 
-=====================================  ==========================================  =========================================  ===========================
-stock part (TorchRL 0.14, torch 2.13)  ours                                        why (2-core CPU, one thread)               held equal by
-=====================================  ==========================================  =========================================  ===========================
-``SACLoss`` (v2)                       ``sac_loss.LeanSACLoss``                    ~18 ms an update at batch 256, (256, 256)  tests/test_sac_loss.py
-                                                                                   nets, for ~6 ms of matmuls
-``CrossQLoss``                         ``crossq_loss.LeanCrossQLoss``              TensorDict copies and vmap around each     tests/test_crossq.py
-                                                                                   call (BENCHMARKS.md, "CrossQ against
-                                                                                   SAC, per update")
-``DQNLoss``                            ``dqn_loss.LeanDQNLoss``                    ~1.8 ms an update for ~0.01 ms of matmuls  tests/test_dqn_loss.py
-``TD3Loss``'s network calls            ``TD3AblationLoss`` on tensors              ~3 ms a forward at batch 256 for ~0.3 ms   tests/test_td3_loss.py
-(``modules/td3_loss.py``)              (``tensor_nets``)                           of matmuls
-``BatchRenorm1d`` (training forward)   ``modules/critics.BatchRenorm1d``           CrossQ's update 38.9 -> 13.6 ms            tests/test_crossq.py
-``torch.optim.Adam(fused=True)``       ``optim.LeanAdam``                          a step ~47 -> ~28 us (TD3's critics)       tests/test_optim.py
-``SoftUpdate.step``                    ``target_updates.ForeachSoftUpdate``        one ``_foreach_lerp_`` for a loop of       tests/test_td3_loss.py
-                                                                                   TensorDict ops
-``ReplayBuffer.sample``                ``sampling.sample``                         ~88 -> ~34 us a batch of 128 (DQN's keys)  tests/test_sampling.py
-``QValueActor`` + ``EGreedyModule``    ``exploration.EGreedyQPolicy``              ~0.3 ms a call for a few us: 18% of a      tests/test_dqn.py
-                                                                                   ``dqn`` iteration
-collect policies through TensorDicts   ``tensor_policy.tensor_step`` /             150-300 us a call -> ~25 us                tests/test_gym_collector.py,
-                                       ``greedy_step``                                                                        tests/test_evaluation.py
-``Collector`` over ``GymEnv``          ``pipelines/workers/gym_collector.py``      BENCHMARKS.md, "Collection: env steps      tests/test_gym_collector.py
-                                       (a collector: it lives with the workers)    per second"
-``env.rollout`` for evaluations        ``pipelines/workers/evaluation.py``         the same episodes at a fraction of the     tests/test_evaluation.py
-                                       (``_evaluate_directly``)                    cost (BENCHMARKS.md)
-=====================================  ==========================================  =========================================  ===========================
+| stock part (TorchRL 0.14, torch 2.13) | ours | why (2-core CPU, one thread) | held equal by |
+|---|---|---|---|
+| `SACLoss` (v2) | `sac_loss.LeanSACLoss` | ~18 ms an update at batch 256, (256, 256) nets, for ~6 ms of matmuls | tests/test_sac_loss.py |
+| `CrossQLoss` | `crossq_loss.LeanCrossQLoss` | TensorDict copies and vmap around each network call (BENCHMARKS.md, "CrossQ against SAC, per update") | tests/test_crossq.py |
+| `DQNLoss` | `dqn_loss.LeanDQNLoss` | ~1.8 ms an update for ~0.01 ms of matmuls | tests/test_dqn_loss.py |
+| `TD3Loss`'s network calls | `modules/td3_loss.py`'s `TD3AblationLoss` on tensors (`tensor_nets`); the loss itself is the tutorial's (its target noise in normalised action units, its ablation switches), with `fast=false` too | ~3 ms a forward at batch 256 for ~0.3 ms of matmuls | tests/test_td3_loss.py |
+| `BatchRenorm1d`'s training forward | `modules/critics.py`'s `BatchRenorm1d` (its warm-up count held with `fast=false` too: a TorchRL 0.14 bug) | CrossQ's update 38.9 -> 13.6 ms | tests/test_crossq.py |
+| `torch.optim.Adam(fused=True)` | `optim.LeanAdam` | a step of TD3's critics ~47 -> ~28 us | tests/test_optim.py (bitwise) |
+| `SoftUpdate.step` | `target_updates.ForeachSoftUpdate` | one `_foreach_lerp_` for a loop of TensorDict ops | tests/test_td3_loss.py |
+| `ReplayBuffer.sample` | `sampling.sample` | ~88 -> ~34 us a batch of 128 of DQN's keys | tests/test_sampling.py |
+| `QValueActor` + `EGreedyModule`, `EGreedyModule.step` | `exploration.EGreedyQPolicy`, `anneal_epsilon` | ~0.3 ms a call for a few us of arithmetic: 18% of a `dqn` iteration; ~120 us a block of 10 | tests/test_dqn.py |
+| collect and greedy policies through TensorDicts | `tensor_policy.tensor_step`, `greedy_step` | 150-300 us a call -> ~25 us | tests/test_gym_collector.py, tests/test_evaluation.py |
+| `Collector` over `GymEnv` | `pipelines/workers/gym_collector.py` (a collector, so it lives with the workers) | BENCHMARKS.md, "Collection: env steps per second" | tests/test_gym_collector.py: TorchRL's keys, shapes, dtypes and episode bookkeeping; its own random draws (the same seed, the same blocks, not TorchRL's numbers) |
+| `env.rollout` for evaluations | `pipelines/workers/evaluation.py` (`_evaluate_directly`) | the same episodes at a fraction of the cost (BENCHMARKS.md) | tests/test_evaluation.py |
 
 The figures are those each module's docstring gives with how they were measured; ``rlpipe bench`` measures the
 runs (BENCHMARKS.md). ``tensor_nets`` holds what the losses share (TorchRL ``MLP``s run from flat parameter
@@ -42,7 +31,9 @@ TorchRL's or torch's private names for speed. ``PRIVATE_NAMES`` lists them; ``pr
 still there and that TorchRL and torch are the versions these parts were checked equal against, and a pipeline
 with ``fast=true`` refuses to start with one line naming what changed (``fast=false`` runs on the stock parts).
 A renamed attribute would otherwise be an ``AttributeError`` deep in an update, and a changed meaning a silently
-different number. (``pipelines/compat`` holds the workarounds of TorchRL's bugs, which are not about speed.)
+different number. Private names read elsewhere, for other reasons than speed: ``pipelines/compat`` (workarounds
+of TorchRL 0.14's bugs, each saying when it can go), ``modules/frames.py`` (the frame-stacking buffer calls its
+``ReplayBuffer`` base's sampler and storage) and ``pipelines/workers/ray.py`` (TorchRL's ``_TrajectoryPool``).
 """
 
 from __future__ import annotations

@@ -44,8 +44,8 @@ One module per target here (``dqn.py`` ... ``ray.py``, each with its ``bench_TAR
 ``runs.py`` for the rlpipe runs they share, ``peers/`` for the peers run in venvs of their own;
 ``dqn_tries.py``, ``ray_replay.py``, ``collect_tries.py`` and ``dqn_one_env.py`` are measurements run with
 ``python -m`` (as is ``scripts/fixed_cost.py``, a run's launch-to-first-step and last-step-to-exit per part,
-beside the CLI it wraps); ``preset_times.json`` holds each preset's measured time to its target, which
-``rlpipe presets`` shows.
+beside the CLI it wraps). A preset's measured time to its target, which ``rlpipe presets`` shows, is in its own
+file (``info.measured``), copied there from a ``rlpipe bench time-to-return`` run.
 """
 
 from __future__ import annotations
