@@ -11,7 +11,7 @@ A pipeline (``dqn.DQN``, ``td3.TD3``, ``sac.SAC``, ``crossq.CrossQ``) subclasses
 * ``build(actor=, qvalue=, loss_module=) -> Agent``: the policy, the exploring policy and the loss;
 * ``make_optimizers()``, ``make_target_updater()``: made after the loss is on its device;
 * ``update(batch, update_index) -> losses``: one update, its losses from the loss module's entry point and
-  its optimisers stepped by ``gradient_step`` (target updates included);
+  its optimisers stepped there, in the algorithm's own file (target updates included);
 * ``export_module()``: the deterministic policy as a plain ``nn.Module`` on observation tensors.
 
 Adding an algorithm is one new module with such a class and one line in ``pipelines.algos.ALGOS``.
@@ -264,24 +264,12 @@ class OffPolicyPipeline:
         """Update ``update_index`` (1, 2, ...) on ``batch``; returns detached losses named as in ``loss_names``."""
         raise NotImplementedError
 
-    def gradient_step(self, losses: dict[str, torch.Tensor], clip: float | None = None,
-                      stacked: Sequence[str] = ()) -> dict[str, torch.Tensor]:
-        """One gradient step of the optimisers that ``losses`` names (``optimizers``' keys): their sum's
-        gradients, each gradient tensor's norm clipped to ``clip`` if given (the twin critics of an optimiser
-        named in ``stacked``, stacked [2, ...], one critic at a time), then each optimiser's step. Returns the
-        losses, detached (no host sync)."""
-        total, *rest = losses.values()
-        for loss in rest:
-            total = total + loss
-        total.backward()
-        for name in losses:
-            optimizer = self.optimizers[name]
-            if clip is not None:
-                params = [p for group in optimizer.param_groups for p in group["params"]]
-                clip_gradient_norms(params, clip, stacked=name in stacked, fast=self.config.fast)
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-        return {name: loss.detach() for name, loss in losses.items()}
+    def clip_gradients(self, name: str, clip: float | None, stacked: bool = False) -> None:
+        """Clip each gradient tensor of optimiser ``name``'s parameters to a norm of ``clip`` (None: nothing), as
+        TF-Agents' ``gradient_clipping`` does (``stacked``: twin critics stacked [2, ...], one critic at a time)."""
+        if clip is not None:
+            params = [p for group in self.optimizers[name].param_groups for p in group["params"]]
+            clip_gradient_norms(params, clip, stacked=stacked, fast=self.config.fast)
 
     def on_frames(self, frames: int) -> None:
         """Called after each collected block with its frame count (exploration schedules go here)."""
@@ -474,8 +462,12 @@ class OffPolicyPipeline:
         infinite raises ``TrainingDiverged`` at the end of that collected block, saving nothing more:
         the last checkpoint is the run's last finite state. (The run's lifecycle: ``training.run.Run``.)
         """
-        return Run(self).train(out, resume=resume, progress=progress, logger=logger, callbacks=callbacks,
-                               triggers=triggers)
+        run = Run(self)
+        with run.session(out, resume=resume, progress=progress, logger=logger, callbacks=callbacks,
+                         triggers=triggers) as loop:
+            if loop is not None:  # None: a finished run, resumed with nothing owed
+                loop.run()  # collect, update, triggers: training/loop.py
+        return run.result
 
     def choose_threads(self) -> int:
         """The learner's torch threads for this machine and collector layout: ``training.threads.choose_threads``."""

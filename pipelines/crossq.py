@@ -134,7 +134,11 @@ class CrossQ(SACFamilyPipeline):
             losses["actor"], meta = loss.actor_loss(batch)
             losses["alpha"] = loss.alpha_loss(meta["log_prob"], tensordict=batch)
             measured = {"alpha_value": loss.log_alpha.detach().exp(), "entropy": -meta["log_prob"].mean()}
-        stepped = self.gradient_step(losses)
+        sum(losses.values()).backward()
+        for name in losses:
+            self.optimizers[name].step()
+            self.optimizers[name].zero_grad(set_to_none=True)
+        stepped = {name: value.detach() for name, value in losses.items()}
         if actor_step:
             self.average_policy()
             stepped.update(measured)

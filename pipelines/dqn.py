@@ -159,10 +159,13 @@ class DQN(OffPolicyPipeline):
         # LeanDQNLoss's forward without the module call and the TensorDict around its loss (~15 us an update)
         lean = type(loss_module) is LeanDQNLoss and loss_module.lean_call
         loss = loss_module.lean_loss(batch) if lean else loss_module(batch)["loss"]
-        stepped = self.gradient_step({"q": loss}, clip=self.config.gradient_clipping)
+        loss.backward()
+        self.clip_gradients("q", self.config.gradient_clipping)
+        self.optimizers["q"].step()
+        self.optimizers["q"].zero_grad(set_to_none=True)
         if self.target_updater is not None and update_index % self.config.target_update_period == 0:
             self.target_updater.step()
-        return {"loss": stepped["q"]}
+        return {"loss": loss.detach()}
 
     def on_frames(self, frames: int) -> None:
         if self.config.epsilon_greedy_end is not None:

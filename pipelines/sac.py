@@ -114,7 +114,12 @@ class SAC(SACFamilyPipeline):
             losses = {"actor": out["loss_actor"], "qvalue": out["loss_qvalue"], "alpha": out["loss_alpha"]}
         else:
             losses = {"qvalue": loss.qvalue_v2_loss(batch)[0]}
-        stepped = self.gradient_step(losses, clip=cfg.gradient_clipping, stacked=("qvalue",))
+        sum(losses.values()).backward()
+        for name in losses:  # each gradient tensor clipped (gradient_clipping), then each optimiser's step
+            self.clip_gradients(name, cfg.gradient_clipping, stacked=name == "qvalue")
+            self.optimizers[name].step()
+            self.optimizers[name].zero_grad(set_to_none=True)
+        stepped = {name: value.detach() for name, value in losses.items()}
         if actor_step:
             self.average_policy()
             stepped.update(alpha_value=out["alpha"].detach(), entropy=out["entropy"].detach())

@@ -198,11 +198,19 @@ class TD3(OffPolicyPipeline):
         """The tutorial's ``TD3.train`` step: the critics on every update; the actor on every
         ``policy_delay``-th (every one with ``delayed_policy_updates`` off), its loss read from the critics
         just stepped; the targets on every ``target_update_period``-th actor step."""
-        cfg, loss = self.config, self.loss_module
-        stepped = self.gradient_step({"qvalue": loss.value_loss(batch)[0]})
+        cfg, loss, optimizers = self.config, self.loss_module, self.optimizers
+        critic_loss = loss.value_loss(batch)[0]
+        critic_loss.backward()
+        optimizers["qvalue"].step()
+        optimizers["qvalue"].zero_grad(set_to_none=True)
+        stepped = {"qvalue": critic_loss.detach()}
         actor_every = cfg.policy_delay if cfg.delayed_policy_updates else 1
         if update_index % actor_every == 0:  # a Python int: a compiled update picks one of two graphs
-            stepped.update(self.gradient_step({"actor": loss.actor_loss(batch)[0]}))
+            actor_loss = loss.actor_loss(batch)[0]
+            actor_loss.backward()
+            optimizers["actor"].step()
+            optimizers["actor"].zero_grad(set_to_none=True)
+            stepped["actor"] = actor_loss.detach()
             if update_index % (actor_every * cfg.target_update_period) == 0:
                 self.target_updater.step()
         return stepped

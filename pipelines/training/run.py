@@ -2,7 +2,8 @@
 a pipeline in it with the ``Loop``, write its summary, and stop with one line when the storage
 refuses a write (disk full, permissions), after saving what can be saved.
 
-``OffPolicyPipeline.train(out, ...)`` is ``Run(pipeline).train(out, ...)``.
+``OffPolicyPipeline.train(out, ...)`` is ``with Run(pipeline).session(out, ...) as loop: loop.run()``: the lifecycle
+sets the run up and finishes it around the loop, and is not on the call path from the loop to an update.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import dataclasses
 import json
 import logging
 import random
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -58,11 +59,16 @@ class Run:
     def __init__(self, pipeline: OffPolicyPipeline):
         self.pipeline = pipeline
         self.run_dir: RunDir | None = None
+        self.result: TrainResult | None = None
 
-    def train(self, out: str | Path | None = None, *, resume: bool = False, progress: bool = True,
-              logger: Logger | None = None, callbacks: Sequence[Callable[[dict], None]] = (),
-              triggers: Sequence[Trigger] = ()) -> TrainResult:
-        """``OffPolicyPipeline.train``: see there."""
+    @contextlib.contextmanager
+    def session(self, out: str | Path | None = None, *, resume: bool = False, progress: bool = True,
+                logger: Logger | None = None, callbacks: Sequence[Callable[[dict], None]] = (),
+                triggers: Sequence[Trigger] = ()) -> Iterator[Loop | None]:
+        """``OffPolicyPipeline.train``'s run (see there) around its loop: the run directory made or resumed, the
+        logger, threads and stop signals set up, then the ``Loop`` handed to the caller to ``run()``; on leaving,
+        summary.json and the report page of the finished run (``result``), or what a stop or a refused write
+        needs. ``None`` instead of a loop: a finished run, resumed with nothing owed (``result`` is set already)."""
         pipeline = self.pipeline
         triggers = [*default_triggers(pipeline.config), *triggers, *fault_triggers()]
         names = [t.name for t in triggers]
@@ -75,7 +81,9 @@ class Run:
         self.run_dir = pipeline.run_dir = run
         if metrics is None:  # a finished run, resumed with nothing owed
             try:
-                return self._unchanged(run)
+                self.result = self._unchanged(run)
+                yield None
+                return
             finally:
                 run.close()
         loop, own_logger = None, None
@@ -86,8 +94,8 @@ class Run:
             loop = Loop(pipeline, run, metrics, fresh=fresh, evaluations=evaluations, triggers=triggers,
                         logger=logger, callbacks=callbacks, progress=progress)
             with torch_threads(pipeline.config.num_threads), running(loop.stop):
-                loop.run()
-                return self.finish(loop)
+                yield loop
+                self.result = self.finish(loop)
         except OSError as exc:  # a write the storage refused, outside rlpipe's own (TensorBoard's writer)
             if exc.errno not in STORAGE_ERRNOS:
                 raise
