@@ -284,35 +284,21 @@ def test_kill_9_of_a_learner_with_a_local_ray_leaves_no_ray_process_and_resumes(
 
 # --- it learns, with Ray collectors -----------------------------------------------------------------------
 
-# tests/test_sac.py's learning check, with the env stepped by one Ray actor
-# (a local Ray instance) that gets the learner's weights before each block (collector.sync=true).
-# Seen on this 2-core machine under load (3-4 min each): SAC at 3000 iterations -1268 -> -163, -164, -485, -163,
-# -819; TD3 -1383 -> -160, -156, -157 (random and untrained: -1100 to -1700). Runs of the same seed differ here
-# (cause not found; issue 23), and at 3000 iterations SAC is still on the steep part of its curve (training
-# episodes: -1298 at 2000, -490 at 3000), so the spread decided the check: SAC runs 4000, past the climb
-# (seen quiet, 30 s each: -155, -374, -155), with room below the worst seen.
-SAC_LEARN = [
-    "env=Pendulum-v1", "seed=0", "num_iterations=4000", "initial_collect_steps=1000",
-    "replay_buffer_capacity=100000", "actor_fc_layer_params=[64,64]", "critic_joint_fc_layer_params=[64,64]",
-    "actor_learning_rate=1e-3", "critic_learning_rate=1e-3", "alpha_learning_rate=1e-3",
-    "eval_in_background=false", "eval_interval=0", "num_eval_episodes=5", "log_interval=1000",
-    "checkpoint_interval=100000", "policy_save_interval=100000",
-    "collector.backend=ray", "collector.workers=1", "collector.sync=true", "ray.address=",
-]
+# The sac-pendulum preset to its target (-200), with the env stepped by one Ray actor (a local Ray instance) that
+# gets the learner's weights before each block (collector.sync=true: the run's arithmetic does not depend on
+# timing, so it is the same run every time on one CPU). Seen on this 2-core machine (seed 0, evaluations every
+# 500): -1371, -921, -408, -87 (target), then -133 on its recheck: 2,200 iterations, ~60 s with Ray's start.
+SAC_LEARN = ["seed=0", "target_return=-200", "eval_interval=500", "num_iterations=4000", "log_interval=500",
+             "collector.backend=ray", "collector.workers=1", "collector.sync=true", "ray.address="]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pipeline, overrides, iterations, threshold", [
-    pytest.param(sac.SAC, SAC_LEARN, 4000, -600, id="sac"),  # (td3 learns on Ray as well: its Ray path is sac's)
-])
-def test_learns_pendulum_with_ray_collectors(run_dir, pipeline, overrides, iterations, threshold):
-    result = pipeline(apply_overrides(pipeline.preset(pipeline.algo), overrides)).train(run_dir, progress=False)
-    first, last = result.evaluations[0], result.evaluations[-1]
-    print(f"{pipeline.algo}: {first['average_return']:.0f} -> {last['average_return']:.0f}")
-    assert first["step"] == 0 and first["average_return"] < -900, first
-    assert last["step"] == iterations
-    assert last["average_return"] > threshold, \
-        f"{pipeline.algo.upper()} did not learn Pendulum-v1: {last['average_return']:.0f}"
+def test_learns_pendulum_with_ray_collectors(run_dir):
+    result = sac.SAC(apply_overrides(sac.preset("sac-pendulum"), SAC_LEARN)).train(run_dir, progress=False)
+    returns = [e["average_return"] for e in result.evaluations]
+    print(f"sac on Ray: {returns}")
+    assert returns[0] < -900, returns  # the first evaluation, 500 updates in: far from swinging up
+    assert result.summary["stopped_because"] == "target", f"SAC did not learn Pendulum-v1 on Ray: {returns}"
     logged = [r for r in result.metrics if r.get("workers_alive")]
     assert logged and all(r["workers_alive"] == "1" and r["collector_restarts"] == "0" for r in logged), logged
 

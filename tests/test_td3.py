@@ -254,9 +254,8 @@ def test_discrete_env_is_rejected():
 
 
 LEARN = [
-    "seed=0", "num_iterations=8000", "initial_collect_steps=1000", "learning_starts=1000",
-    "learning_rate=1e-3", "eval_interval=0", "num_eval_episodes=5", "log_interval=2000",
-    "checkpoint_interval=100000", "policy_save_interval=100000",
+    "seed=0", "target_return=-200", "eval_interval=500", "initial_eval=true", "num_eval_episodes=5",
+    "log_interval=500", "checkpoint_interval=100000", "policy_save_interval=100000",
     # In-process collection, so the run is the same on every run: with a collector process (the
     # preset's) which policy collected which block depends on timing.
     "collector.sync=true",
@@ -265,16 +264,14 @@ LEARN = [
 
 @pytest.mark.slow
 def test_td3_learns_pendulum_and_exports_a_torch_only_policy(run_dir):
-    # Settings found by trying seeds 0-4: after 8000 updates at lr 1e-3 every seed evaluated between
-    # -75 and -190 (random: -1150 to -1650); the threshold leaves room for a different CPU's numerics.
-    cfg = apply_overrides(td3.preset("td3"), LEARN)
+    # The td3-pendulum preset to its target (-200), seed 0 on this 2-core machine: evaluations -663 at 500
+    # updates, -117 at 1,000, the target's recheck at 1,800 (~20 s); the untrained policy's first: < -900.
+    cfg = apply_overrides(td3.preset("td3-pendulum"), LEARN)
     result = td3.TD3(cfg).train(run_dir, progress=False)
     first, last = result.evaluations[0], result.evaluations[-1]
     assert first["step"] == 0 and first["average_return"] < -900, first
-    assert last["step"] == 8000
-    assert last["average_return"] > -400, f"TD3 did not learn Pendulum-v1: {last['average_return']:.0f}"
-    assert result.summary["final_average_return"] == last["average_return"]
-    assert result.summary["frames"] == 9000 and result.summary["updates"] == 8000
+    assert result.summary["stopped_because"] == "target", f"TD3 did not learn Pendulum-v1: {result.evaluations}"
+    assert result.summary["final_average_return"] == last["average_return"] > -400
 
     # The exported policy: torch alone (no rlpipe import) loads it; actions inside [-2, 2]; it
     # swings the pendulum up in gymnasium's own env.
