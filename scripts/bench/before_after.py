@@ -5,7 +5,7 @@
     python -m rlpipe.scripts.bench.before_after --before /tmp/before whole dqn    # whole `rlpipe train dqn` runs
 
 "After" is the installed rlpipe; "before" is the tree at ``--before``, imported in its runs' processes
-through ``PYTHONPATH`` (a folder whose ``rlpipe/{pipelines,modules,envs,scripts}`` link to that tree, found
+through ``PYTHONPATH`` (a folder whose ``rlpipe/{pipelines,modules,envs,scripts,presets}`` link to that tree, found
 before the editable install's finder). ``dqn``: the runs ``dqn_one_env`` makes (CleanRL's settings, one env
 in the learner's process), each side timed as ``rlpipe bench cleanrl`` times it, CleanRL first in each
 round. ``whole PRESET [key=value ...]``: wall clock, training time and final return of whole runs.
@@ -28,8 +28,9 @@ def shim(tree: Path) -> Path:
     """A folder to put on PYTHONPATH so that ``import rlpipe...`` imports ``tree``'s code."""
     root = Path(tempfile.mkdtemp(prefix="rlpipe-before-"))
     (root / "rlpipe").mkdir()
-    for part in ("pipelines", "modules", "envs", "scripts"):
-        (root / "rlpipe" / part).symlink_to(tree.resolve() / part)
+    for part in ("pipelines", "modules", "envs", "scripts", "presets"):  # presets: the files that tree reads
+        if (tree / part).is_dir():
+            (root / "rlpipe" / part).symlink_to(tree.resolve() / part)
     return root
 
 
