@@ -435,12 +435,12 @@ def peer_launch(task: Task, side: str, seed: int, target: float, cap: int, work:
 
         python = tfagents.ensure_venv()
         if task.env == "MinitaurBulletEnv-v0":
-            tutorial = peers / "tfagents_tutorials" / "tfagents_sac_minitaur.py"
+            tutorial = tfagents.SCRIPT
             settings = ("TF-Agents 0.19 SAC actor-learner tutorial (7_SAC_minitaur_tutorial.ipynb) as written: "
                         "256x256 networks, Adam 3e-4 x3, batch 256, replay 10,000 (Reverb), 10,000 random steps, "
                         "1 env step per update; pybullet_envs' MinitaurBulletEnv-v0")
         else:
-            tutorial = peers / "tfagents_tutorials" / "tfagents_dqn_cartpole.py"
+            tutorial = tfagents.DQN_SCRIPT
             settings = ("TF-Agents 0.19 DQN tutorial (1_dqn_tutorial.ipynb) as written: QNetwork (100,), Adam 1e-3, "
                         "batch 64, 100 random steps, 1 env step per update")
         spec = {**rule, "tutorial": str(tutorial)}

@@ -2,7 +2,7 @@
 
 ``rlpipe bench sac`` and ``rlpipe bench dqn`` compare our pipelines with the tutorials they are built
 from, and a figure quoted from someone else's run says little about this machine on this day. So this
-module runs the tutorials themselves (``tfagents_tutorials/tfagents_sac_minitaur.py`` and
+module runs the tutorials themselves (``benchmarks/tfagents_tutorials/tfagents_sac_minitaur.py`` and
 ``tfagents_dqn_cartpole.py`` beside it, each notebook as a script) in the same command.
 
 The tutorials need TensorFlow 2.15, TF-Agents 0.19, Reverb 0.14 and, through ``suite_pybullet`` ->
@@ -93,9 +93,9 @@ PINS: tuple[str, ...] = (
 )
 # The distributions whose versions a benchmark report names.
 REPORTED: tuple[str, ...] = ("tf-agents", "tensorflow-cpu", "dm-reverb", "tensorflow-probability", "gym", "pybullet", "numpy")
-# The tutorials as scripts run by the peer venv's python, never imported by rlpipe: they stay in the repository
-# and out of the wheel (tfagents_tutorials/ is no package), so this peer runs from a checkout.
-TUTORIALS = Path(__file__).with_name("tfagents_tutorials")
+# The tutorials as scripts run by the peer venv's python, never imported by rlpipe: they are this repository's
+# (benchmarks/, outside the installed package), so this peer runs from a checkout.
+TUTORIALS = Path(__file__).resolve().parents[3] / "benchmarks" / "tfagents_tutorials"
 SCRIPT = TUTORIALS / "tfagents_sac_minitaur.py"
 DQN_SCRIPT = TUTORIALS / "tfagents_dqn_cartpole.py"
 # TensorFlow on the CPU, quiet C++ logs; thread pools stay at TensorFlow's defaults.

@@ -4,13 +4,13 @@ tutorial on Minitaur, run inside the TF-Agents peer venv (``peers/tfagents.py``)
     python ttr_tfagents.py '{"tutorial": ".../tfagents_dqn_cartpole.py", "target": 195, "cap": 50000, "seed": 0}'
     python ttr_tfagents.py '{"tutorial": ".../tfagents_sac_minitaur.py", "target": 1.0, "cap": 30000, "seed": 0}'
 
-The tutorial script (``tfagents_tutorials/tfagents_dqn_cartpole.py``: the notebook cell for cell) runs
+The tutorial script (``benchmarks/tfagents_tutorials/tfagents_dqn_cartpole.py``: the notebook cell for cell) runs
 as it is, with ``--iterations`` set to the step cap; only its ``collect_step`` is replaced by the same
 step that also adds the reward to the episode's return and, at each episode's end, applies the shared
 rule (``ttr_rule.Rule``). The greedy check is the tutorial's own ``compute_avg_return`` of
 ``agent.policy`` (greedy) on its ``eval_env``, both found in the running ``main``'s frame.
 
-The Minitaur tutorial (``tfagents_tutorials/tfagents_sac_minitaur.py``, the notebook's actor-learner loop)
+The Minitaur tutorial (``benchmarks/tfagents_tutorials/tfagents_sac_minitaur.py``, the notebook's actor-learner loop)
 runs as it is too, ``--iterations`` the cap less its 10,000 random steps, so that the cap counts env steps
 as every other side's does. An observer beside its own (``EXTRA_OBSERVERS``, added to the random and the
 collect actor alike, as rlpipe's random steps count too) adds each env step's reward to the episode's

@@ -1,6 +1,6 @@
-"""The benchmark pages, made from the committed result JSON under ``scripts/results/``.
+"""The benchmark pages, made from the committed result JSON under ``benchmarks/results/``.
 
-    python -m rlpipe.scripts.bench.pages      # from the repository's root
+    python benchmarks/pages.py      # from the repository's root (with rlpipe's venv: matplotlib draws the plots)
 
 writes ``docs/benchmarks/index.md`` (one table per question, each with its plot), the plots beside it
 (``docs/benchmarks/*.png``), and the summary table at the top of ``BENCHMARKS.md`` (between its
@@ -21,11 +21,11 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "scripts" / "results"
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
 PAGES = ROOT / "docs" / "benchmarks"
 BENCHMARKS = ROOT / "BENCHMARKS.md"
-SUMMARY_START = "<!-- summary: made by `python -m rlpipe.scripts.bench.pages` from scripts/results/; do not edit -->"
+SUMMARY_START = "<!-- summary: made by `python benchmarks/pages.py` from benchmarks/results/; do not edit -->"
 SUMMARY_END = "<!-- summary end -->"
 
 PEER_NAMES = {"sbx": "SBX + RL-Zoo", "sb3": "SB3 + RL-Zoo", "cleanrl": "CleanRL", "tfagents": "TF-Agents' tutorial",
@@ -41,7 +41,7 @@ class Pair:
     heading: str
     """BENCHMARKS.md's heading with this task's detail"""
     json: str
-    """the file under scripts/results/time-to-return/"""
+    """the file under benchmarks/results/time-to-return/"""
     task: str
     """the bench's task name in that file"""
     peer: str | None
@@ -157,19 +157,19 @@ COMMANDS = {
         "rlpipe bench time-to-return --tasks invdoublependulum-sac reacher-sac --seeds 1 --seed 100 --peers torchrl "
         "--torchrl-sota DIR --cap torchrl=50000",
     "2026-12-02-d36e01a-acrobot-tuned-sbx.json":
-        "rlpipe bench time-to-return --tasks acrobot-dqn --preset scripts/results/tune/2026-12-02-335b2a4-acrobot-dqn/"
+        "rlpipe bench time-to-return --tasks acrobot-dqn --preset benchmarks/results/tune/2026-12-02-335b2a4-acrobot-dqn/"
         "dqn-acrobot-v1-tuned.yaml --seeds 5 --seed 100 --peers sbx",
     "2026-12-02-246967f-idp-tuned-sbx.json":
-        "rlpipe bench time-to-return --tasks invdoublependulum-sac --preset scripts/results/tune/"
+        "rlpipe bench time-to-return --tasks invdoublependulum-sac --preset benchmarks/results/tune/"
         "2026-12-02-ff4b74f-idp-sac/sac-inverteddoublependulum-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx",
     "2026-12-02-e78301c-reacher-tuned-sbx.json":
-        "rlpipe bench time-to-return --tasks reacher-sac --preset scripts/results/tune/"
+        "rlpipe bench time-to-return --tasks reacher-sac --preset benchmarks/results/tune/"
         "2026-12-02-246967f-reacher-sac/sac-reacher-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx",
     "2026-12-03-144292a-swimmer-tuned-sbx.json":
-        "rlpipe bench time-to-return --tasks swimmer-sac --preset scripts/results/tune/"
+        "rlpipe bench time-to-return --tasks swimmer-sac --preset benchmarks/results/tune/"
         "2026-12-03-3679480-swimmer-sac/sac-swimmer-v5-tuned.yaml --seeds 5 --seed 100 --peers sbx --cap-scale 0.4",
     "2026-12-03-23b0abf-lunarlander-sbx.json":
-        "rlpipe bench time-to-return --tasks lunarlandercontinuous-sac --also-preset scripts/results/tune/"
+        "rlpipe bench time-to-return --tasks lunarlandercontinuous-sac --also-preset benchmarks/results/tune/"
         "2026-12-03-25dd45a-lunarlander-sac/sac-lunarlandercontinuous-v3-tuned.yaml --seeds 5 --seed 100 --peers sbx "
         "--cap sbx=75000",
     "2026-12-03-fb86c42-torchrl-long.json":
@@ -278,7 +278,7 @@ def time_to_target(link: str | None) -> tuple[list[str], list[dict]]:
                      f"{_time(theirs)} | {shown} | {_seeds(data, ours)}, {pair.json[:10]} {note} |")
         plotted.append({"label": f"{pair.label}: {PEER_NAMES[pair.peer]}", "rlpipe": ours["median_s"],
                         "peer": theirs["median_s"], "bound": ratio if theirs["median_s"] is None else None})
-    lines += ["", "The commands (each JSON under `scripts/results/time-to-return/`, with a PNG of every seed beside it):", ""]
+    lines += ["", "The commands (each JSON under `benchmarks/results/time-to-return/`, with a PNG of every seed beside it):", ""]
     lines += [f"{n}. `{COMMANDS[name]}` ({_when(name)}; `{name}`)" for n, name in enumerate(files, 1)]
     return lines, plotted
 
@@ -286,7 +286,7 @@ def time_to_target(link: str | None) -> tuple[list[str], list[dict]]:
 def updates() -> tuple[list[str], list[dict]]:
     eager, compiled = _load("bench", UPDATES[0]), _load("bench", UPDATES[1])
     compiled_ms = {case["case"]: case["update_ms"] for case in compiled["cases"]}
-    lines = [f"`{UPDATES[2]}` ({UPDATES[3]}; `scripts/results/bench/{UPDATES[0]}`, and `{UPDATES[1]}` with "
+    lines = [f"`{UPDATES[2]}` ({UPDATES[3]}; `benchmarks/results/bench/{UPDATES[0]}`, and `{UPDATES[1]}` with "
              f"`compile=true`): one update on a fixed batch, one CPU thread, against its arithmetic floor (the update's "
              f"matmul FLOPs at this CPU's measured rate on [256, 256] matmuls, {eager['matmul_gflops_per_s']:.1f} "
              "GFLOP/s).", "",
@@ -298,7 +298,7 @@ def updates() -> tuple[list[str], list[dict]]:
 
 
 def collection() -> tuple[list[str], list[dict]]:
-    lines = [f"`rlpipe bench collect` ({COLLECTION_WHEN}; JSON under `scripts/results/bench/`): env steps per second of one "
+    lines = [f"`rlpipe bench collect` ({COLLECTION_WHEN}; JSON under `benchmarks/results/bench/`): env steps per second of one "
              "env, random actions (raw env), CleanRL's loop with the preset's policy network (plain loop), and the "
              "collectors in the learner's process and in one collector process; the mean of two runs each.", "",
              "| env (preset) | block | raw env | plain loop | TorchRL `Collector` | rlpipe `GymCollector` | "
@@ -321,7 +321,7 @@ def gpu() -> tuple[list[str], dict]:
     data = _load("gpu", GPU[0])
     rate = {(run["case"], run["mode"]): run["updates_per_s_in_run"] for run in data["training"]}
     cases = list(dict.fromkeys(run["case"] for run in data["training"]))
-    lines = [f"`{GPU[1]}` ({GPU[2]}; one {data['device']}, torch {data['torch']}; `scripts/results/gpu/{GPU[0]}`): "
+    lines = [f"`{GPU[1]}` ({GPU[2]}; one {data['device']}, torch {data['torch']}; `benchmarks/results/gpu/{GPU[0]}`): "
              "the whole training loop on HalfCheetah-v5 with CleanRL's settings (256x256, batch 256, one update per env "
              "step, the update compiled and replayed as CUDA graphs, the env on the CPU), env steps (= updates) per "
              "second inside the run.", "",
@@ -332,7 +332,7 @@ def gpu() -> tuple[list[str], dict]:
 
 
 ANYTIME = ("2026-12-06-41bb2df-hopper-sbx.json",)
-"""``rlpipe bench anytime``'s files under scripts/results/anytime/: the return each side had at each wall-clock mark"""
+"""``rlpipe bench anytime``'s files under benchmarks/results/anytime/: the return each side had at each wall-clock mark"""
 ANYTIME_HEADING = "The best agent in ten minutes: Hopper-v5, return against wall-clock (`rlpipe bench anytime`)"
 
 
@@ -372,7 +372,7 @@ def index_page() -> str:
     gpu_lines, _ = gpu()
     return "\n".join([
         "# Benchmarks", "",
-        "<!-- made by `python -m rlpipe.scripts.bench.pages` from scripts/results/; do not edit -->", "",
+        "<!-- made by `python benchmarks/pages.py` from benchmarks/results/; do not edit -->", "",
         "What a user of rlpipe gets on a small CPU machine (2 cores, no GPU, unless a table says otherwise). Each "
         "table is made from the JSON its command wrote; where a peer appears it ran in the same command, on the "
         "same machine, interleaved with rlpipe, so a ratio is read within its row only. The [log](log.md) has "
@@ -487,7 +487,7 @@ def with_summary(benchmarks: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m rlpipe.scripts.bench.pages", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python benchmarks/pages.py", description=__doc__.split("\n")[0])
     parser.add_argument("--no-plots", action="store_true", help="write the Markdown only")
     args = parser.parse_args(argv)
     PAGES.mkdir(parents=True, exist_ok=True)
