@@ -8,7 +8,7 @@ The map of this package (each room's ``__init__`` maps its own modules):
     base         OffPolicyPipeline: the algorithm contract, the plug-in surface (env, eval_env,
                  actor, qvalue, loss_module, observation_key) and its assembly (device, optimisers,
                  replay buffer, collector backend); ``train`` hands the run to ``training.run.Run``
-    plugins      what a user's own env, eval env and modules must be, checked before anything is built
+    own_parts    what a user's own env, eval env and modules must be, checked before anything is built
     algos        ALGOS: each algorithm's name -> its pipeline class (``pipeline_class``)
     dqn, td3, sac, crossq  the algorithms: each a config, its modules and loss, one ``update``
     config       the shared keys (``TrainConfig``), each key's rule declared with its field, overrides

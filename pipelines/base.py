@@ -61,7 +61,7 @@ from rlpipe.pipelines import presets as preset_files
 from rlpipe.pipelines.artifacts import checkpoint as ckpt
 from rlpipe.pipelines.config import EVAL_SEED_OFFSET, PresetInfo, TrainConfig, env_options, layer_sizes, validate
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.plugins import (
+from rlpipe.pipelines.own_parts import (
     EnvArg,
     check_action_space,
     eval_env_of,

@@ -33,7 +33,7 @@ from rlpipe.pipelines.config import (
     checked,
 )
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.plugins import observation_key_of
+from rlpipe.pipelines.own_parts import observation_key_of
 
 __all__ = ["SACFamilyConfig", "SACFamilyPipeline", "scale_rewards"]
 

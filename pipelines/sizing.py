@@ -157,7 +157,7 @@ def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
     """The facts of the env ``cfg`` makes (``cfg.env``, as the pipeline makes it) and of this machine; with
     ``play=False`` its spaces only (no time limit, no random agent: what the algorithm is chosen by)."""
     from rlpipe.envs import goal_env, gym_env_under, is_discrete
-    from rlpipe.pipelines.plugins import factory_and_env, observation_key_in
+    from rlpipe.pipelines.own_parts import factory_and_env, observation_key_in
 
     _, env = factory_and_env(None, cfg)
     try:

@@ -321,7 +321,7 @@ def _check_random_without_step(args) -> None:
 
 
 def cmd_video(args) -> int:
-    from rlpipe.pipelines.analysis.pages import VIDEO_FILE, write_run_report
+    from rlpipe.pipelines.analysis.report_pages import VIDEO_FILE, write_run_report
     from rlpipe.pipelines.artifacts.export import load_policy
     from rlpipe.pipelines.artifacts.video import record_video
     from rlpipe.pipelines.config import env_options
@@ -357,7 +357,7 @@ def cmd_plot(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from rlpipe.pipelines.analysis.pages import write_comparison_report, write_run_report
+    from rlpipe.pipelines.analysis.report_pages import write_comparison_report, write_run_report
     from rlpipe.pipelines.artifacts.rundir import RunDir
     from rlpipe.pipelines.errors import InputError
 

@@ -220,7 +220,7 @@ def check_env(algo: str, cfg) -> None:
     """The env made once, as a trial's runs make it: one that fails, or whose actions ``algo`` does not learn, is
     one line before anything runs."""
     from rlpipe.pipelines import pipeline_class
-    from rlpipe.pipelines.plugins import check_action_space, factory_and_env
+    from rlpipe.pipelines.own_parts import check_action_space, factory_and_env
 
     _, env = factory_and_env(None, cfg)
     try:

@@ -21,7 +21,7 @@ from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
 from rlpipe.pipelines.config import apply_overrides
 from rlpipe.pipelines.workers.gym_collector import GymCollector
 from rlpipe.pipelines.workers.local import direct_collection
-from rlpipe.pipelines.workers.snapshot import SNAPSHOT
+from rlpipe.pipelines.workers.snapshot_collector import SNAPSHOT
 
 SMALL = {"dqn": ["fc_layer_params=[16]"], "td3": ["actor_fc_layer_params=[16]", "critic_fc_layer_params=[16]"],
          "sac": ["env=Pendulum-v1", "actor_fc_layer_params=[16]", "critic_joint_fc_layer_params=[16]"]}

@@ -267,7 +267,7 @@ def test_the_comparison_page_in_chromium(runs, browser):
 
 @pytest.mark.unit
 def test_comparison_pools_seeds_of_one_config_and_names_variants_by_what_differs(tmp_path):
-    from rlpipe.pipelines.analysis.pages import run_labels
+    from rlpipe.pipelines.analysis.report_pages import run_labels
 
     def run(name, **config):
         folder = tmp_path / name
@@ -286,7 +286,7 @@ def test_comparison_pools_seeds_of_one_config_and_names_variants_by_what_differs
 @pytest.mark.unit
 def test_comparison_of_several_algorithms_pools_only_runs_whose_configs_agree(tmp_path):
     """`rlpipe report run-td3 run-td3-nocdq run-dqn` once pooled both TD3 runs into "td3 (n=2)"."""
-    from rlpipe.pipelines.analysis.pages import run_labels
+    from rlpipe.pipelines.analysis.report_pages import run_labels
 
     def run(name, algo, **config):
         folder = tmp_path / name
@@ -309,7 +309,7 @@ def test_comparison_of_several_algorithms_pools_only_runs_whose_configs_agree(tm
 @pytest.mark.unit
 def test_a_finished_run_trained_on_further_is_not_shown_as_finished(tmp_path):
     """Its old summary.json (of iteration 200) once made the page of a run stopped at 300 say "finished"."""
-    from rlpipe.pipelines.analysis.pages import write_run_report
+    from rlpipe.pipelines.analysis.report_pages import write_run_report
 
     run = tmp_path / "run"
     run.mkdir()

@@ -1,6 +1,6 @@
 """Killed and resumed equals uninterrupted, bit for bit (issue 23): the envs' state in the middle of an
 episode (``rlpipe.envs.snapshot``), the collectors that carry it through checkpoints
-(``workers.snapshot``), evaluations seeded by their step, and whole runs stopped through the fault hook
+(``workers.snapshot_collector``), evaluations seeded by their step, and whole runs stopped through the fault hook
 (Ctrl-C, SIGTERM, kill -9) and resumed, compared with uninterrupted runs row by row and parameter by
 parameter."""
 

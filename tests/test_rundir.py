@@ -356,7 +356,7 @@ def test_a_stopped_runs_page_and_figures_tell_the_truth_through_its_resume(tmp_p
     stopped run, and offered `rlpipe video RUN` before there was a policy to film; after a resume, summary.json's
     wall time and speeds and metrics.csv's wall_time covered only the stretch since the resume while saying
     "whole run"; and nothing said where the run resumed."""
-    from rlpipe.pipelines.analysis.pages import write_run_report
+    from rlpipe.pipelines.analysis.report_pages import write_run_report
 
     args = ["train", "dqn", *TINY, "eval_interval=0", "log_interval=50", "policy_save_interval=1000",
             "--no-progress", "--out", "run"]
@@ -417,7 +417,7 @@ def test_live_report_false_writes_the_page_at_the_end_only(tmp_path):
 def test_the_page_and_plot_follow_evaluations_at_a_bounded_cost(trained, tmp_path):
     """The DQN tutorial evaluates 21 times in a ~30-s run: drawing at each one took 14 s of it. The first evaluation
     draws at once; one soon after waits (the page's bound); the run's end draws what came since."""
-    from rlpipe.pipelines.training.page import ReportPage
+    from rlpipe.pipelines.training.live_report import ReportPage
 
     run = copy_of(trained, tmp_path / "run")
     (run / "returns.png").unlink()

@@ -9,11 +9,12 @@
 * :mod:`~rlpipe.pipelines.analysis.aggregate` gives the across-env statistics (rliable's IQM with
   stratified-bootstrap CIs, performance profiles, probability of improvement) and
   :mod:`~rlpipe.pipelines.analysis.study` the ablation study's figures and sentences from them;
-* :mod:`~rlpipe.pipelines.analysis.report` writes the ablation report;
-* :mod:`~rlpipe.pipelines.analysis.pages` writes the HTML pages: a run's ``report.html`` and the
+* :mod:`~rlpipe.pipelines.analysis.ablation_report` writes the ablation report;
+* :mod:`~rlpipe.pipelines.analysis.report_pages` writes the HTML pages: a run's ``report.html`` and the
   comparison page of several runs (``rlpipe report``, the ablation's ``report.html``).
 """
 
+from rlpipe.pipelines.analysis.ablation_report import safe_filename, write_ablation_report
 from rlpipe.pipelines.analysis.aggregate import (
     aggregate_iqm,
     iqm,
@@ -22,13 +23,12 @@ from rlpipe.pipelines.analysis.aggregate import (
     probability_of_improvement,
     stratified_bootstrap_ci,
 )
-from rlpipe.pipelines.analysis.pages import write_comparison_report, write_run_report
 from rlpipe.pipelines.analysis.plots import (
     plot_ecdf,
     plot_return_curves,
     plot_training_returns,
 )
-from rlpipe.pipelines.analysis.report import safe_filename, write_ablation_report
+from rlpipe.pipelines.analysis.report_pages import write_comparison_report, write_run_report
 from rlpipe.pipelines.analysis.runs import (
     CURVE_COLUMNS,
     METRICS_FILE,

@@ -11,7 +11,7 @@ Statistics come from SciPy: 95% confidence intervals are percentile bootstraps o
 interquartile mean is :func:`scipy.stats.trim_mean` with 25% cut from each end.
 
 SciPy is imported by the functions that use it, not with this module: a run's own ``report.html``
-(written by the run, through :mod:`~rlpipe.pipelines.analysis.pages`) needs none of it, and
+(written by the run, through :mod:`~rlpipe.pipelines.analysis.report_pages`) needs none of it, and
 ``import scipy.stats`` costs a run 0.6-1.0 s on a 2-core machine (importing ``pages`` after torch: 1.2 s
 without it, 1.8-2.2 s with it).
 """

@@ -1,5 +1,5 @@
 """Checkpoints that resume a run exactly: modules, optimisers, replay buffer, counters, RNG states,
-and (``RunState``) the collector workers' envs mid-episode (``workers.snapshot``).
+and (``RunState``) the collector workers' envs mid-episode (``workers.snapshot_collector``).
 
 Everything is one ``torch.save`` of tensors and plain data, read back with ``weights_only=True``
 so a checkpoint can never run code. That includes the replay buffer's contents: TorchRL's own

@@ -19,8 +19,8 @@ from tqdm.auto import tqdm
 from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir
 from rlpipe.pipelines.system.runtime import DeferredInterrupt, dropping
 from rlpipe.pipelines.training.divergence import check_finite
+from rlpipe.pipelines.training.live_report import ReportPage
 from rlpipe.pipelines.training.meters import Clock, IntervalStats
-from rlpipe.pipelines.training.page import ReportPage
 from rlpipe.pipelines.training.state import EVAL, EXPORT, SAVE
 from rlpipe.pipelines.workers.supervision import SupervisedCollector, Supervisor, Watchdog
 

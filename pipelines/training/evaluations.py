@@ -184,7 +184,7 @@ class Evaluations:
         episodes = cfg.num_eval_episodes if cfg.baseline_episodes == -1 else cfg.baseline_episodes
         if episodes == 0 or loop.pipeline.eval_env_fn is None:
             return  # before importing the report pages (pandas, matplotlib): ~2 s before the first env step
-        from rlpipe.pipelines.analysis.pages import read_baseline, write_baseline
+        from rlpipe.pipelines.analysis.report_pages import read_baseline, write_baseline
 
         if read_baseline(loop.run_dir.path) is not None:
             return

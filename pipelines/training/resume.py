@@ -27,7 +27,7 @@ from tensordict import TensorDictBase
 
 from rlpipe.pipelines.artifacts.rundir import notice
 from rlpipe.pipelines.training.meters import IntervalStats
-from rlpipe.pipelines.workers.snapshot import why_not_exact
+from rlpipe.pipelines.workers.snapshot_collector import why_not_exact
 from rlpipe.pipelines.workers.supervision import SupervisedCollector, Supervisor
 
 if TYPE_CHECKING:

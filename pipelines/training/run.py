@@ -29,12 +29,12 @@ from rlpipe.pipelines.artifacts.rundir import MetricsCSV, RunDir, default_run_di
 from rlpipe.pipelines.config import config_to_dict
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.system.runtime import DeferredInterrupt, gc_frozen, keep_freed_memory
-from rlpipe.pipelines.training.arithmetic import NOT_ARITHMETIC, arithmetic_record, changed_arithmetic
 from rlpipe.pipelines.training.context import LIVE_LOG
+from rlpipe.pipelines.training.determinism import NOT_ARITHMETIC, arithmetic_record, changed_arithmetic
 from rlpipe.pipelines.training.faults import fault_triggers
+from rlpipe.pipelines.training.live_report import ReportPage
 from rlpipe.pipelines.training.loop import Loop, TrainResult
 from rlpipe.pipelines.training.meters import Clock
-from rlpipe.pipelines.training.page import ReportPage
 from rlpipe.pipelines.training.state import EVAL, RunState
 from rlpipe.pipelines.training.threads import choose_threads, torch_threads
 from rlpipe.pipelines.training.triggers import Trigger, default_triggers, kept_best
@@ -296,7 +296,7 @@ def _opened(run: RunDir, then: Callable[[RunDir], tuple]) -> tuple:
 def _page_behind(run: RunDir) -> Path | None:
     """The run's report page where it is missing or older than its summary.json (a finished run writes it right
     after, from the summary: that write failed), else None."""
-    from rlpipe.pipelines.analysis.pages import REPORT_FILE
+    from rlpipe.pipelines.analysis.report_pages import REPORT_FILE
 
     page = run.path / REPORT_FILE
     try:

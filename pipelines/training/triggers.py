@@ -293,7 +293,7 @@ class VideoTrigger(Trigger):
         super().__init__(0)  # no interval: only the final firing
 
     def __call__(self, loop: Loop) -> None:
-        from rlpipe.pipelines.analysis.pages import VIDEO_FILE
+        from rlpipe.pipelines.analysis.report_pages import VIDEO_FILE
         from rlpipe.pipelines.artifacts.export import load_policy
         from rlpipe.pipelines.artifacts.video import record_video
 

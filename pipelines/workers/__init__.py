@@ -9,4 +9,6 @@ actors), the evaluators (in the learner, in a process, on a Ray actor) and their
     supervision.py  restarts, deadlines on every wait, the watchdog
     evaluation.py   evaluate(); the background evaluator in a process (TorchRL's ``Evaluator``)
     ray_eval.py     the background evaluator on a Ray actor
+    gym_collector.py         a TorchRL collector stepping one gymnasium env directly (``GymCollector``)
+    snapshot_collector.py    TorchRL's collector with its envs' mid-episode state in its state_dict (exact resume)
 """

@@ -42,7 +42,7 @@ from rlpipe.envs import is_discrete
 from rlpipe.envs.snapshot import NotCapturable, capture, restore
 from rlpipe.modules.fast.tensor_policy import tensor_step
 from rlpipe.pipelines.compat.torchrl import prompt_block_hand_over
-from rlpipe.pipelines.workers.snapshot import SnapshotCollector, seed_worker
+from rlpipe.pipelines.workers.snapshot_collector import SnapshotCollector, seed_worker
 
 __all__ = ["GymCollector", "WorkerGymCollector", "gym_env_of"]
 

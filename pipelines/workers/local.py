@@ -27,7 +27,12 @@ from rlpipe.pipelines.compat.torchrl import COLLECTOR_KWARGS
 from rlpipe.pipelines.config import ENV_KWARGS_RESERVED, TrainConfig, steps_in_learner
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
 from rlpipe.pipelines.workers.gym_collector import GymCollector, WorkerGymCollector, gym_env_of
-from rlpipe.pipelines.workers.snapshot import SNAPSHOT, SnapshotCollector, WorkerSnapshotCollector, why_not_exact
+from rlpipe.pipelines.workers.snapshot_collector import (
+    SNAPSHOT,
+    SnapshotCollector,
+    WorkerSnapshotCollector,
+    why_not_exact,
+)
 from rlpipe.pipelines.workers.supervision import (
     TimedSharedMemScheme,
     close_weight_sync_queues,

@@ -36,7 +36,7 @@ from rlpipe.pipelines.config import TrainConfig
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.workers.backend import CollectorBackend, Health
 from rlpipe.pipelines.workers.ray_runtime import RayRuntime, check_address, check_cpus
-from rlpipe.pipelines.workers.snapshot import SNAPSHOT, WorkerSnapshotCollector, why_not_exact
+from rlpipe.pipelines.workers.snapshot_collector import SNAPSHOT, WorkerSnapshotCollector, why_not_exact
 from rlpipe.pipelines.workers.supervision import MIN_START_TIMEOUT_S, WorkerFailure, first_line, start_timeout
 
 __all__ = ["METRIC_COLUMNS", "RayBackend", "RayRuntime", "check_address", "check_cpus"]
@@ -331,7 +331,7 @@ def _ray_collector(env_fn, policy, config: TrainConfig, total_frames: int, init_
         warnings.filterwarnings("ignore", message="async distributed data collection with init_random_frames")
         return RayCollector(
             [env_fn] * c.workers, policy,
-            # its state_dict carries the actor's envs, episodes and generators (workers.snapshot), and its
+            # its state_dict carries the actor's envs, episodes and generators (workers.snapshot_collector), and its
             # set_seed seeds the actor's torch and NumPy generators too (TorchRL's seeds the env alone, so
             # the exploration noise of two runs of one seed differed)
             collector_class=WorkerSnapshotCollector,

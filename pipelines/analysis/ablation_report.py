@@ -17,13 +17,13 @@ from typing import Any
 import pandas as pd
 
 from rlpipe.pipelines.analysis.aggregate import AGG_RESAMPLES
-from rlpipe.pipelines.analysis.pages import REPORT_FILE, write_comparison_page
 from rlpipe.pipelines.analysis.plots import (
     _fmt,
     _plot_env_curves,
     _plot_final_ecdfs,
     _variant_styles,
 )
+from rlpipe.pipelines.analysis.report_pages import REPORT_FILE, write_comparison_page
 from rlpipe.pipelines.analysis.runs import RECORD_COLUMNS
 from rlpipe.pipelines.analysis.stats import (
     BOOTSTRAP_SEED,
@@ -143,7 +143,7 @@ def write_ablation_report(
           and on the page one sentence per ingredient (:func:`~rlpipe.pipelines.analysis.study.ingredient_sentences`);
         * ``report.html`` -- the same tables and figures on one page that opens from disk, with a
           table of the runs linking to each run's own ``report.html`` (see
-          :func:`~rlpipe.pipelines.analysis.pages.write_comparison_page`).
+          :func:`~rlpipe.pipelines.analysis.report_pages.write_comparison_page`).
 
     Returns:
         the paths written: csv, md, the curve PNGs (env order), the ECDF PNG, the HTML page.

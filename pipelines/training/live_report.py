@@ -43,7 +43,7 @@ class ReportPage:
         """``returns.png`` (where evaluations came since it was drawn) and the page from what the run directory
         holds now; ``running=False``: the run is finishing or stopping early."""
         from rlpipe.pipelines.analysis import plot_training_returns  # matplotlib: imported when first needed
-        from rlpipe.pipelines.analysis.pages import write_run_report
+        from rlpipe.pipelines.analysis.report_pages import write_run_report
 
         start = time.monotonic()
         if len(self.evaluations) != self._plotted:
