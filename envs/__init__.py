@@ -42,13 +42,14 @@ from rlpipe.envs.observations import (
     goal_env,
     is_atari,
     is_image,
+    observation_images,
     observation_layout,
     register_optional_families,
 )
 
 __all__ = [
     "EnvError", "MINITAUR_ID", "describe_action_space", "env_id_of", "env_label", "is_discrete", "make_env", "resolve_env_id",
-    "observation_rescaling", "rescaling_bounds", "with_episode_return", "gym_env_under", "goal_env", "observed", "observation_layout",
+    "observation_rescaling", "rescaling_bounds", "with_episode_return", "gym_env_under", "goal_env", "observed", "observation_images", "observation_layout",
     "image_scale",
 ]
 
@@ -228,8 +229,8 @@ def _flat_observations(env: gymnasium.Env, gym_id: str, observation_keys: list[s
     """``env`` as the networks read it: one ``observation`` (a float vector, or a uint8 image stack), and Box
     or Discrete actions.
 
-    A flat float Box comes back as it is. A Dict becomes one float vector of its entries (``DictObservation``;
-    a Dict holding only an image is that image). An image (an integer or bool Box of 2 or 3 dimensions)
+    A flat float Box comes back as it is. A Dict becomes one float vector of its entries (``DictObservation``:
+    images among them joined channels first, read by an encoder; a Dict holding only an image is that image). An image (an integer or bool Box of 2 or 3 dimensions)
     stays integer, channels first, ``frame_stack`` frames deep (``ImageObservation``). Discrete,
     MultiDiscrete, MultiBinary and Tuples of them (FrozenLake's Discrete(16), Blackjack's Tuple) and other
     Boxes become one flat float32 vector through gymnasium's ``FlattenObservation`` (one-hot for the
@@ -245,6 +246,10 @@ def _flat_observations(env: gymnasium.Env, gym_id: str, observation_keys: list[s
         if len(obs.spaces) == 1 and is_image(next(iter(obs.spaces.values()))) and not observation_keys:
             (key, image), = obs.spaces.items()
             return ImageObservation(gymnasium.wrappers.TransformObservation(env, lambda o: o[key], image), frame_stack)
+        if frame_stack > 1:
+            raise EnvError(f"frame_stack={frame_stack}: env {gym_id!r} observes a Dict of {len(obs.spaces)} entries, whose "
+                           "frames rlpipe does not stack; expected frame_stack=1 (stacking is for an image observation "
+                           "alone)")
         return DictObservation(env, dict_keys(obs, observation_keys, gym_id, EnvError))
     if is_image(obs):
         return ImageObservation(env, frame_stack)

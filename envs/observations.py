@@ -5,7 +5,10 @@
   float32 vector (``DictObservation``). Where each entry lies in that vector is its ``layout``: hindsight
   relabelling writes a goal into its slice, and the exported policy takes the entries by name and joins
   them the same way. Concatenating at the env keeps one tensor per transition, so the collectors, the
-  replay buffer and the lean losses serve Dict envs unchanged.
+  replay buffer and the lean losses serve Dict envs unchanged. An image among the entries (a camera beside
+  a robot's joint angles, MiniGrid's view beside its direction) is joined too, channels first, in its own
+  units; its ``images`` entry (shape and scale) tells the networks' ``DictEncoder`` to read that span through
+  a convolutional encoder. Joined so, it is stored as float32 (4 bytes a pixel) and not frame-stacked.
 * **Images** (a uint8 or bool Box of HxW, HxWxC or CxHxW): kept as integers, channels first, the last
   ``frame_stack`` frames stacked on the channel axis (``ImageObservation``): ``uint8 [frame_stack * C, H, W]``.
   A convolutional encoder (``rlpipe.modules.encoders``) reads it.
@@ -15,8 +18,8 @@
   life ends the episode while the game plays on at the next reset (``EpisodicLife``; evaluations play whole
   games). Rewards stay the game's score; clipping them is the loss's business (``clip_rewards``).
 
-An entry that cannot be read (a Text space, an image inside a Dict beside other entries, a nested Dict)
-is one ``EnvError`` naming the entry and what is expected.
+An entry that cannot be read (a Text space, a nested Dict) is one ``EnvError`` naming the entry and what is
+expected.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import contextlib
 import io
 from collections import deque
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import gymnasium
 import numpy as np
@@ -32,7 +36,8 @@ from gymnasium import spaces
 
 __all__ = [
     "DictObservation", "EpisodicLife", "FireOnLifeStart", "ImageObservation", "GOAL_KEYS", "atari_preprocessed",
-    "goal_env", "image_space", "is_atari", "is_image", "observation_layout", "register_optional_families",
+    "ImageEntry", "goal_env", "image_space", "is_atari", "is_image", "observation_images", "observation_layout",
+    "register_optional_families",
 ]
 
 GOAL_KEYS = ("achieved_goal", "desired_goal")
@@ -63,6 +68,26 @@ def image_space(space: spaces.Box) -> tuple[int, int, int]:
     return shape[0], shape[1], shape[2]
 
 
+def _channels_last(space: spaces.Box) -> bool:
+    """Whether an image space holds its channels on the last axis (``image_space``'s reading)."""
+    channels = image_space(space)[0]
+    return len(space.shape) == 3 and space.shape[-1] == channels and space.shape[0] != channels
+
+
+def _image_unit(space: spaces.Box) -> float:
+    """One unit of an image space as a fraction of full brightness: 1/255 for uint8 pictures, 1 for 0/1 channels."""
+    high = float(np.max(space.high)) if space.dtype != np.bool_ else 1.0
+    return 1.0 / max(high, 1.0)
+
+
+def _channels_first(image, channels_last: bool) -> np.ndarray:
+    """One image as ``[C, H, W]``: HxW gets one channel, HxWxC has its channels moved first."""
+    frame = np.asarray(image)
+    if frame.ndim == 2:
+        return frame[None]
+    return np.moveaxis(frame, -1, 0) if channels_last else frame
+
+
 class ImageObservation(gymnasium.ObservationWrapper):
     """An image observation as the encoders read it: ``uint8 [frames * C, H, W]``, the newest frame last.
 
@@ -76,21 +101,15 @@ class ImageObservation(gymnasium.ObservationWrapper):
         super().__init__(env)
         space = env.observation_space
         channels, height, width = image_space(space)
-        self.channels_last = len(space.shape) == 3 and space.shape[-1] == channels and space.shape[0] != channels
+        self.channels_last = _channels_last(space)
         self.frames = frames
-        high = float(np.max(space.high)) if space.dtype != np.bool_ else 1.0
-        self.scale = 1.0 / max(high, 1.0)
+        self.scale = _image_unit(space)
         self.observation_space = spaces.Box(0, 255 if space.dtype != np.bool_ else 1,
                                             (frames * channels, height, width), np.uint8)
         self._stack: deque[np.ndarray] = deque(maxlen=frames)
 
     def _frame(self, observation) -> np.ndarray:
-        frame = np.asarray(observation)
-        if frame.ndim == 2:
-            frame = frame[None]
-        elif self.channels_last:
-            frame = np.moveaxis(frame, -1, 0)
-        return frame.astype(np.uint8, copy=False)
+        return _channels_first(observation, self.channels_last).astype(np.uint8, copy=False)
 
     def reset(self, **kwargs):
         observation, info = self.env.reset(**kwargs)
@@ -107,11 +126,26 @@ class ImageObservation(gymnasium.ObservationWrapper):
         return np.ascontiguousarray(np.concatenate(self._stack, axis=0))
 
 
+class ImageEntry(NamedTuple):
+    """An image among a Dict observation's entries, as joined into the observation vector."""
+
+    shape: tuple[int, int, int]
+    """(C, H, W): what its span of the vector is reshaped to"""
+    scale: float
+    """one unit as a fraction of full brightness (``ImageObservation.scale``)"""
+    env_shape: tuple[int, ...]
+    """the shape the env gives it (HxW, HxWxC or CxHxW)"""
+    channels_last: bool
+    """whether the env gives its channels last (they are moved first in the vector)"""
+
+
 class DictObservation(gymnasium.ObservationWrapper):
     """A Dict observation's entries ``keys``, each flattened, concatenated into one float32 vector.
 
     ``layout`` maps each entry to its ``(start, stop)`` in the vector; ``entry_spaces`` keeps each entry's
-    own space (the exported policy's named inputs).
+    own space (the exported policy's named inputs). An image entry (``is_image``) is put channels first and
+    flattened, in its own units; ``images`` maps each to its ``ImageEntry``: the shape the networks'
+    ``DictEncoder`` reshapes its span to, and the scale it reads it at.
     """
 
     def __init__(self, env: gymnasium.Env, keys: Sequence[str]):
@@ -119,6 +153,8 @@ class DictObservation(gymnasium.ObservationWrapper):
         space: spaces.Dict = env.observation_space
         self.keys = list(keys)
         self.entry_spaces = {key: space[key] for key in self.keys}
+        self.images = {key: ImageEntry(image_space(sub), _image_unit(sub), tuple(sub.shape), _channels_last(sub))
+                       for key, sub in self.entry_spaces.items() if is_image(sub)}
         self.layout: dict[str, tuple[int, int]] = {}
         start = 0
         for key in self.keys:
@@ -130,11 +166,17 @@ class DictObservation(gymnasium.ObservationWrapper):
         self.observation_space = spaces.Box(low, high, (start,), np.float32)
 
     def observation(self, observation) -> np.ndarray:
-        return np.concatenate([spaces.flatten(self.entry_spaces[k], observation[k]).astype(np.float32, copy=False)
-                               for k in self.keys])
+        return np.concatenate([self._flat(k, observation[k]) for k in self.keys])
+
+    def _flat(self, key: str, value) -> np.ndarray:
+        if key in self.images:
+            return _channels_first(value, self.images[key].channels_last).astype(np.float32).reshape(-1)
+        return spaces.flatten(self.entry_spaces[key], value).astype(np.float32, copy=False)
 
 
 def _flat_bound(space: spaces.Space, which: str) -> np.ndarray:
+    if is_image(space):
+        return _channels_first(getattr(space, which), _channels_last(space)).astype(np.float32).reshape(-1)
     if isinstance(space, spaces.Box):
         return getattr(space, which).astype(np.float32).reshape(-1)
     return np.full(spaces.flatdim(space), 0.0 if which == "low" else 1.0, np.float32)  # one-hot parts
@@ -142,7 +184,7 @@ def _flat_bound(space: spaces.Space, which: str) -> np.ndarray:
 
 def dict_keys(space: spaces.Dict, wanted: Sequence[str] | None, label: str, error: type[Exception]) -> list[str]:
     """The entries of a Dict space the networks read: ``wanted`` (each must exist), else all; each must be a
-    vector (a Box, or a discrete space read one-hot). One ``error`` naming the first entry that is not."""
+    vector (a Box, or a discrete space read one-hot) or an image. One ``error`` naming the first entry that is not."""
     names = list(space.spaces)
     if wanted:
         missing = [k for k in wanted if k not in space.spaces]
@@ -152,9 +194,6 @@ def dict_keys(space: spaces.Dict, wanted: Sequence[str] | None, label: str, erro
         names = list(wanted)
     for key in names:
         sub = space[key]
-        if is_image(sub):
-            raise error(f"env {label!r} observes an image {key!r} {sub} beside other entries, which rlpipe does not "
-                        f"read yet; expected observation_keys naming only vector entries, or only {key!r}")
         if not isinstance(sub, _VECTOR_SPACES):
             raise error(f"env {label!r} observes {key!r} as {sub}, which the networks cannot read; expected a Box or "
                         "a Discrete, MultiDiscrete or MultiBinary space, or observation_keys leaving it out")
@@ -169,6 +208,16 @@ def observation_layout(gym_env: gymnasium.Env) -> dict[str, tuple[int, int]] | N
             return dict(env.layout)
         env = env.env
     return None
+
+
+def observation_images(gym_env: gymnasium.Env) -> dict[str, ImageEntry]:
+    """The images among a Dict env's entries (``DictObservation.images``); empty where there are none."""
+    env = gym_env
+    while isinstance(env, gymnasium.Wrapper):
+        if isinstance(env, DictObservation):
+            return dict(env.images)
+        env = env.env
+    return {}
 
 
 def goal_env(gym_env: gymnasium.Env) -> bool:

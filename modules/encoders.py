@@ -7,6 +7,10 @@ feature maps: the head's first hidden layer reads them, so ``fc_layer_params: [5
 Nature network (then one output per action) and ``[128]`` on MinAtar the MinAtar paper's. The pixels are
 scaled to [0, 1] inside the encoder, so the replay buffer and the exported policy keep uint8.
 
+A Dict observation with images among its entries arrives joined into one float vector
+(``rlpipe.envs.observations.DictObservation``); ``DictEncoder`` cuts each image's span out, reads it through its
+own image encoder and passes the vector entries on beside the features, as SB3's ``CombinedExtractor`` does.
+
 An encoder is a plain ``nn.Module`` with ``out_features``: put it in front of any head
 (``nn.Sequential(encoder, MLP(...))``), in a TorchRL ``TensorDictModule`` like any network.
 """
@@ -16,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["ImageEncoder", "NATURE_MIN_SIZE", "make_image_encoder"]
+__all__ = ["DictEncoder", "ImageEncoder", "NATURE_MIN_SIZE", "make_image_encoder"]
 
 NATURE_MIN_SIZE = 36
 """the smallest side the Nature DQN network takes (its three convolutions leave a 1x1 map at 36 px)"""
@@ -51,3 +55,31 @@ def make_image_encoder(shape: tuple[int, int, int], scale: float = 1 / 255) -> I
     with torch.no_grad():
         flat = convolutions(torch.zeros(1, channels, height, width)).numel()
     return ImageEncoder(convolutions, flat, scale)
+
+
+class DictEncoder(nn.Module):
+    """A Dict observation joined into one vector, read entry by entry: ``[..., D] -> [..., out_features]``.
+
+    ``layout`` maps each entry to its ``(start, stop)`` in the vector (``DictObservation.layout``), ``images`` each
+    image entry to its ``((C, H, W), scale)``. An image's span is reshaped to ``[C, H, W]`` and read by its own
+    ``make_image_encoder``; a vector entry is passed on as it is. The features follow the entries' order.
+    """
+
+    def __init__(self, layout: dict[str, tuple[int, int]], images: dict[str, tuple[tuple[int, int, int], float]]):
+        super().__init__()
+        self.spans = [(start, stop) for start, stop in layout.values()]
+        self.shapes = [images[key][0] if key in images else None for key in layout]
+        # a list, not a ModuleDict: an env's entry names may hold dots, which module names may not
+        self.encoders = nn.ModuleList(make_image_encoder(*images[key]) for key in layout if key in images)
+        widths, encoders = [], iter(self.encoders)
+        for (start, stop), shape in zip(self.spans, self.shapes):
+            widths.append(next(encoders).out_features if shape is not None else stop - start)
+        self.out_features = sum(widths)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        batch = observation.shape[:-1]
+        features, encoders = [], iter(self.encoders)
+        for (start, stop), shape in zip(self.spans, self.shapes):
+            part = observation[..., start:stop]
+            features.append(part if shape is None else next(encoders)(part.reshape(*batch, *shape)))
+        return torch.cat(features, -1)

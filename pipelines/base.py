@@ -43,13 +43,14 @@ from rlpipe.envs import (
     image_scale,
     is_discrete,
     make_env,
+    observation_images,
     observation_layout,
     observation_rescaling,
     resolve_env_id,
 )
 from rlpipe.envs.observations import GOAL_KEYS, goal_env, is_atari
 from rlpipe.modules import fast as fast_parts
-from rlpipe.modules.encoders import make_image_encoder
+from rlpipe.modules.encoders import DictEncoder, make_image_encoder
 from rlpipe.modules.fast.optim import LeanAdam, clip_gradient_norms
 from rlpipe.modules.fast.sampling import sample
 from rlpipe.modules.fast.target_updates import make_target_updater
@@ -180,19 +181,23 @@ class OffPolicyPipeline:
         check_action_space(self.algo, self.action_space, self.action_spec, self.config.env)
         self.observation_key = observation_key_in(self.env, observation_key, self.config.env)
         self.image_shape, self.image_scale = image_observation(self.env, self.observation_key, self.config.env)
+        gym_env = gym_env_under(self.env)
+        # the images among a Dict env's entries, joined into its observation vector (a DictEncoder reads them)
+        self.image_entries = observation_images(gym_env) if gym_env is not None else {}
         spec = self.env.observation_spec[self.observation_key]
         # one observation as the policy takes it (exported policies too): a vector, or an image stack
         self.observation_shape = tuple(spec.shape[len(self.env.batch_size):])
         self.observation_dtype = spec.dtype
-        # what the heads read: the observation vector, or an image's features (the encoder's)
-        self.observation_dim = (int(self.env.observation_spec[self.observation_key].shape[-1]) if self.image_shape is None
+        # what the heads read: the observation vector, or the encoder's features of the images in it
+        self.observation_dim = (int(self.env.observation_spec[self.observation_key].shape[-1]) if not self.encodes_images
                                 else self.make_encoder().out_features)
         self.hindsight = self._hindsight()
         self.normalizer = None
         if cfg.normalize_observations:
-            if self.image_shape is not None:
+            if self.encodes_images:
+                image = self.image_shape or {key: entry.shape for key, entry in self.image_entries.items()}
                 raise InputError(f"normalize_observations=true: env {self.config.env!r} observes an image "
-                                 f"{self.image_shape}, which its encoder scales itself; expected it for vector "
+                                 f"{image}, which its encoder scales itself; expected it for vector "
                                  "observations only")
             self.normalizer = RunningObservationNorm(self.observation_dim)
         action_dim = int(self.action_spec.space.n) if is_discrete(self.action_spec) else int(self.action_spec.shape[-1])
@@ -220,9 +225,18 @@ class OffPolicyPipeline:
                 "desired": layout["desired_goal"], "observation_key": self.observation_key,
                 "her_ratio": cfg.her_ratio}
 
+    @property
+    def encodes_images(self) -> bool:
+        """Whether the networks read the observation through a convolutional encoder: an image, or a Dict with
+        images among its entries."""
+        return self.image_shape is not None or bool(self.image_entries)
+
     def make_encoder(self) -> nn.Module | None:
         """What each network that reads the observation puts in front of its head: a new encoder of an image
-        (``modules.encoders``), the one running normaliser (``normalize_observations``), or None."""
+        or of a Dict with images in it (``modules.encoders``), the one running normaliser
+        (``normalize_observations``), or None."""
+        if self.image_entries:
+            return DictEncoder(self.observation_entries(), {k: (e.shape, e.scale) for k, e in self.image_entries.items()})
         if self.image_shape is None:
             return self.normalizer
         return make_image_encoder(self.image_shape, self.image_scale)
@@ -341,6 +355,11 @@ class OffPolicyPipeline:
         name), or None."""
         gym_env = gym_env_under(self.env)
         return observation_layout(gym_env) if gym_env is not None else None
+
+    def observation_entry_images(self) -> dict[str, tuple[tuple[int, ...], bool]]:
+        """The images among a Dict env's entries, each as the env gives it: (its shape, whether channels come
+        last). The exported policy takes them so, as uint8."""
+        return {key: (entry.env_shape, entry.channels_last) for key, entry in self.image_entries.items()}
 
     def export_info(self) -> dict[str, Any]:
         spec = self.action_spec

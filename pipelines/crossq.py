@@ -94,8 +94,9 @@ class CrossQ(SACFamilyPipeline):
 
     def make_qvalue(self) -> nn.Module:
         cfg = self.config
-        if self.image_shape is not None or self.normalizer is not None:
-            what = f"an image {self.image_shape}" if self.image_shape is not None else "normalize_observations=true"
+        if self.encodes_images or self.normalizer is not None:
+            image = self.image_shape or sorted(self.image_entries)
+            what = f"an image {image}" if self.encodes_images else "normalize_observations=true"
             raise InputError(f"CrossQ's batch-renormalised critic reads the env's vectors as they are; env {cfg.env!r} "
                              f"with {what}: expected sac or td3 (or normalize_observations=false)")
         return make_batchrenorm_critic(self.observation_dim, int(self.action_spec.shape[-1]), cfg.critic_fc_layer_params,

@@ -129,6 +129,8 @@ class EnvFacts:
     """one observation's shape: (D,) for a vector, (C, H, W) for an image (an encoder reads it)"""
     goal_env: bool = False
     """a goal env (achieved and desired goals, compute_reward): HER relabels its goals"""
+    entry_images: tuple[tuple[str, tuple[int, int, int]], ...] = ()
+    """the images among a Dict env's entries, joined into its vector: (name, (C, H, W)) each (a CNN reads them)"""
 
     @property
     def image(self) -> bool:
@@ -145,6 +147,9 @@ class EnvFacts:
         limit = f"{self.time_limit:,}-step episodes" if self.time_limit else "no time limit"
         observed = (f"image {'x'.join(map(str, self.observation_shape))}" if self.image
                     else f"goal env, obs {self.observation_size}" if self.goal_env else f"obs {self.observation_size}")
+        if self.entry_images:
+            observed += " ({} through a CNN)".format(", ".join(f"image {name!r} {'x'.join(map(str, shape))}"
+                                                              for name, shape in self.entry_images))
         return (f"{observed}, {actions}, {limit}, random agent {self.random_return:,.1f} in "
                 f"{self.random_episode_length:,.0f} steps, {self.cpus} CPU{'s' if self.cpus != 1 else ''}")
 
@@ -156,7 +161,7 @@ def _g(x: float) -> str:
 def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
     """The facts of the env ``cfg`` makes (``cfg.env``, as the pipeline makes it) and of this machine; with
     ``play=False`` its spaces only (no time limit, no random agent: what the algorithm is chosen by)."""
-    from rlpipe.envs import goal_env, gym_env_under, is_discrete
+    from rlpipe.envs import goal_env, gym_env_under, is_discrete, observation_images
     from rlpipe.pipelines.own_parts import factory_and_env, observation_key_in
 
     _, env = factory_and_env(None, cfg)
@@ -174,10 +179,12 @@ def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
             high = tuple(float(v) for v in spec.space.high.flatten().tolist())
         gym_env = gym_env_under(env)
         goals = gym_env is not None and goal_env(gym_env)
+        images = tuple((k, e.shape) for k, e in observation_images(gym_env).items()) if gym_env is not None else ()
         limit, (ret, length) = _random_agent(env) if play else (None, (0.0, 0.0))
     finally:
         env.close()
-    return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1, shape, goals)
+    return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1, shape, goals,
+                    images)
 
 
 def _random_agent(env) -> tuple[int | None, tuple[float, float]]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 import sys
 import textwrap
 
@@ -97,6 +98,56 @@ class PixPoint(gymnasium.Env):
         self.x = int(np.clip(self.x + int(action) - 1, 0, 47))
         self.t += 1
         return self._image(), float(self.x > 40), self.x > 40, self.t >= 30, {}
+
+
+class Beacon(gymnasium.Env):
+    """A goal cell on a line of 11, seen only in an 11x11 picture; the walker's own cell only as a number. Reaching
+    the goal within 10 steps pays 1: a policy must read both entries."""
+
+    def __init__(self):
+        self.observation_space = spaces.Dict(view=spaces.Box(0, 255, (11, 11), np.uint8),
+                                             position=spaces.Box(0.0, 1.0, (1,), np.float32))
+        self.action_space = spaces.Discrete(2)
+
+    def observe(self, goal, x):
+        view = np.zeros((11, 11), np.uint8)
+        view[:, goal] = 255
+        return {"view": view, "position": np.array([x / 10], np.float32)}
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.goal = int(self.np_random.integers(11))
+        self.x = int(self.np_random.choice([i for i in range(11) if i != self.goal]))
+        self.t = 0
+        return self.observe(self.goal, self.x), {}
+
+    def step(self, action):
+        self.x = int(np.clip(self.x + (1 if int(action) == 1 else -1), 0, 10))
+        self.t += 1
+        reached = self.x == self.goal
+        return self.observe(self.goal, self.x), float(reached), reached, self.t >= 10, {"is_success": float(reached)}
+
+
+class Camera(gymnasium.Env):
+    """A robot's joint angles beside an RGB camera (channels last), continuous actions."""
+
+    def __init__(self):
+        self.observation_space = spaces.Dict(joints=spaces.Box(-1.0, 1.0, (3,), np.float32),
+                                             camera=spaces.Box(0, 255, (40, 40, 3), np.uint8))
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+    def _obs(self):
+        return {"joints": self.np_random.uniform(-1, 1, 3).astype(np.float32),
+                "camera": self.np_random.integers(0, 256, (40, 40, 3), dtype=np.uint8)}
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return self._obs(), {}
+
+    def step(self, action):
+        self.t += 1
+        return self._obs(), 0.0, False, self.t >= 5, {}
 
 
 class Lives:
@@ -396,3 +447,64 @@ def test_running_normalisation_is_shared_by_every_network_and_exported(envs_modu
     expected = pipeline.exported_policy()(observation.unsqueeze(0))[0]
     torch.testing.assert_close(policy(observation), expected, rtol=1e-4, atol=1e-5)
 
+
+
+def test_an_image_beside_vectors_is_read_by_a_cnn_and_exported_as_the_env_gives_it(envs_module, tmp_path):
+    """A Dict with an image among its entries: the image joins the vector channels first, each network reads its
+    span through a CNN and the vectors as they are, and the exported policy takes the entries by name, the image as
+    uint8 in the env's own layout (channels last here)."""
+    from rlpipe.modules.encoders import DictEncoder
+    from rlpipe.pipelines.artifacts.export import export_policy
+
+    env = make_env(f"{envs_module}:Camera", seed=0)
+    assert env.observation_spec["observation"].shape == (3 + 3 * 40 * 40,)
+    cfg = sac.preset("sac-pendulum")
+    cfg.env = f"{envs_module}:Camera"
+    pipeline = sac.SAC(cfg)
+    assert pipeline.observation_dim == 3 + 64 * 1 * 1  # joints, then the Nature convolutions' maps (40 px: 1x1)
+    assert any(isinstance(m, DictEncoder) for m in pipeline.policy.modules())
+    critic = [".".join(k) for k in pipeline.loss_module.qvalue_network_params.keys(True, True)]
+    assert any("encoders" in k for k in critic)  # the critics' own CNN
+    assert not pipeline.loss_module.lean  # TorchRL's own loss code runs networks with encoders
+    raw, _ = gym_env_under(env).unwrapped.reset(seed=1)
+    joined = torch.as_tensor(gym_env_under(env).observation(raw))
+    torch.testing.assert_close(joined[3:].reshape(3, 40, 40), torch.as_tensor(raw["camera"]).permute(2, 0, 1).float())
+    export_policy(pipeline.exported_policy(), pipeline.observation_shape, tmp_path, pipeline.export_info(),
+                  entries=pipeline.observation_entries(), images=pipeline.observation_entry_images())
+    info = json.loads((tmp_path / "policy.json").read_text())
+    assert info["inputs"] == {"joints": [3], "camera": [40, 40, 3]}
+    assert info["image_inputs"] == {"camera": {"shape": [40, 40, 3], "channels_last": True}}
+    policy, _ = load_policy(tmp_path)  # ONNX, checked against torch on random inputs when written
+    with torch.no_grad():
+        expected = pipeline.exported_policy()(joined.unsqueeze(0))[0]
+    torch.testing.assert_close(policy(raw), expected.numpy(), rtol=1e-4, atol=1e-5, check_dtype=False)
+    torch.testing.assert_close(policy(joined), expected, rtol=1e-4, atol=1e-5)
+    import onnxruntime
+
+    session = onnxruntime.InferenceSession(str(tmp_path / "policy.onnx"))
+    assert [(i.name, i.type) for i in session.get_inputs()] == [("joints", "tensor(float)"), ("camera", "tensor(uint8)")]
+    action = session.run(None, {k: v[None] for k, v in raw.items()})[0][0]
+    np.testing.assert_allclose(action, expected.numpy(), rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("override, expected", [
+    ("frame_stack=2", "frame_stack=2: env .* observes a Dict of 2 entries"),
+    ("normalize_observations=true", "normalize_observations=true: .* observes an image"),
+])
+def test_what_an_image_in_a_dict_cannot_have_is_one_line(envs_module, tmp_path, capsys, override, expected):
+    code = main(["train", "sac-pendulum", f"env={envs_module}:Camera", override, "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and re.search(expected, err[0]), err
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_a_dict_of_an_image_and_a_vector_trains_on_both(envs_module, tmp_path):
+    """The sized default on Beacon (the goal only in the picture, the walker only in the number): the greedy policy
+    walks toward the goal from every cell two or more away, which neither entry alone tells it."""
+    assert main(["train", f"env={envs_module}:Beacon", "num_iterations=4000", "--out", str(tmp_path / "run")]) == 0
+    policy, _ = load_policy(tmp_path / "run" / "policy")
+    beacon = sys.modules[envs_module].Beacon()
+    pairs = [(goal, x) for goal in range(11) for x in range(11) if abs(goal - x) >= 2]
+    toward = [int(policy(beacon.observe(goal, x))) == int(goal > x) for goal, x in pairs]
+    assert sum(toward) >= 0.9 * len(pairs), f"{sum(toward)} of {len(pairs)} toward the goal"

@@ -81,25 +81,37 @@ def available_steps(folder: Path) -> list[int]:
 # --- writing -----------------------------------------------------------------------------------------
 
 
+ImageInputs = dict[str, tuple[tuple[int, ...], bool]]
+"""the images among a Dict env's entries: each one's shape as the env gives it, and whether its channels come last"""
+
+
 class NamedEntries(nn.Module):
     """``module`` on a Dict env's entries given one by one, by name: ``forward(*entries)`` joins them in the env's
-    order (``DictObservation``'s) into the vector ``module`` reads."""
+    order (``DictObservation``'s) into the vector ``module`` reads. A vector entry is a float32 ``[B, size]``; an
+    image entry (``images``) a uint8 ``[B, *shape]`` as the env gives it, put channels first and flattened."""
 
-    def __init__(self, module: nn.Module, sizes: dict[str, int]):
+    def __init__(self, module: nn.Module, sizes: dict[str, int], images: ImageInputs | None = None):
         super().__init__()
         self.module, self.sizes = module, dict(sizes)
+        images = dict(images or {})
+        self.inputs = {name: (tuple(images[name][0]), torch.uint8) if name in images else ((size,), torch.float32)
+                       for name, size in self.sizes.items()}
+        self._channels_last = [name in images and images[name][1] for name in self.sizes]
 
     def forward(self, *entries: torch.Tensor) -> torch.Tensor:
-        return self.module(torch.cat(entries, -1))
+        joined = [(entry.permute(0, 3, 1, 2) if last else entry).flatten(1).to(torch.float32)
+                  for entry, last in zip(entries, self._channels_last)]
+        return self.module(torch.cat(joined, -1))
 
 
 def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], folder: Path, info: dict, *,
                   step: int | None = None, keep: int = 0, dtype: torch.dtype = torch.float32,
-                  entries: dict[str, tuple[int, int]] | None = None) -> Path:
+                  entries: dict[str, tuple[int, int]] | None = None, images: ImageInputs | None = None) -> Path:
     """Export ``module`` (observations ``[B, observation_dim]``, or ``[B, *shape]`` of ``dtype`` for a tuple:
     an image stack ``uint8 [B, C, H, W]`` -> actions ``[B, ...]``) to ``folder``. ``entries``: a Dict env's
     entries and where each lies in the observation vector: the exported programs then take them as inputs of
-    those names (``NamedEntries``), the env's own observation.
+    those names (``NamedEntries``), the env's own observation; ``images``: the images among them, taken as uint8
+    in the env's own shape.
 
     Writes ``policy.onnx`` (unless ONNX cannot express the module: then a warning), ``policy.pt2``
     and ``policy.json``, each atomically; with ``step``, also ``step_NNNNNNN.onnx/.pt2``, keeping the
@@ -113,18 +125,19 @@ def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], fol
     for parameter in module.parameters():
         parameter.requires_grad_(False)
     shape = (observation_dim,) if isinstance(observation_dim, int) else tuple(observation_dim)
-    sizes = {name: stop - start for name, (start, stop) in entries.items()} if entries else {"observation": shape}
     if entries:
-        module = NamedEntries(module, sizes)
-    examples = tuple(torch.zeros(2, *(size if isinstance(size, tuple) else (size,)), dtype=dtype)
-                     for size in sizes.values())
+        module = NamedEntries(module, {name: stop - start for name, (start, stop) in entries.items()}, images)
+        inputs = module.inputs
+    else:
+        inputs = {"observation": (shape, dtype)}
+    examples = tuple(torch.zeros(2, *size, dtype=kind) for size, kind in inputs.values())
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
     dynamic = tuple({0: batch} for _ in examples)
     # NamedEntries.forward(*entries): one parameter, whose shapes are the tuple of its entries'
     program = torch.export.export(module, examples, dynamic_shapes=(dynamic,) if entries else dynamic, strict=False)
     pt2 = io.BytesIO()
     torch.export.save(program, pt2)
-    files = {".pt2": pt2.getvalue(), ".onnx": _onnx_model(module, shape, dtype)}
+    files = {".pt2": pt2.getvalue(), ".onnx": _onnx_model(module, inputs)}
     for suffix, data in files.items():
         if data is not None:
             if step is not None:
@@ -141,20 +154,26 @@ def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], fol
     write_json_atomic(folder / "policy.json", {
         "observation_dim": shape[0] if len(shape) == 1 else None, "observation_shape": list(shape),
         "observation_dtype": str(dtype).removeprefix("torch."),
-        "inputs": {name: [size] if isinstance(size, int) else list(size) for name, size in sizes.items()},
+        "inputs": {name: list(size) for name, (size, _) in inputs.items()},
+        **({"image_inputs": {name: {"shape": list(size), "channels_last": last} for name, (size, last) in images.items()}}
+           if entries and images else {}),
         **info, "step": step, "steps": steps,
-        "env_recipe": _env_recipe(info.get("env"), info.get("env_kwargs") or {}, _observations_said(sizes, shape, dtype,
-                                                                                                   info)),
+        "env_recipe": _env_recipe(info.get("env"), info.get("env_kwargs") or {}, _observations_said(inputs, shape, info)),
         "files": {name: text for name, text in FILES.items() if (folder / name).exists() or name.startswith("step_") and steps},
     })
     return folder / ("policy.pt2" if onnx_model is None else "policy.onnx")
 
 
-def _observations_said(sizes: dict, shape: tuple[int, ...], dtype: torch.dtype, info: dict) -> str:
+def _observations_said(inputs: dict[str, tuple[tuple[int, ...], torch.dtype]], shape: tuple[int, ...],
+                       info: dict) -> str:
     """What the exported policy takes, in words, for ``policy.json``."""
-    if len(sizes) > 1:
-        return (f"the env's own Dict observation: its entries {', '.join(sizes)} as float32 inputs of those names "
-                "(rlpipe's loader also takes them joined in that order)")
+    dtype = inputs[next(iter(inputs))][1]
+    if len(inputs) > 1:
+        images = [name for name, (_, kind) in inputs.items() if kind == torch.uint8]
+        return (f"the env's own Dict observation: its entries {', '.join(inputs)} as inputs of those names, float32"
+                + (f" (the image{'s' if len(images) > 1 else ''} {', '.join(images)} uint8, as the env gives "
+                   f"{'them' if len(images) > 1 else 'it'})" if images else "")
+                + " (rlpipe's loader also takes them joined in that order, as the networks read them)")
     if len(shape) == 3:
         stack = info.get("frame_stack", 1)
         return (f"the env's image as {str(dtype).removeprefix('torch.')} [C, H, W] = {list(shape)}, channels first"
@@ -188,9 +207,9 @@ def _env_recipe(env: str | None, kwargs: dict[str, Any], observations: str = "th
     return {"gymnasium_id": gym_id, "imports": imports, "make": make, "observations": observations}
 
 
-def _onnx_model(module: nn.Module, shape: tuple[int, ...], dtype: torch.dtype) -> bytes | None:
-    """``module`` as an ONNX model (``observation [batch, D] -> action [batch, ...]``), checked against
-    the module; None with a warning if ONNX cannot express it.
+def _onnx_model(module: nn.Module, inputs: dict[str, tuple[tuple[int, ...], torch.dtype]]) -> bytes | None:
+    """``module`` as an ONNX model (``observation [batch, D] -> action [batch, ...]``, or each of a Dict env's
+    ``inputs`` by name), checked against the module; None with a warning if ONNX cannot express it.
 
     torch 2.13's TorchScript-based exporter (``dynamo=False``) is used on purpose: it is still
     supported there, exports our policies in ~0.02 s (the dynamo exporter takes ~1.3 s per export
@@ -202,16 +221,14 @@ def _onnx_model(module: nn.Module, shape: tuple[int, ...], dtype: torch.dtype) -
     try:
         with warnings.catch_warnings(), stderr_kept_on_success():  # compat: torch 2.13 logs the graph
             warnings.simplefilter("ignore")  # its DeprecationWarning, and tracer notes on TensorDict code
-            named = isinstance(module, NamedEntries)  # a Dict env's entries, one input each
-            inputs = (tuple(torch.zeros(2, size) for size in module.sizes.values()) if named
-                      else (torch.zeros(2, *shape, dtype=dtype),))
-            names = list(module.sizes) if named else ["observation"]
-            torch.onnx.export(module, inputs, buffer, dynamo=False, opset_version=ONNX_OPSET, input_names=names,
+            examples = tuple(torch.zeros(2, *size, dtype=kind) for size, kind in inputs.values())
+            names = list(inputs)
+            torch.onnx.export(module, examples, buffer, dynamo=False, opset_version=ONNX_OPSET, input_names=names,
                               output_names=["action"],
                               dynamic_axes={**{n: {0: "batch"} for n in names}, "action": {0: "batch"}})
         data = buffer.getvalue()
         onnx.checker.check_model(onnx.load_from_string(data), full_check=True)
-        _check_same_actions(module, data, shape, dtype)
+        _check_same_actions(module, data, inputs)
     except Exception as exc:  # an operator ONNX lacks, a graph the tracer cannot follow, different actions
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         warnings.warn(f"the policy could not be exported as ONNX ({type(exc).__name__}: {message[:200]}); "
@@ -221,16 +238,16 @@ def _onnx_model(module: nn.Module, shape: tuple[int, ...], dtype: torch.dtype) -
     return data
 
 
-def _check_same_actions(module: nn.Module, onnx_model: bytes, shape: tuple[int, ...], dtype: torch.dtype) -> None:
+def _check_same_actions(module: nn.Module, onnx_model: bytes,
+                        inputs: dict[str, tuple[tuple[int, ...], torch.dtype]]) -> None:
     """Raise if ONNX Runtime's actions differ from the module's (a tracer can miss Python control flow)."""
     generator = torch.Generator().manual_seed(0)
-    if dtype.is_floating_point:
-        observations = torch.randn(8, *shape, generator=generator) * 3
-    else:
-        observations = torch.randint(0, 256, (8, *shape), generator=generator).to(dtype)
+    observations = [torch.randn(8, *shape, generator=generator) * 3 if dtype.is_floating_point
+                    else torch.randint(0, 256, (8, *shape), generator=generator).to(dtype)
+                    for shape, dtype in inputs.values()]
     with torch.no_grad():
-        expected = module.module(observations) if isinstance(module, NamedEntries) else module(observations)
-    got = OnnxPolicy(onnx_model)(observations)
+        expected = module(*observations)
+    got = OnnxPolicy(onnx_model).act_entries(observations)
     if got.dtype.is_floating_point:
         torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-5, check_dtype=False)
     elif not torch.equal(got, expected):
@@ -249,7 +266,10 @@ class ExportedPolicy(nn.Module):
 
     path: Path
     entry_sizes: dict[str, int] | None = None
-    """a Dict env's entries the policy takes by name, in the env's order (None: one observation input)"""
+    """a Dict env's entries the policy takes by name, in the env's order, and each one's length in the joined
+    vector (None: one observation input)"""
+    entry_images: ImageInputs = {}
+    """the images among those entries: each one's shape as the env gives it, and whether its channels come last"""
     observation_ndim: int = 1
     """dimensions of one observation: 1 for a vector, 3 for an image stack [C, H, W]"""
     observation_dtype: torch.dtype = torch.float32
@@ -258,13 +278,7 @@ class ExportedPolicy(nn.Module):
         """Actions for ``observation``: one observation or a batch, the env's own (a Dict env's as a mapping of its
         entries, or as the joined vector the networks read), torch (gives torch) or numpy (gives numpy)."""
         if isinstance(observation, Mapping):
-            if self.entry_sizes is None:
-                raise ValueError("this policy takes one observation, not a mapping of entries")
-            parts = [observation[name] for name in self.entry_sizes]
-            as_torch = isinstance(parts[0], torch.Tensor)
-            joined = torch.cat([torch.as_tensor(np.asarray(p) if not as_torch else p, dtype=torch.float32).reshape(
-                *np.shape(p)[:-1] if not as_torch else p.shape[:-1], -1) for p in parts], -1)
-            return self.forward(joined if as_torch else joined.numpy())
+            return self._on_entries(observation)
         as_numpy = not isinstance(observation, torch.Tensor)
         obs = torch.as_tensor(np.asarray(observation) if as_numpy else observation, dtype=self.observation_dtype)
         ndim = self.observation_ndim
@@ -274,8 +288,45 @@ class ExportedPolicy(nn.Module):
         action = action.reshape((*obs.shape[:obs.ndim - ndim], *action.shape[1:])).to(obs.device)
         return action.numpy() if as_numpy else action
 
+    def _on_entries(self, observation: Mapping):
+        """Actions for a Dict env's own observation (one, or a batch): each entry as the env gives it."""
+        if self.entry_sizes is None:
+            raise ValueError("this policy takes one observation, not a mapping of entries")
+        first = observation[next(iter(self.entry_sizes))]
+        as_numpy = not isinstance(first, torch.Tensor)
+        parts, batch = [], None
+        for name in self.entry_sizes:
+            part = observation[name]
+            part = torch.as_tensor(np.asarray(part) if as_numpy else part)
+            shape = self.entry_images[name][0] if name in self.entry_images else (part.shape[-1],)
+            if batch is None:
+                batch = part.shape[:part.ndim - len(shape)]
+            parts.append(part.reshape(-1, *shape).to(torch.uint8 if name in self.entry_images else torch.float32).cpu())
+        with torch.no_grad():
+            action = self.act_entries(parts)
+        action = action.reshape((*batch, *action.shape[1:])).to(first.device if not as_numpy else "cpu")
+        return action.numpy() if as_numpy else action
+
     def act(self, observations: torch.Tensor) -> torch.Tensor:
-        """A batch ``[B, D]`` -> actions ``[B, ...]``."""
+        """A batch ``[B, D]`` -> actions ``[B, ...]`` (a Dict env's: its entries joined, as the networks read them)."""
+        if self.entry_sizes is None:
+            return self.act_observations(observations)
+        parts = []
+        for name, part in zip(self.entry_sizes, observations.split(list(self.entry_sizes.values()), -1)):
+            if name in self.entry_images:  # back to the env's own: uint8, its channels where the env has them
+                shape, last = self.entry_images[name]
+                first = (shape[-1], *shape[:-1]) if last else shape
+                part = part.reshape(-1, *first)
+                part = (part.movedim(1, -1) if last else part).round().to(torch.uint8)
+            parts.append(part)
+        return self.act_entries(parts)
+
+    def act_observations(self, observations: torch.Tensor) -> torch.Tensor:
+        """One observation input: a batch ``[B, *shape]`` -> actions ``[B, ...]``."""
+        raise NotImplementedError
+
+    def act_entries(self, entries: list[torch.Tensor]) -> torch.Tensor:
+        """A Dict env's entries, each a batch ``[B, *its shape]`` in the env's order -> actions ``[B, ...]``."""
         raise NotImplementedError
 
     def train(self, mode: bool = True) -> ExportedPolicy:
@@ -303,20 +354,20 @@ class OnnxPolicy(ExportedPolicy):
         inputs = self.session.get_inputs()
         model_input = inputs[0]
         self.input_name = model_input.name
-        if len(inputs) > 1:  # a Dict env's entries, by name (NamedEntries)
-            self.entry_sizes = {i.name: int(i.shape[-1]) for i in inputs}
+        if len(inputs) > 1:  # a Dict env's entries, by name (NamedEntries); joined, a float32 vector
+            # an image entry's channel layout is in policy.json (load_policy reads it); its length is the same
+            self.entry_sizes = {i.name: int(np.prod(i.shape[1:])) for i in inputs}
+            return
         # the model says what it takes: float32 vectors, or uint8 image stacks [B, C, H, W]
         self.observation_dtype = _ONNX_DTYPES.get(model_input.type, torch.float32)
         self.observation_ndim = max(1, len(model_input.shape) - 1)
 
-    def act(self, observations: torch.Tensor) -> torch.Tensor:
-        observations = np.ascontiguousarray(observations.numpy())
-        if self.entry_sizes is None:
-            feed = {self.input_name: observations}
-        else:
-            cuts = np.cumsum(list(self.entry_sizes.values()))[:-1]
-            feed = {name: np.ascontiguousarray(part)
-                    for name, part in zip(self.entry_sizes, np.split(observations, cuts, axis=-1))}
+    def act_observations(self, observations: torch.Tensor) -> torch.Tensor:
+        return torch.from_numpy(self.session.run(None, {self.input_name: np.ascontiguousarray(observations.numpy())})[0])
+
+    def act_entries(self, entries: list[torch.Tensor]) -> torch.Tensor:
+        names = [i.name for i in self.session.get_inputs()]
+        feed = {name: np.ascontiguousarray(entry.numpy()) for name, entry in zip(names, entries)}
         return torch.from_numpy(self.session.run(None, feed)[0])
 
 
@@ -327,10 +378,11 @@ class TorchExportPolicy(ExportedPolicy):
         super().__init__()
         self.program = program
 
-    def act(self, observations: torch.Tensor) -> torch.Tensor:
-        if self.entry_sizes is None:
-            return self.program(observations)
-        return self.program(*observations.split(list(self.entry_sizes.values()), -1))
+    def act_observations(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.program(observations)
+
+    def act_entries(self, entries: list[torch.Tensor]) -> torch.Tensor:
+        return self.program(*entries)
 
 
 def load_policy(folder: Path, *, step: int | None = None, trust: bool = False) -> tuple[ExportedPolicy, dict]:
@@ -381,7 +433,11 @@ def _load(path: Path, make, shape: list[int] | None, dtype: torch.dtype, info: d
         policy.observation_dtype = dtype
         inputs = (info or {}).get("inputs") or {}
         if len(inputs) > 1:  # a Dict env's entries (the .pt2 program takes them one by one too)
-            policy.entry_sizes = {name: int(size[-1]) for name, size in inputs.items()}
+            spans = (info or {}).get("observation_entries") or {}
+            policy.entry_sizes = {name: int(spans[name][1] - spans[name][0]) if name in spans else int(size[-1])
+                                  for name, size in inputs.items()}
+            policy.entry_images = {name: (tuple(image["shape"]), bool(image["channels_last"]))
+                                   for name, image in ((info or {}).get("image_inputs") or {}).items()}
         if shape:  # a file that loads but is not this run's policy fails here, not mid-episode
             policy.observation_ndim = len(shape)
             policy(torch.zeros(1, *shape, dtype=dtype))
