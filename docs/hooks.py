@@ -56,7 +56,8 @@ def _code(value) -> str:
 
 def key_rows(cls: type, keys: list[str]) -> list[tuple[str, str, str]]:
     """(key, what it accepts, its docstring) for ``keys`` of config class ``cls``."""
-    from rlpipe.pipelines.config import _checks, _describe_type, field_docs
+    from rlpipe.pipelines.config.overrides import _describe_type
+    from rlpipe.pipelines.config.schema import _checks, field_docs
 
     cfg, docs, rules = cls(), field_docs(cls), _checks(cls)
     rows = []

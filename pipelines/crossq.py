@@ -14,8 +14,6 @@ critics. TorchRL's ``CrossQLoss`` computes exactly that; this pipeline adds sb3-
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import torch
 from tensordict import TensorDictBase
 from torch import nn
@@ -23,43 +21,31 @@ from torchrl.objectives import CrossQLoss
 
 from rlpipe.modules.critics import make_batchrenorm_critic
 from rlpipe.modules.fast.crossq_loss import LeanCrossQLoss
-from rlpipe.pipelines.config import LAYER_SIZES, NON_NEGATIVE, Check, checked
+from rlpipe.pipelines.config import NON_NEGATIVE, Check, CriticKeys, checked, config_class
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.sac_family import SACFamilyConfig, SACFamilyPipeline, scale_rewards
 
 __all__ = ["CrossQConfig", "CrossQ", "preset"]
 
 
-@dataclass
-class CrossQConfig(SACFamilyConfig):
+@config_class(
+    initial_collect_steps=5000,
+    replay_buffer_capacity=1_000_000,
+    actor_learning_rate=1e-3,
+    critic_learning_rate=1e-3,
+    alpha_learning_rate=1e-3,
+    policy_delay=(3, "sb3-contrib's 3"),
+    target_entropy=(None, "null: -|A|, as sb3-contrib's"),
+    critic_fc_layer_params=([256, 256], "each layer followed by BatchRenorm1d and ReLU; the paper's and TorchRL's "
+                                        "2048x2048, sb3-contrib's 1024x1024, are costly on a CPU"),
+)
+class CrossQConfig(CriticKeys, SACFamilyConfig):
     """CrossQ's keys; defaults are sb3-contrib's ``CrossQ`` but for the critic widths (CPU-sized).
     ``target_update_tau`` and ``target_update_period`` are unused: CrossQ has no target networks."""
 
-    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
-    initial_collect_steps: int = 5000
-    replay_buffer_capacity: int = 1_000_000
-    """transitions kept; the oldest are evicted first"""
-    # the SAC family's keys whose value or help here differs from SAC's (their rules stay the family's)
-    actor_learning_rate: float = 1e-3
-    critic_learning_rate: float = 1e-3
-    alpha_learning_rate: float = 1e-3
-    policy_delay: int = 3
-    """critic updates per actor and temperature update (sb3-contrib's 3)"""
-    actor_fc_layer_params: list[int] = field(default_factory=lambda: [256, 256])
-    """hidden layer sizes of the actor (no batch normalisation, as sb3-contrib's)"""
-    initial_alpha: float = 1.0
-    """initial entropy temperature"""
-    target_entropy: float | None = None
-    """entropy target of the temperature (null: -|A|)"""
-    target_entropy_final: float | None = None
-    """move the entropy target linearly from target_entropy to this over target_entropy_anneal's env steps (null: it stays), as SAC's key"""
-    reward_scale_factor: float = 1.0
-    """rewards are multiplied by this in the update (as SAC's key; reported returns stay the env's)"""
     # CrossQ's own keys
     adam_beta1: float = checked(0.5, Check(lambda v: 0.0 <= v < 1.0, "a value in [0, 1)"))
     """Adam's first-moment decay for all three optimisers (CrossQ's 0.5; Adam's own default 0.9); beta2 stays 0.999"""
-    critic_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256, 256])
-    """hidden layer sizes of each critic, each followed by BatchRenorm1d and ReLU (the paper's and TorchRL's 2048x2048, sb3-contrib's 1024x1024: costly on a CPU)"""
     batch_renorm_momentum: float = checked(0.01, Check(lambda v: 0.0 < v <= 1.0, "a momentum in (0, 1]"))
     """how fast BatchRenorm1d's running mean and variance follow the batches"""
     batch_renorm_warmup_steps: int = checked(100_000, NON_NEGATIVE)

@@ -14,7 +14,6 @@ them instead (``DQN(config, env=..., actor=..., loss_module=...)``).
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -28,13 +27,14 @@ from rlpipe.modules.fast.exploration import anneal_epsilon
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import (
-    GRADIENT_CLIPPING,
     LAYER_SIZES,
-    LEARNING_RATE,
     POSITIVE,
     PROBABILITY,
+    ClippedGradientKeys,
+    OneRateKeys,
     TrainConfig,
     checked,
+    config_class,
     one_of,
 )
 from rlpipe.pipelines.errors import InputError
@@ -42,24 +42,21 @@ from rlpipe.pipelines.errors import InputError
 __all__ = ["DQNConfig", "DQN", "preset"]
 
 
-@dataclass
-class DQNConfig(TrainConfig):
+@config_class(
+    env="CartPole-v0",
+    num_iterations=20_000,
+    batch_size=64,
+    gamma=(1.0, "DqnAgent's default, which the tutorial relies on"),
+    target_update_tau=(1.0, "DqnAgent's default: a copy of the online network"),
+    eval_interval=1000,
+    log_interval=200,
+    checkpoint_interval=5000,
+    learning_rate=(1e-3, "of the Q-network"),
+)
+class DQNConfig(OneRateKeys, ClippedGradientKeys, TrainConfig):
     """DQN's keys; defaults are the tutorial's (``DqnAgent`` defaults included)."""
 
-    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
-    env: str = "CartPole-v0"
-    num_iterations: int = 20_000
-    batch_size: int = 64
-    gamma: float = 1.0
-    """discount factor (DqnAgent's default of 1.0, which the tutorial relies on)"""
-    target_update_tau: float = 1.0
-    """target network soft-update factor (1.0, DqnAgent's default: a copy of the online network)"""
-    eval_interval: int = 1000
-    log_interval: int = 200
-    checkpoint_interval: int = 5000
     # DQN's own keys
-    learning_rate: float = checked(1e-3, LEARNING_RATE)
-    """Adam learning rate"""
     fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [100])
     """hidden layer sizes of the Q-network"""
     epsilon_greedy: float = checked(0.1, PROBABILITY)
@@ -74,8 +71,6 @@ class DQNConfig(TrainConfig):
     """use the online network to pick the next action (Double DQN)"""
     clip_rewards: bool = False
     """clip each reward to its sign (-1, 0, 1) in the loss, as the Nature DQN and CleanRL's dqn_atari.py do for Atari; the returns a run reports stay the env's (the game's score)"""
-    gradient_clipping: float | None = checked(None, GRADIENT_CLIPPING)
-    """clip each gradient tensor's norm to this value before the optimiser steps, as DqnAgent's gradient_clipping does (TF-Agents' clip_gradient_norms, per variable; not one norm over all gradients); null: no clipping"""
 
 
 class _GreedyPolicy(nn.Module):

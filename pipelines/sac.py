@@ -13,8 +13,6 @@ CrossQ (the actor, the schedules, the averaged greedy policy) is ``sac_family``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from tensordict import TensorDictBase
 from torch import nn
@@ -22,28 +20,22 @@ from torchrl.objectives import SACLoss
 
 from rlpipe.modules.critics import INITIALIZERS, make_qvalue_critic
 from rlpipe.modules.fast.sac_loss import LeanSACLoss
-from rlpipe.pipelines.config import GRADIENT_CLIPPING, LAYER_SIZES, checked, one_of
+from rlpipe.pipelines.config import LAYER_SIZES, ClippedGradientKeys, checked, config_class, one_of
 from rlpipe.pipelines.sac_family import SACFamilyConfig, SACFamilyPipeline, scale_rewards
 
 __all__ = ["SACConfig", "SAC", "preset"]
 
 
-@dataclass
-class SACConfig(SACFamilyConfig):
+@config_class(
+    initial_collect_steps=10_000,
+    replay_buffer_capacity=(10_000, "the tutorial's Reverb table size"),
+    num_eval_episodes=20,
+)
+class SACConfig(ClippedGradientKeys, SACFamilyConfig):
     """SAC's keys; defaults are the actor-learner tutorial's (``SacAgent`` defaults included)."""
 
-    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
-    initial_collect_steps: int = 10_000
-    replay_buffer_capacity: int = 10_000
-    """transitions kept; the oldest are evicted first (the tutorial's Reverb table size)"""
-    num_eval_episodes: int = 20
-    baseline_episodes: int = 5
-    """episodes of the random agent played once before training for its baseline return (RUN/baseline.json); 5 rather than num_eval_episodes: 20 random Minitaur episodes are ~70 s before the first update, for a baseline the SAC tutorial does not have; -1: num_eval_episodes; 0: none"""
-    # SAC's own keys
     critic_joint_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256, 256])
     """hidden layer sizes of each critic (over observation and action joined)"""
-    gradient_clipping: float | None = checked(None, GRADIENT_CLIPPING)
-    """clip each gradient tensor's norm to this value before the optimisers step, as SacAgent's gradient_clipping does (TF-Agents' clip_gradient_norms); null: no clipping"""
     critic_kernel_initializer: str = checked("torch", one_of(*INITIALIZERS))
     """critic weights: 'torch' (nn.Linear's default) or 'glorot_uniform' with zero biases (the actor-learner tutorial's CriticNetwork)"""
     critic_layer_norm: bool = False

@@ -2,8 +2,8 @@
 
 Both learn a tanh-normal actor that explores by sampling (collection) and acts by its mode (evaluation,
 export), twin critics and a learned temperature, all held by one TorchRL loss (``SACLoss``, ``CrossQLoss``).
-``SACFamilyConfig`` holds their shared keys with SAC's defaults (CrossQ declares again the ones whose default
-or help differs); ``SACFamilyPipeline`` builds the agent from the algorithm's ``make_qvalue`` and
+``SACFamilyConfig`` holds their shared keys with SAC's defaults (CrossQ's own defaults for them are in its
+``config_class``); ``SACFamilyPipeline`` builds the agent from the algorithm's ``make_qvalue`` and
 ``make_loss``, and holds the schedules (entropy target, learning rates) and the averaged greedy policy.
 """
 
@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 from tensordict import TensorDictBase
@@ -24,13 +23,13 @@ from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline
 from rlpipe.pipelines.config import (
     ANNEAL_WINDOW,
-    LAYER_SIZES,
     LEARNING_RATE,
-    POSITIVE,
+    ActorKeys,
     Check,
     TrainConfig,
     check_learning_rate_schedule,
     checked,
+    config_class,
 )
 from rlpipe.pipelines.errors import InputError
 from rlpipe.pipelines.own_parts import observation_key_of
@@ -38,16 +37,14 @@ from rlpipe.pipelines.own_parts import observation_key_of
 __all__ = ["SACFamilyConfig", "SACFamilyPipeline", "scale_rewards"]
 
 
-@dataclass
-class SACFamilyConfig(TrainConfig):
+@config_class(
+    env=("MinitaurBulletEnv-v0", "an env with a continuous (Box) action space"),
+    baseline_episodes=(5, "rather than num_eval_episodes: 20 random Minitaur episodes are ~70 s before the first "
+                          "update, for a baseline the SAC tutorial does not have"),
+)
+class SACFamilyConfig(ActorKeys, TrainConfig):
     """The keys SAC and CrossQ share, with SAC's defaults."""
 
-    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
-    env: str = "MinitaurBulletEnv-v0"
-    """gymnasium env id, or your own env (`my_package.envs:MyArm`, `my_package:MyArm-v0`; see `env_kwargs`), with a continuous (Box) action space"""
-    baseline_episodes: int = 5
-    """episodes of the random agent played once before training for its baseline return (RUN/baseline.json); -1: num_eval_episodes; 0: none"""
-    # the family's own keys
     actor_learning_rate: float = checked(3e-4, LEARNING_RATE)
     """Adam learning rate of the actor"""
     critic_learning_rate: float = checked(3e-4, LEARNING_RATE)
@@ -56,8 +53,6 @@ class SACFamilyConfig(TrainConfig):
     """Adam learning rate of the entropy temperature"""
     reward_scale_factor: float = checked(1.0, Check(lambda v: v != 0, "a non-zero scale"))
     """rewards are multiplied by this in the critic's target"""
-    actor_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256, 256])
-    """hidden layer sizes of the actor"""
     initial_alpha: float = checked(1.0, Check(lambda v: v > 0, "a positive temperature"))
     """initial entropy temperature (SacAgent's initial_log_alpha=0)"""
     target_entropy: float | None = None
@@ -72,8 +67,6 @@ class SACFamilyConfig(TrainConfig):
     """env steps (frames collected, random ones included) over which learning_rate_final_fraction is approached: [start, end]"""
     policy_average_tau: float | None = checked(None, Check(lambda v: 0 < v <= 1, "a fraction in (0, 1], or null"))
     """act greedily (evaluation, export, a target's confirmation) with a Polyak average of the actor's weights, moved this fraction of the way to the actor's at each actor update (null: the actor itself); collection samples from the actor as trained"""
-    policy_delay: int = checked(1, POSITIVE)
-    """update the actor and the temperature (and the averaged greedy policy) on every policy_delay-th update only, the critics on every one (TD3's delayed policy updates, CrossQ's policy_delay); 1: every update, as SAC and the tutorial do"""
 
     def validate_extra(self) -> None:
         check_learning_rate_schedule(self)

@@ -27,7 +27,6 @@ The tutorial's names map onto the keys like this (``startup_time`` -> ``initial_
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -48,12 +47,13 @@ from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.td3_loss import TD3AblationLoss
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
 from rlpipe.pipelines.config import (
-    LAYER_SIZES,
-    LEARNING_RATE,
     NON_NEGATIVE,
-    POSITIVE,
+    ActorKeys,
+    CriticKeys,
+    OneRateKeys,
     TrainConfig,
     checked,
+    config_class,
 )
 from rlpipe.pipelines.errors import InputError
 
@@ -69,38 +69,29 @@ INGREDIENTS = (
 )
 
 
-@dataclass
-class TD3Config(TrainConfig):
+@config_class(
+    env=("Pendulum-v1", "an env with a continuous (Box) action space"),
+    num_iterations=(90_000, "tutorial: MAX_STEPS=100,000 env steps in all, start-up included"),
+    initial_collect_steps=(10_000, "tutorial: startup_time"),
+    learning_starts=(256, "tutorial: as soon as the buffer holds one batch"),
+    target_update_period=(1, "counted in actor updates: the tutorial's targets move with every actor update"),
+    eval_interval=5000,
+    checkpoint_interval=5000,
+    learning_rate=(3e-4, "the actor's and the critics': the tutorial's lr"),
+    actor_fc_layer_params=([256], "tutorial: hidden1_dim=256, hidden2_dim=0"),
+    critic_fc_layer_params=[256],
+    policy_delay=(2, "critic updates per actor and target update: the tutorial's policy_freq"),
+)
+class TD3Config(ActorKeys, CriticKeys, OneRateKeys, TrainConfig):
     """TD3's keys; defaults are the tutorial's (Pendulum-v1)."""
 
-    # shared keys whose value here differs from TrainConfig's (their rules stay TrainConfig's)
-    env: str = "Pendulum-v1"
-    """gymnasium env id, or your own env (`my_package.envs:MyArm`, `my_package:MyArm-v0`; see `env_kwargs`), with a continuous (Box) action space"""
-    num_iterations: int = 90_000
-    """iterations after the start-up steps (tutorial: MAX_STEPS=100,000 env steps in all, start-up included)"""
-    initial_collect_steps: int = 10_000
-    """uniformly random actions for the first env steps (tutorial: startup_time)"""
-    learning_starts: int = 256
-    """env steps collected before updates begin (tutorial: as soon as the buffer holds one batch)"""
-    target_update_period: int = 1
-    """actor updates between target network updates (tutorial: 1, the targets move with every actor update)"""
-    eval_interval: int = 5000
-    checkpoint_interval: int = 5000
     # TD3's own keys
-    learning_rate: float = checked(3e-4, LEARNING_RATE)
-    """Adam learning rate of actor and critics (tutorial: lr)"""
-    actor_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256])
-    """hidden layer sizes of the actor (tutorial: hidden1_dim=256, hidden2_dim=0)"""
-    critic_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256])
-    """hidden layer sizes of each critic"""
     exploration_noise: float = checked(0.1, NON_NEGATIVE)
     """std of the Gaussian exploration noise as a fraction of the half action range (tutorial: expl_noise)"""
     policy_noise: float = checked(0.2, NON_NEGATIVE)
     """std of the target policy smoothing noise, in half action ranges (tutorial: policy_noise)"""
     noise_clip: float = checked(0.5, NON_NEGATIVE)
     """the smoothing noise is clipped to +-noise_clip half action ranges (tutorial: noise_clip)"""
-    policy_delay: int = checked(2, POSITIVE)
-    """critic updates per actor and target update (tutorial: policy_freq)"""
     deterministic_policy: bool = True
     """ingredient 1; off: a stochastic Gaussian (TanhNormal) policy that explores by sampling instead of added noise"""
     experience_replay: bool = True

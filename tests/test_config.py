@@ -254,8 +254,8 @@ def test_field_docs_cover_every_dqn_and_shared_key():
     own = _leaf_keys(DQNConfig) - COLLECTOR_KEYS
     missing = [k for k in sorted(own) if not docs.get(k, "").strip()]
     assert not missing, f"keys without a docstring: {missing}"
-    # a subclass's docstring wins over the base class's for a redefined key
-    assert "1.0" in docs["gamma"]
+    # an algorithm's default for a key declared in the base says why, with its value
+    assert "default 1.0 here: DqnAgent's default" in docs["gamma"]
     assert docs["fc_layer_params"] and docs["epsilon_greedy"]
 
 
@@ -497,3 +497,33 @@ def test_a_key_whose_default_an_algorithm_changes_keeps_its_rule(algo, override)
 
     with pytest.raises(InputError, match=rf"^{override.split('=')[0]}="):
         apply_overrides(pipeline_class(algo).preset(), [override])
+
+
+def test_every_key_is_declared_once_and_an_algorithms_default_says_why_in_its_help():
+    """One home per key: no config class declares a key another declares (an algorithm's own default for it is a
+    ``config_class`` value, whose why reaches the key's help); declaring one again is refused at import."""
+    import ast
+    import inspect
+
+    from rlpipe.pipelines import pipeline_class
+    from rlpipe.pipelines.config import ActorKeys, ClippedGradientKeys, CriticKeys, OneRateKeys, RayConfig, config_class
+    from rlpipe.pipelines.sac_family import SACFamilyConfig
+
+    classes = [TrainConfig, CollectorConfig, RayConfig, ActorKeys, CriticKeys, OneRateKeys, ClippedGradientKeys,
+               SACFamilyConfig, *(pipeline_class(algo).Config for algo in ("sac", "crossq", "td3", "dqn"))]
+    declared: dict[str, list[str]] = {}
+    for cls in classes:
+        body = ast.parse(inspect.getsource(cls)).body[0].body
+        for node in body:
+            if isinstance(node, ast.AnnAssign):
+                declared.setdefault(node.target.id, []).append(cls.__name__)
+    assert {key: homes for key, homes in declared.items() if len(homes) > 1} == {}
+    td3 = pipeline_class("td3").Config
+    assert td3().policy_delay == 2 and "policy_freq" in field_docs(td3)["policy_delay"]
+    assert "policy_freq" not in field_docs(pipeline_class("crossq").Config)["policy_delay"]
+    with pytest.raises(TypeError, match="declared in the class"):
+        @config_class(gamma=0.9)
+        class Again(TrainConfig):
+            gamma: float = 0.5
+    with pytest.raises(TypeError, match="no base class declares"):
+        config_class(nonsense=1)(type("Stray", (TrainConfig,), {}))

@@ -1,69 +1,70 @@
-"""Typed configs shared by every pipeline, ``key=value`` overrides, and the one place that validates.
+"""The config schema: every key, declared once with its type, default, rule and help.
 
 Keys keep the TF-Agents tutorials' names where they mean the same thing (``num_iterations``,
 ``initial_collect_steps``, ``collect_steps_per_iteration``, ``replay_buffer_capacity``, ...), so a
-reader of the tutorials finds them. Each field's docstring is its help text (``rlpipe train X --help``).
+reader of the tutorials finds them. Each field's docstring is its help text (``rlpipe train X --keys``).
 
-``TrainConfig`` holds the keys every algorithm shares, with neutral defaults; each algorithm's config
-(``DQN.Config``, ``TD3.Config``, ``SAC.Config``, ``CrossQ.Config``; the last two on the SAC family's
-``sac_family.SACFamilyConfig``) adds its own keys and sets the defaults of its tutorial.
+Each key has one home. ``TrainConfig`` declares the keys every algorithm has, with neutral defaults; the keys
+several algorithms (not all) have are declared in the small dataclasses below it (``ActorKeys``,
+``CriticKeys``, ``OneRateKeys``, ``ClippedGradientKeys``), which an algorithm's config inherits; an
+algorithm's own keys are declared in its config (``DQN.Config``, ``TD3.Config``, ``SAC.Config``,
+``CrossQ.Config``; the last two on the SAC family's ``sac_family.SACFamilyConfig``). Where an algorithm's
+default differs from the declared one (its tutorial's), its config says so in one place, ``@config_class(key=value)``
+(or ``key=(value, "why")``, the why added to the key's help), without declaring the key again.
 
-Overrides are parsed and type-checked by OmegaConf's structured configs. What OmegaConf cannot know
-is checked in ``validate``: a rule on one key's value (positive, a choice, a range) is declared with
-its field (``checked(default, POSITIVE)``) and a subclass that only changes the default keeps it;
-rules between keys are written out in ``validate`` (an algorithm's own in its ``validate_extra``).
+A rule on one key's value (positive, a choice, a range) is declared with its field (``checked(default,
+POSITIVE)``); ``validation.validate`` applies them and the rules between keys.
 """
 
 from __future__ import annotations
 
 import ast
+import copy
 import dataclasses
-import difflib
-import importlib.util
+import functools
 import inspect
-import math
-import os
+import json
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from omegaconf import OmegaConf
-from omegaconf.errors import OmegaConfBaseException
-
-from rlpipe.pipelines.errors import InputError
 
 __all__ = [
+    "ANNEAL_WINDOW",
     "BASELINE_SEED_OFFSET",
     "COLLECTOR_BACKENDS",
+    "ENV_KWARGS_RESERVED",
     "EVAL_SEED_OFFSET",
-    "eval_seed",
     "GRADIENT_CLIPPING",
     "LAYER_SIZES",
     "LEARNING_RATE",
+    "LOGGERS",
+    "MAX_SEED",
     "NON_NEGATIVE",
     "POSITIVE",
     "PROBABILITY",
+    "ActorKeys",
     "BackendNeeds",
-    "PresetInfo",
     "Check",
+    "ClippedGradientKeys",
     "CollectorConfig",
+    "CriticKeys",
+    "OneRateKeys",
+    "PresetInfo",
     "RayConfig",
     "TrainConfig",
-    "apply_mapping",
-    "apply_overrides",
-    "available_devices",
-    "check_machine",
     "checked",
-    "config_to_dict",
-    "config_from_dict",
+    "config_class",
+    "duration_seconds",
+    "env_options",
+    "eval_seed",
     "field_docs",
     "flat_keys",
     "layer_sizes",
     "one_of",
     "steps_in_learner",
-    "validate",
 ]
 
 # Evaluations and the random baseline play env copies of their own, seeded apart from the collectors'
@@ -172,18 +173,6 @@ def env_options(cfg, *, rescaled: bool = True, training: bool = False) -> dict[s
     return {"rescale_observations": cfg.rescale_observations, **options} if rescaled else options
 
 
-def check_learning_rate_schedule(cfg) -> None:
-    """``learning_rate_final_fraction`` moves the optimisers' learning rates, which a compiled or graphed
-    update would keep at the values it was traced with: refused there, in one line."""
-    if cfg.learning_rate_final_fraction is None:
-        return
-    for key in ("compile", "cudagraph"):
-        if getattr(cfg, key):
-            raise InputError(f"learning_rate_final_fraction={cfg.learning_rate_final_fraction} with {key}=true: a "
-                             f"compiled or graphed update keeps the learning rates it was traced with; expected "
-                             f"learning_rate_final_fraction=null or {key}=false")
-
-
 def one_of(*choices: str, expected: str | None = None) -> Check:
     return Check(lambda v: v in choices, expected or f"one of {', '.join(repr(c) for c in choices)}")
 
@@ -195,8 +184,7 @@ def checked(default: Any = dataclasses.MISSING, check: Check | None = None, *, f
 
 
 def _checks(cls: type, prefix: str = "") -> dict[str, Check]:
-    """Every key's declared rule. A subclass that redeclares a field only for its default has no
-    metadata of its own there; the rule of the nearest class that declares one holds."""
+    """Every key's declared rule (an algorithm's default for it, ``config_class``, keeps the declaration's)."""
     rules: dict[str, Check] = {}
     for klass in reversed(cls.__mro__):
         for name, f in getattr(klass, "__dataclass_fields__", {}).items():
@@ -406,112 +394,90 @@ class TrainConfig:
         return self.initial_collect_steps if self.learning_starts is None else self.learning_starts
 
 
-# --- the one place that validates ---------------------------------------------------------------
+# --- keys several algorithms (not all) have, each declared once ------------------------------------
+
+
+@dataclass
+class ActorKeys:
+    """The keys of the algorithms with an actor network: the SAC family and TD3."""
+
+    actor_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256, 256])
+    """hidden layer sizes of the actor"""
+    policy_delay: int = checked(1, POSITIVE)
+    """update the actor (and with it the temperature, the averaged greedy policy or the target networks, as the algorithm has them) on every policy_delay-th update only, the critics on every one (TD3's delayed policy updates, CrossQ's policy_delay); 1: every update"""
+
+
+@dataclass
+class CriticKeys:
+    """The critic widths of the algorithms whose critics are not TF-Agents' joint critic: TD3 and CrossQ."""
+
+    critic_fc_layer_params: list[int] = checked(check=LAYER_SIZES, factory=lambda: [256, 256])
+    """hidden layer sizes of each critic"""
+
+
+@dataclass
+class OneRateKeys:
+    """One learning rate for every network: TD3 and DQN."""
+
+    learning_rate: float = checked(3e-4, LEARNING_RATE)
+    """Adam learning rate of every network"""
+
+
+@dataclass
+class ClippedGradientKeys:
+    """TF-Agents' gradient clipping: SAC and DQN (their agents have it)."""
+
+    gradient_clipping: float | None = checked(None, GRADIENT_CLIPPING)
+    """clip each gradient tensor's norm to this value before the optimisers step, as TF-Agents' SacAgent's and DqnAgent's gradient_clipping does (clip_gradient_norms: per variable, not one norm over all gradients); null: no clipping"""
+
+
+# --- an algorithm's defaults for keys declared elsewhere --------------------------------------------
+
+
+@typing.dataclass_transform(field_specifiers=(dataclasses.field,))
+def config_class(cls: type | None = None, /, **defaults: Any):
+    """``@dataclass`` for an algorithm's config, with its defaults for keys a base class declares:
+    ``@config_class(num_iterations=20_000, gamma=(1.0, "DqnAgent's default, which the tutorial relies on"))``.
+
+    A key keeps its one declaration (type, rule, help) where it is written; here it only gets this class's default
+    value, and the why, when given, is added to its help (``field_docs``). A key the class declares itself, or one
+    no base declares, is a ``TypeError`` at import.
+    """
+
+    def wrap(klass: type) -> type:
+        own = dict(klass.__dict__.get("__annotations__", {}))
+        inherited: dict[str, tuple[dataclasses.Field, type]] = {}
+        for base in reversed(klass.__mro__[1:]):
+            if dataclasses.is_dataclass(base):
+                hints = typing.get_type_hints(base)
+                inherited.update({f.name: (f, hints[f.name]) for f in dataclasses.fields(base)})
+        annotations: dict[str, Any] = {}
+        for name, given in defaults.items():
+            if name in own:
+                raise TypeError(f"{klass.__name__}.{name} is declared in the class: give its default there")
+            if name not in inherited:
+                raise TypeError(f"{klass.__name__}: a default for {name!r}, which no base class declares")
+            base_field, hint = inherited[name]
+            value, why = given if isinstance(given, tuple) else (given, None)
+            metadata = {**base_field.metadata, "why": why} if why else dict(base_field.metadata)
+            annotations[name] = hint
+            if isinstance(value, (list, dict)):
+                setattr(klass, name, field(default_factory=functools.partial(copy.deepcopy, value), metadata=metadata))
+            else:
+                setattr(klass, name, field(default=value, metadata=metadata))
+        klass.__annotations__ = {**annotations, **own}
+        return dataclass(klass)
+
+    return wrap if cls is None else wrap(cls)
+
+
+# --- the schema's keys and their help ---------------------------------------------------------------
 
 
 def _get(cfg, dotted: str):
     for part in dotted.split("."):
         cfg = getattr(cfg, part)
     return cfg
-
-
-def validate(cfg, *, machine: bool = True) -> None:
-    """Raise ``InputError`` naming the first key whose value cannot work, and what it must be.
-
-    ``machine=True`` also checks what depends on this machine (the device exists, thread and
-    process counts within its CPUs); a saved config (``config_from_dict``) skips those, so a run
-    moved to another machine can be resumed with the keys changed there.
-    """
-    rules = _checks(type(cfg))
-    for key in flat_keys(type(cfg)):
-        value = _get(cfg, key)
-        if value is None:
-            continue
-        if isinstance(value, float) and not math.isfinite(value):
-            raise InputError(f"{key}={value}: expected a finite number")
-        check = rules.get(key)
-        if check is not None and not check.ok(value):
-            shown = repr(value) if isinstance(value, str) else value
-            raise InputError(f"{key}={shown}: expected {check.describe(value)}")
-    # Rules between keys: here, or in an algorithm config's ``validate_extra`` for its own keys.
-    if cfg.cudagraph and str(cfg.device).split(":")[0] != "cuda":
-        raise InputError(f"cudagraph=true with device={cfg.device!r}: CUDA graphs need device=cuda; expected "
-                         "cudagraph=false or null on this device")
-    package = LOGGERS.get(cfg.logger)
-    if package and importlib.util.find_spec(package) is None:
-        raise InputError(f"logger={cfg.logger}: {package} is not installed; expected `pip install 'rlpipe[{cfg.logger}]'` "
-                         "(or logger=tensorboard)")
-    c = cfg.collector
-    needs = COLLECTOR_BACKENDS[c.backend]  # a known name: its field's rule ran above
-    if needs.package and importlib.util.find_spec(needs.package) is None:
-        raise InputError(f"collector.backend={c.backend}: {needs.package} is not installed; expected "
-                         f"`pip install 'rlpipe[{needs.package}]'` (or collector.backend=local)")
-    if c.policy_device and c.backend != "local":
-        raise InputError(f"collector.policy_device={c.policy_device!r} with collector.backend={c.backend}: a CPU copy "
-                         "of the collect policy is made by the local backend's collectors; expected "
-                         "collector.policy_device='' with this backend")
-    per_block = c.envs_per_worker * (c.workers if c.sync else 1)
-    if c.envs_per_worker > 1 and c.frames_per_batch % per_block:
-        raise InputError(
-            f"collector.frames_per_batch={c.frames_per_batch} does not split into whole steps of "
-            f"{per_block} envs (collector.workers={c.workers} x collector.envs_per_worker={c.envs_per_worker}"
-            f"{'' if c.sync else ', one worker per block'}): expected a multiple of {per_block}"
-        )
-    if needs.even_sync_blocks and c.sync and c.frames_per_batch % c.workers:
-        raise InputError(f"collector.frames_per_batch={c.frames_per_batch} does not split evenly over "
-                         f"collector.workers={c.workers} {needs.what} (collector.sync=true): expected a multiple of {c.workers}")
-    if cfg.batch_size > cfg.replay_buffer_capacity:
-        raise InputError(
-            f"batch_size={cfg.batch_size} is larger than replay_buffer_capacity={cfg.replay_buffer_capacity}: "
-            "expected batch_size <= replay_buffer_capacity"
-        )
-    cfg.validate_extra()
-    if machine:
-        check_machine(cfg)
-
-
-def available_devices() -> list[str]:
-    """The torch devices this machine can train on: 'cpu', then 'cuda:0', ... and 'mps' where present."""
-    import torch
-
-    devices = ["cpu"]
-    if torch.cuda.is_available():
-        devices += [f"cuda:{i}" for i in range(torch.cuda.device_count())]
-    mps = getattr(torch.backends, "mps", None)
-    if mps is not None and mps.is_available():
-        devices.append("mps")
-    return devices
-
-
-def _cpus() -> int:
-    return os.cpu_count() or 1
-
-
-def check_machine(cfg) -> None:
-    """What ``validate`` checks against this machine: the device exists, thread and worker counts fit its CPUs."""
-    import torch
-
-    try:
-        device = torch.device(cfg.device)
-    except (RuntimeError, TypeError) as exc:
-        raise InputError(f"device={cfg.device!r}: expected a torch device such as 'cpu' or 'cuda:0'") from exc
-    devices = available_devices()
-    same_type = [d for d in devices if d.split(":")[0] == device.type]
-    known = same_type if device.index is None or device.type == "cpu" else [f"{device.type}:{device.index}"]
-    if not set(known) & set(same_type):
-        why = "torch sees no CUDA device on this machine" if device.type == "cuda" else "not a device this machine trains on"
-        raise InputError(f"device={cfg.device!r}: {why}; expected one of this machine's devices: {', '.join(devices)}")
-    cpus = _cpus()
-    if cfg.num_threads > cpus:
-        raise InputError(f"num_threads={cfg.num_threads}: more threads than this machine's {cpus} CPUs only slow torch "
-                         f"down; expected -1 (chosen at start), 0 (torch's default) or at most {cpus}")
-    most = WORKERS_PER_CPU * cpus
-    if cfg.collector.workers > most:
-        raise InputError(f"collector.workers={cfg.collector.workers}: each is a process of its own; expected at most "
-                         f"{most} on this machine's {cpus} CPUs")
-
-
-# --- overrides ------------------------------------------------------------------------------------
 
 
 def flat_keys(cls: type, prefix: str = "") -> list[str]:
@@ -525,120 +491,6 @@ def flat_keys(cls: type, prefix: str = "") -> list[str]:
         else:
             keys.append(prefix + f.name)
     return keys
-
-
-def apply_overrides(cfg, overrides: list[str]):
-    """Return a copy of ``cfg`` with ``key=value`` overrides applied, type-checked and validated."""
-    keys = flat_keys(type(cfg))
-    conf = OmegaConf.structured(cfg)
-    for item in overrides:
-        key, sep, value = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise InputError(f"override {item!r} is not of the form key=value (e.g. batch_size=128)")
-        entry = _mapping_entry(cfg, key, keys)
-        if key not in keys and not entry:
-            raise _unknown_key(key, keys)
-        if not entry and not value.strip() and _describe_type(cfg, key) == "a string":
-            value = "''"  # `ray.address=`: the empty string (OmegaConf reads an empty value as null)
-        try:
-            conf = OmegaConf.merge(conf, OmegaConf.from_dotlist([f"{key}={value}"]))
-        except OmegaConfBaseException as exc:
-            expected = _describe_type(cfg, key)
-            raise InputError(f"{key}={value!r}: expected {expected}") from exc
-    result = OmegaConf.to_object(conf)
-    validate(result)
-    return result
-
-
-def apply_mapping(cfg, data: dict[str, Any]):
-    """Return a copy of ``cfg`` with a mapping's keys applied (a preset file's ``config``: nested groups as
-    mappings, ``collector: {workers: 1}``), each key checked as ``apply_overrides`` checks a ``key=value``, with
-    the same errors. Validated without this machine's checks: a file may come from another machine, and the
-    overrides given with it fix that (``apply_overrides`` checks the machine)."""
-    keys = flat_keys(type(cfg))
-    leaves = list(_leaves(data, keys))
-    nested: dict[str, Any] = {}
-    for key, value in leaves:
-        if key not in keys:
-            raise _unknown_key(key, keys)
-        *groups, leaf = key.split(".")
-        into = nested
-        for group in groups:
-            into = into.setdefault(group, {})
-        into[leaf] = value
-    base = OmegaConf.structured(cfg)
-    try:
-        conf = OmegaConf.merge(base, nested)  # in one merge: each merge copies the whole config
-    except OmegaConfBaseException as exc:
-        for key, value in leaves:  # the key whose value does not fit, for its line
-            try:
-                OmegaConf.update(base, key, value, merge=False)
-            except OmegaConfBaseException:
-                raise InputError(f"{key}={value!r}: expected {_describe_type(cfg, key)}") from exc
-        raise
-    result = OmegaConf.to_object(conf)
-    validate(result, machine=False)
-    return result
-
-
-def _leaves(data, keys: list[str], prefix: str = ""):
-    """(dotted key, value) for each leaf of a nested mapping; a group's keys come from its mapping."""
-    if not isinstance(data, dict):
-        example = next(k for k in keys if k.startswith(prefix))[len(prefix):]
-        raise InputError(f"{prefix.rstrip('.') or 'config'}={data!r}: expected a mapping of keys to values such as "
-                         f"{{{example}: ...}}")
-    for name, value in data.items():
-        key = f"{prefix}{name}"
-        if key not in keys and any(k.startswith(key + ".") for k in keys):
-            yield from _leaves(value, keys, key + ".")
-        else:
-            yield key, value
-
-
-def _unknown_key(key: str, keys: list[str]) -> InputError:
-    close = difflib.get_close_matches(key, keys, n=3, cutoff=0.5)
-    hint = f"; closest valid keys: {', '.join(close)}" if close else f"; valid keys: {', '.join(keys)}"
-    return InputError(f"unknown config key {key!r}{hint}")
-
-
-def _mapping_entry(cfg, key: str, keys: list[str]) -> bool:
-    """Whether ``key`` is an entry of a mapping key (``env_kwargs.size``): its name is the user's own."""
-    parent, _, name = key.rpartition(".")
-    return bool(name) and parent in keys and isinstance(_get(cfg, parent), dict)
-
-
-def _describe_type(cfg, key: str) -> str:
-    owner = cfg
-    *parents, leaf = key.split(".")
-    for p in parents:
-        owner = getattr(owner, p)
-    ftype = typing.get_type_hints(type(owner))[leaf]
-    text = getattr(ftype, "__name__", None) if isinstance(ftype, type) else str(ftype).replace("typing.", "")
-    names = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
-             "Optional[int]": "an integer or null", "int | None": "an integer or null",
-             "Optional[float]": "a number or null", "float | None": "a number or null", "List[int]": "a list of integers such as [256,256]",
-             "list[int]": "a list of integers such as [256,256]"}
-    return names.get(text, text)
-
-
-# --- to and from plain data -----------------------------------------------------------------------
-
-
-def config_to_dict(cfg) -> dict[str, Any]:
-    return dataclasses.asdict(cfg)
-
-
-def config_from_dict(cls: type, data: dict[str, Any]):
-    """Rebuild a config from ``config_to_dict`` output (e.g. a run's config.json), type-checked."""
-    try:
-        conf = OmegaConf.merge(OmegaConf.structured(cls), OmegaConf.create(data))
-    except OmegaConfBaseException as exc:
-        key = getattr(exc, "full_key", None) or "?"
-        raise InputError(f"config does not fit {cls.__name__}: key {key!r}: {str(exc).splitlines()[0]}") from exc
-    result = OmegaConf.to_object(conf)
-    validate(result, machine=False)  # a saved config may come from another machine: the overrides fix that
-    return result
 
 
 def field_docs(cls: type, prefix: str = "") -> dict[str, str]:
@@ -661,4 +513,8 @@ def field_docs(cls: type, prefix: str = "") -> dict[str, str]:
         ftype = hints[f.name]
         if dataclasses.is_dataclass(ftype):
             docs.update(field_docs(ftype, prefix + f.name + "."))
+        elif f.metadata.get("why"):  # an algorithm's own default of a key declared elsewhere (config_class)
+            value = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            docs[prefix + f.name] = (f"{docs.get(prefix + f.name, '')} (default {json.dumps(value)} here: "
+                                     f"{f.metadata['why']})").strip()
     return docs
