@@ -274,8 +274,9 @@ def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None) -> 
     net = [width, width]
     chosen = [f"{width}x{width}"]
     if facts.goal_env:
-        keys.update(normalize_observations=True)
-        chosen += ["gamma 0.95", "observations normalised", "HER"]
+        # RL-Zoo's VecNormalize for Fetch; not over an image among the entries, which its encoder scales itself
+        keys.update(normalize_observations=not facts.entry_images)
+        chosen += ["gamma 0.95", *(["observations normalised"] if not facts.entry_images else []), "HER"]
     if facts.image and algo == "dqn":  # after the encoder's convolutions: the Nature DQN's 512, the MinAtar paper's 128
         net = [512] if min(facts.observation_shape[1:]) >= NATURE_MIN_SIZE else [128]
         chosen = [f"a CNN then {net[0]}"]

@@ -212,3 +212,16 @@ def test_the_bench_launches_the_sized_default_with_a_cap_from_its_random_steps(t
     assert launch.cmd[launch.cmd.index("train") + 1:][:2] == ["sac", "env=Reacher-v5"]
     assert "num_iterations=4500" in launch.cmd  # 10,000 less the sized default's 1,000 random steps, two env steps an update
     assert "sized from the env" in launch.settings
+
+
+@pytest.mark.unit
+def test_a_goal_env_is_normalised_as_rl_zoos_fetch_unless_an_image_is_among_its_entries():
+    fetch = EnvFacts("FetchReach-v4", False, 16, 4, (-1.0,) * 4, (1.0,) * 4, 50, -48.6, 50.0, 2, (16,), True)
+    cfg, line = sized_config("sac", fetch)
+    assert cfg.normalize_observations and "observations normalised" in line and "HER" in line
+    camera = dataclasses.replace(fetch, observation_size=16 + 3 * 40 * 40, observation_shape=(16 + 3 * 40 * 40,),
+                                 entry_images=(("camera", (3, 40, 40)),))
+    cfg, line = sized_config("sac", camera)
+    assert not cfg.normalize_observations and "observations normalised" not in line
+    assert "image 'camera' 3x40x40 through a CNN" in line and "HER" in line
+    validate(cfg)
