@@ -60,15 +60,18 @@ a task"), written once for every env:
   plateau (the user's time is the run's length; the best policy is still the one exported).
 
 ``resolve_for_env`` is what ``rlpipe train`` asks first: for ``env=ID`` with no preset, or a tutorial preset
-(``sac``, ``td3``, ``dqn``) pointed at another env, the preset sized for that env and algorithm where one
-exists, else the sized default; for anything else, nothing (the preset as named).
+(``sac``, ``td3``, ``dqn``) pointed at another env, the settings of the preset sized for that env and algorithm
+where one exists, run for the sized default's length (``run_length``: its own is a benchmark's, to its target),
+else the sized default; for anything else, nothing (the preset as named).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass
+from typing import Any
 
 from rlpipe.modules.encoders import NATURE_MIN_SIZE
 from rlpipe.pipelines.config import CollectorConfig, TrainConfig, apply_overrides, duration_seconds, flat_keys
@@ -160,7 +163,7 @@ def _g(x: float) -> str:
 
 def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
     """The facts of the env ``cfg`` makes (``cfg.env``, as the pipeline makes it) and of this machine; with
-    ``play=False`` its spaces only (no time limit, no random agent: what the algorithm is chosen by)."""
+    ``play=False`` its spaces and time limit only (no random agent: what the algorithm is chosen by)."""
     from rlpipe.envs import goal_env, gym_env_under, is_discrete, observation_images
     from rlpipe.pipelines.own_parts import factory_and_env, observation_key_in
 
@@ -180,11 +183,19 @@ def measure(cfg: TrainConfig, *, play: bool = True) -> EnvFacts:
         gym_env = gym_env_under(env)
         goals = gym_env is not None and goal_env(gym_env)
         images = tuple((k, e.shape) for k, e in observation_images(gym_env).items()) if gym_env is not None else ()
-        limit, (ret, length) = _random_agent(env) if play else (None, (0.0, 0.0))
+        limit, (ret, length) = _random_agent(env) if play else (_time_limit(env), (0.0, 0.0))
     finally:
         env.close()
     return EnvFacts(cfg.env, discrete, obs, size, low, high, limit, ret, length, os.cpu_count() or 1, shape, goals,
                     images)
+
+
+def _time_limit(env) -> int | None:
+    """The max_episode_steps of the gymnasium env under ``make_env``'s env (None: none, or no gymnasium env)."""
+    from rlpipe.pipelines.workers.gym_collector import gym_env_of
+
+    gym_env = gym_env_of(env)
+    return getattr(getattr(gym_env, "spec", None), "max_episode_steps", None) if gym_env is not None else None
 
 
 def _random_agent(env) -> tuple[int | None, tuple[float, float]]:
@@ -196,8 +207,7 @@ def _random_agent(env) -> tuple[int | None, tuple[float, float]]:
     from rlpipe.pipelines.workers.gym_collector import gym_env_of
 
     gym_env = gym_env_of(env)
-    spec = getattr(gym_env, "spec", None) if gym_env is not None else None
-    limit = getattr(spec, "max_episode_steps", None)
+    limit = _time_limit(env)
     cap = limit or NO_TIME_LIMIT_STEPS
     returns, lengths = [], []
     if gym_env is not None:
@@ -234,6 +244,41 @@ def _round_up(x: float, unit: int) -> int:
     return int(math.ceil(x / unit) * unit)
 
 
+def _ceiling(facts: EnvFacts) -> tuple[int, int]:
+    """(horizon, ceiling) in env steps: the 100 episodes the schedules are sized to and the 1,000 a run may go
+    on to, of the time limit (of the random agent's episodes where the env has none), each at least 50,000 and at
+    most 1,000,000 env steps."""
+    episode = facts.time_limit or max(1, round(facts.random_episode_length))  # no limit: as long as it lasts
+    horizon = min(1_000_000, max(50_000, 100 * episode))
+    return horizon, max(horizon, min(1_000_000, CEILING_EPISODES * episode))
+
+
+def run_length(facts: EnvFacts, random_steps: int, per_update: int,
+               time_budget: str | None = None) -> tuple[dict[str, Any], str]:
+    """The keys that decide when a run on ``facts``'s env ends, for a run of ``random_steps`` random env steps and
+    ``per_update`` env steps an update, and the words that say so: the ceiling (``_ceiling``) with a replay buffer
+    that keeps it all, ended sooner by a plateau of the greedy evaluations (none with ``time_budget``: the budget
+    ends it), evaluations throughout, the best one's policy exported. What the sized default runs for, and what
+    ``rlpipe train env=ID`` gives the settings of a preset sized for that env (whose own length is a benchmark's,
+    to its target)."""
+    horizon, ceiling = _ceiling(facts)
+    iterations = (ceiling - random_steps) // per_update
+    keys = dict(num_iterations=iterations, replay_buffer_capacity=ceiling,
+                eval_interval=_eval_interval(iterations, per_update), log_interval=500 if ceiling <= 100_000 else 1000,
+                checkpoint_interval=min(25_000, iterations), policy_save_interval=iterations,
+                plateau=0.0 if time_budget else PLATEAU, keep_best=True,
+                plateau_min_iterations=min(iterations, (horizon - random_steps) // per_update))
+    return keys, _until(ceiling, time_budget)
+
+
+def _until(ceiling: int, time_budget: str | None) -> str:
+    if time_budget:
+        return (f"until the time budget {time_budget} or {ceiling:,} env steps (no plateau stop: the time is yours), "
+                "the best evaluation's policy exported")
+    return (f"until a plateau (no better greedy evaluation over the last {PLATEAU:.0%} of the run) or "
+            f"{ceiling:,} env steps, the best evaluation's policy exported")
+
+
 def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None) -> tuple[TrainConfig, str]:
     """The config the rule gives ``algo`` on the env of ``facts``, and one line saying what and why.
 
@@ -246,11 +291,9 @@ def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None) -> 
     Config = pipeline_class(algo).Config
     width = 64 if facts.observation_size <= 64 else min(256, 2 ** math.ceil(math.log2(facts.observation_size)))
     random_steps = min(5000, max(1000, _round_up(5 * facts.random_episode_length, 50)))
-    episode = facts.time_limit or max(1, round(facts.random_episode_length))  # no limit: as long as it lasts
     # the schedules (epsilon's decay) are sized to 100 episodes; the run may go on to the ceiling, ended
-    # before it by a plateau of its greedy evaluations
-    horizon = min(1_000_000, max(50_000, 100 * episode))
-    budget = max(horizon, min(1_000_000, CEILING_EPISODES * episode))
+    # before it by a plateau of its greedy evaluations (run_length)
+    horizon, budget = _ceiling(facts)
     big_body = not facts.discrete and facts.action_size >= 3
     one_actuator = not facts.discrete and facts.action_size == 1
     in_process = not big_body or facts.cpus < 2
@@ -262,14 +305,11 @@ def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None) -> 
     # goal envs: RL-Zoo's HER settings for Fetch (and the HER paper's short horizon): gamma 0.95, observations
     # normalised (their positions and velocities are of different scales), an update every env step
     gamma = 0.999 if whole_episodes else 0.95 if facts.goal_env else 0.99
-    iterations = (budget - random_steps) // per_update
+    length, until = run_length(facts, random_steps, per_update, time_budget)
     keys = dict(
-        env=facts.env, num_iterations=iterations, initial_collect_steps=random_steps, replay_buffer_capacity=budget,
-        initial_eval=False, baseline_episodes=0, live_report=not in_process, num_threads=1, num_eval_episodes=10,
-        eval_interval=_eval_interval(iterations, per_update), log_interval=500 if budget <= 100_000 else 1000,
-        checkpoint_interval=min(25_000, iterations), policy_save_interval=iterations, plateau=PLATEAU, keep_best=True,
-        plateau_min_iterations=min(iterations, (horizon - random_steps) // per_update),
-        collector=CollectorConfig(workers=1, sync=in_process),
+        env=facts.env, initial_collect_steps=random_steps, initial_eval=False, baseline_episodes=0,
+        live_report=not in_process, num_threads=1, num_eval_episodes=10,
+        collector=CollectorConfig(workers=1, sync=in_process), **length,
     )
     net = [width, width]
     chosen = [f"{width}x{width}"]
@@ -329,13 +369,9 @@ def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None) -> 
     if whole_episodes:
         chosen += [f"gamma {gamma:g} (random episodes run to the {facts.time_limit:,}-step limit)"]
     chosen += [f"{random_steps:,} random steps"]
-    if time_budget:
-        keys.update(plateau=0.0)
-        chosen += [f"until the time budget {time_budget} or {budget:,} env steps (no plateau stop: the time is "
-                   "yours), the best evaluation's policy exported"]
-    else:
-        chosen += [f"until a plateau (no better greedy evaluation over the last {PLATEAU:.0%} of the run) "
-                   f"or {budget:,} env steps, the best evaluation's policy exported"]
+    if facts.image and algo == "dqn":  # the image rule's own length (above)
+        until = _until(budget, time_budget)
+    chosen += [until]
     where = ("env in the learner's process" if in_process else
              f"env in a collector process ({facts.action_size} actuators; {facts.cpus} CPUs)")
     cfg = Config(**keys)
@@ -374,7 +410,8 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
 
     - no algorithm: SAC for a Box action space, DQN for a Discrete one;
     - then the preset sized for that env and algorithm if there is one (``sac env=Pendulum-v1`` trains
-      ``sac-pendulum``'s settings), else the sized default (``sized_config``).
+      ``sac-pendulum``'s settings, for the sized default's length: ``run_length``), else the sized default
+      (``sized_config``).
 
     With ``resume``, nothing is sized: the run's saved config is what it goes on with.
     """
@@ -407,21 +444,27 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
         first = []
     if resume:
         return Resolved(algo, resolve_preset(algo)[1], overrides, [], f"preset {algo}")
+    budget = next((o.partition("=")[2].strip() for o in reversed(overrides) if _key(o) == "time_budget"), None)
+    budget = budget if budget is not None and duration_seconds(budget) else None  # null; a bad one: its own line
     fits = [p for p in presets.names() if _same_env(getattr(presets.info(p), "env", None) or "", wanted.env)
             and preset_info(p).sized and resolve_preset(p)[0] == algo]
     if fits:
-        info = preset_info(fits[0])
+        # the preset's learning settings; its length is a benchmark's, to its target: the run's own is the sized
+        # default's, ended by the user's target, time budget, a plateau or the ceiling
+        info, cfg = preset_info(fits[0]), resolve_preset(fits[0])[1]
+        facts = measure(wanted, play=False)
+        if facts.time_limit is None:  # the ceiling counts the random agent's episodes instead
+            facts = measure(wanted)
+        length, until = run_length(facts, cfg.initial_collect_steps, cfg.collect_steps_per_iteration, budget)
+        cfg = dataclasses.replace(cfg, **length)
         line = (f"rlpipe: {algo} on {wanted.env}: the settings of preset {fits[0]!r} ({info.task}), the preset "
-                f"sized for this env (`rlpipe train {fits[0]}`)")
-        return Resolved(algo, resolve_preset(fits[0])[1], overrides, [*first, line], f"preset {fits[0]}, sized for "
-                        f"{wanted.env}")
+                f"sized for this env, {until} (`rlpipe train {fits[0]}` runs the preset as it is)")
+        return Resolved(algo, cfg, overrides, [*first, line], f"preset {fits[0]}, sized for {wanted.env}")
     if algo not in SIZED_ALGOS:
         return None  # CrossQ: its tutorial preset and the hint of what sizes a run
     kind = kind or measure(wanted, play=False)
     if kind.discrete != (pipeline_class(algo).action_space == "discrete"):
         return None  # the pipeline says, in its own line, which action space the algorithm needs
-    budget = next((o.partition("=")[2].strip() for o in reversed(overrides) if _key(o) == "time_budget"), None)
-    budget = budget if budget is not None and duration_seconds(budget) else None  # null; a bad one: its own line
     cfg, line = sized_config(algo, measure(wanted), time_budget=budget)
     return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"], f"sized for {wanted.env} (pipelines/sizing.py)")
 

@@ -113,6 +113,32 @@ def test_a_tutorial_preset_on_a_sized_env_trains_that_envs_sized_preset_and_says
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["iterations"] == 20
 
 
+
+def test_an_env_with_a_sized_preset_trains_its_settings_until_the_users_stop_not_the_presets_length(capfd):
+    """`rlpipe train env=HalfCheetah-v5`: sac-halfcheetah-100k's learning settings, but not its 100,000 env steps (a
+    benchmark's length, to its target): the sized default's ceiling of 1,000,000, ended sooner by a plateau or by the
+    user's time budget, the best evaluation's policy exported. The preset by name stays as written."""
+    from rlpipe.scripts.cli import main
+
+    def keys(*args: str) -> tuple[dict[str, str], str]:
+        capfd.readouterr()
+        assert main(["train", *args, "--keys"]) == 0
+        out, err = capfd.readouterr()
+        return dict(line.split("=", 1) for line in out.splitlines() if "=" in line and not line.startswith(" ")), err
+
+    preset = resolve_preset("sac-halfcheetah-100k")[1]
+    got, err = keys("env=HalfCheetah-v5")
+    steps = preset.initial_collect_steps + int(got["num_iterations"]) * preset.collect_steps_per_iteration
+    assert 999_000 <= steps <= 1_000_000 and got["replay_buffer_capacity"] == "1000000"
+    assert (got["plateau"], got["keep_best"], got["actor_learning_rate"]) == ("0.5", "true", json.dumps(
+        preset.actor_learning_rate))
+    assert "'sac-halfcheetah-100k'" in err and "until a plateau" in err and "1,000,000 env steps" in err
+    budgeted, err = keys("env=HalfCheetah-v5", "time_budget=10m")
+    assert budgeted["plateau"] == "0.0" and budgeted["num_iterations"] == got["num_iterations"]
+    assert "until the time budget 10m" in err
+    as_named, _ = keys("sac-halfcheetah-100k")
+    assert int(as_named["num_iterations"]) == preset.num_iterations
+
 def test_a_sized_preset_on_an_env_no_preset_knows_gets_the_keys_that_size_a_run(capfd):
     from rlpipe.scripts.cli import main
 
