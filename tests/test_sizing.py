@@ -11,7 +11,7 @@ import pytest
 
 from rlpipe.pipelines import resolve_preset
 from rlpipe.pipelines.config import TrainConfig, apply_overrides, validate
-from rlpipe.pipelines.sizing import EnvFacts, measure, resolve_for_env, sized_config
+from rlpipe.pipelines.sizing import EnvFacts, measure, resolve_for_env, run_length, sized_config
 from rlpipe.scripts.bench import time_to_return as ttr
 
 REACHER = EnvFacts("Reacher-v5", False, 10, 2, (-1.0, -1.0), (1.0, 1.0), 50, -42.7, 50.0, 2)
@@ -155,8 +155,11 @@ def test_a_tutorial_preset_on_its_own_env_stays_the_tutorial():
     assert resolve_for_env("sac", ["env=rlpipe/MinitaurBullet-v0"]) is None  # the same env by its registered id
     assert resolve_for_env("sac-pendulum", ["env=Reacher-v5"]) is None  # a sized preset named: as named
     assert resolve_for_env("td3", ["env=Pendulum-v1"]) is None  # the TD3 tutorial's own env
-    cartpole = resolve_for_env("dqn", ["env=CartPole-v1"])  # the env's sized preset of that algorithm
-    assert cartpole.config == resolve_preset("dqn-cartpole-v1-fast")[1] and "dqn-cartpole-v1-fast" in cartpole.lines[0]
+    cartpole = resolve_for_env("dqn", ["env=CartPole-v1"])  # the env's sized preset of that algorithm: its settings,
+    preset = resolve_preset("dqn-cartpole-v1-fast")[1]  # for the sized default's length (sizing.run_length)
+    length, _ = run_length(measure(preset, play=False), preset.initial_collect_steps, preset.collect_steps_per_iteration)
+    assert cartpole.config == dataclasses.replace(preset, **length) and "dqn-cartpole-v1-fast" in cartpole.lines[0]
+    assert cartpole.config.num_iterations > preset.num_iterations and cartpole.config.keep_best
 
 
 def _train(tmp_path, capfd, *argv):

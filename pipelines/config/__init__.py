@@ -25,6 +25,7 @@ from rlpipe.pipelines.config.schema import (
     NON_NEGATIVE,
     POSITIVE,
     PROBABILITY,
+    WORKERS_PER_CPU,
     ActorKeys,
     BackendNeeds,
     Check,
@@ -90,4 +91,5 @@ __all__ = [
     "steps_in_learner",
     "TrainConfig",
     "validate",
+    "WORKERS_PER_CPU",
 ]

@@ -55,6 +55,7 @@ __all__ = [
     "PresetInfo",
     "RayConfig",
     "TrainConfig",
+    "WORKERS_PER_CPU",
     "checked",
     "config_class",
     "duration_seconds",
