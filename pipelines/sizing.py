@@ -452,7 +452,7 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
         # the preset's learning settings; its length is a benchmark's, to its target: the run's own is the sized
         # default's, ended by the user's target, time budget, a plateau or the ceiling
         info, cfg = preset_info(fits[0]), resolve_preset(fits[0])[1]
-        facts = measure(wanted, play=False)
+        facts = kind or measure(wanted, play=False)  # the spaces and time limit, measured once
         if facts.time_limit is None:  # the ceiling counts the random agent's episodes instead
             facts = measure(wanted)
         length, until = run_length(facts, cfg.initial_collect_steps, cfg.collect_steps_per_iteration, budget)
