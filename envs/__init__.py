@@ -165,13 +165,15 @@ def make_env(
             )
             base = GymWrapper(vector, device=device, categorical_action_encoding=True)
         else:
-            if own:  # TorchRL's GymEnv would hand its own keywords (frameskip) to the user's constructor
-                base = GymWrapper(gymnasium.make(gym_id, **gym_kwargs), device=device, categorical_action_encoding=True)
+            if own:  # TorchRL's GymEnv would hand its own keywords (frameskip) to the user's constructor;
+                # wrapped before TorchRL reads its spaces, which it cannot for some (a uint16 Box)
+                base = GymWrapper(readable(gymnasium.make(gym_id, **gym_kwargs)), device=device,
+                                  categorical_action_encoding=True)
             else:
                 base = GymEnv(gym_id, device=device, categorical_action_encoding=True, **gym_kwargs)
-            flat = readable(base._env)
-            if flat is not base._env:
-                base = GymWrapper(flat, device=device, categorical_action_encoding=True)
+                flat = readable(base._env)
+                if flat is not base._env:
+                    base = GymWrapper(flat, device=device, categorical_action_encoding=True)
     transforms = [StepCounter(), RewardSum(), InitTracker()]
     if _has_float64(base):
         # Only where there is something to convert: with nothing to convert (CartPole, Pendulum,
@@ -230,8 +232,9 @@ def _flat_observations(env: gymnasium.Env, gym_id: str, observation_keys: list[s
     or Discrete actions.
 
     A flat float Box comes back as it is. A Dict becomes one float vector of its entries (``DictObservation``:
-    images among them joined channels first, read by an encoder; a Dict holding only an image is that image). An image (an integer or bool Box of 2 or 3 dimensions)
-    stays integer, channels first, ``frame_stack`` frames deep (``ImageObservation``). Discrete,
+    images among them joined channels first, read by an encoder; a Dict holding only an image is that image).
+    An image (``is_image``: a Box of 2 or 3 dimensions whose values fit in a byte) stays uint8, channels first,
+    ``frame_stack`` frames deep (``ImageObservation``). Discrete,
     MultiDiscrete, MultiBinary and Tuples of them (FrozenLake's Discrete(16), Blackjack's Tuple) and other
     Boxes become one flat float32 vector through gymnasium's ``FlattenObservation`` (one-hot for the
     discrete parts).

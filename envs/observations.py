@@ -9,9 +9,9 @@
   a robot's joint angles, MiniGrid's view beside its direction) is joined too, channels first, in its own
   units; its ``images`` entry (shape and scale) tells the networks' ``DictEncoder`` to read that span through
   a convolutional encoder. Joined so, it is stored as float32 (4 bytes a pixel) and not frame-stacked.
-* **Images** (a uint8 or bool Box of HxW, HxWxC or CxHxW): kept as integers, channels first, the last
-  ``frame_stack`` frames stacked on the channel axis (``ImageObservation``): ``uint8 [frame_stack * C, H, W]``.
-  A convolutional encoder (``rlpipe.modules.encoders``) reads it.
+* **Images** (a bool Box, or an integer one bounded in [0, 255], of HxW, HxWxC or CxHxW): kept as uint8,
+  channels first, the last ``frame_stack`` frames stacked on the channel axis (``ImageObservation``):
+  ``uint8 [frame_stack * C, H, W]``. A convolutional encoder (``rlpipe.modules.encoders``) reads it.
 * **Atari** (``ALE/...`` ids): gymnasium's ``AtariPreprocessing`` as CleanRL's and SB3's Atari wrappers set
   it up (no-op reset up to 30, frame skip 4 with max-pooling, 84x84 grey), before the frames are stacked;
   every life starts with FIRE pressed where the game has it (``FireOnLifeStart``), and in training a lost
@@ -50,9 +50,14 @@ _VECTOR_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.Mult
 
 
 def is_image(space: spaces.Space) -> bool:
-    """An integer or boolean Box of 2 or 3 dimensions: a picture (a float Box of that shape is a matrix)."""
-    return (isinstance(space, spaces.Box) and len(space.shape) in (2, 3)
-            and (np.issubdtype(space.dtype, np.integer) or space.dtype == np.bool_))
+    """A Box of 2 or 3 dimensions whose values fit in a byte (bool, or integers bounded in [0, 255]): a picture,
+    stored and exported as uint8. Any other Box of that shape (floats, a uint16 depth camera, signed integers) is a
+    matrix, flattened into the vector the networks read, as SB3 reads every Box but a uint8 one."""
+    if not isinstance(space, spaces.Box) or len(space.shape) not in (2, 3):
+        return False
+    if space.dtype == np.bool_:
+        return True
+    return bool(np.issubdtype(space.dtype, np.integer) and np.all(space.low >= 0) and np.all(space.high <= 255))
 
 
 def image_space(space: spaces.Box) -> tuple[int, int, int]:

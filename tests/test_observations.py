@@ -150,6 +150,32 @@ class Camera(gymnasium.Env):
         return self._obs(), 0.0, False, self.t >= 5, {}
 
 
+class Depth(gymnasium.Env):
+    """A uint16 depth camera (millimetres, up to 4,000: past a byte) alone, or beside a joint angle."""
+
+    def __init__(self, beside=False):
+        depth = spaces.Box(0, 4000, (6, 6), np.uint16)
+        self.observation_space = spaces.Dict(depth=depth, joint=spaces.Box(-1.0, 1.0, (1,), np.float32)) if beside else depth
+        self.action_space = spaces.Discrete(2)
+
+    def _obs(self):
+        depth = np.full((6, 6), 3000, np.uint16)
+        depth[0, 0] = 260
+        return {"depth": depth, "joint": np.zeros(1, np.float32)} if isinstance(self.observation_space, spaces.Dict) else depth
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        return self._obs(), {}
+
+    def step(self, action):
+        return self._obs(), 0.0, False, True, {}
+
+
+class DepthBeside(Depth):
+    def __init__(self):
+        super().__init__(beside=True)
+
+
 class Lives:
     def __init__(self, game):
         self.game = game
@@ -348,6 +374,37 @@ def _layers(env):
     while env is not None:
         yield env
         env = getattr(env, "env", None)
+
+
+def test_a_box_whose_values_do_not_fit_in_a_byte_is_read_as_a_matrix_not_wrapped_into_an_image(envs_module, tmp_path):
+    """An image is stored and exported as uint8; a uint16 depth camera's 3,000 mm would wrap to 184. It is read
+    as SB3 reads it (every Box but a uint8 one): flattened into the float vector, its values as the env gives them."""
+    from gymnasium import spaces
+
+    from rlpipe.envs.observations import is_image, observation_images
+    from rlpipe.pipelines.artifacts.export import export_policy
+
+    alone = make_env(f"{envs_module}:Depth", seed=0)
+    assert alone.observation_spec["observation"].dtype == torch.float32
+    values = alone.reset()["observation"]
+    assert values.shape == (36,) and values[0] == 260 and values[1] == 3000
+    beside = make_env(f"{envs_module}:DepthBeside", seed=0)
+    values = beside.reset()["observation"]
+    assert values.shape == (37,) and values[0] == 260 and values[35] == 3000
+    assert observation_images(gym_env_under(beside)) == {}  # no CNN span: the depth is a vector entry
+    cfg = dqn.preset("dqn")
+    cfg.env = f"{envs_module}:DepthBeside"
+    pipeline = dqn.DQN(cfg)
+    export_policy(pipeline.exported_policy(), pipeline.observation_shape, tmp_path, pipeline.export_info(),
+                  entries=pipeline.observation_entries(), images=pipeline.observation_entry_images())
+    policy, _ = load_policy(tmp_path)  # takes the env's own Dict, the matrix entry as the env gives it
+    raw = gym_env_under(beside).unwrapped._obs()
+    with torch.no_grad():
+        expected = pipeline.exported_policy()(values.unsqueeze(0))[0]
+    assert json.loads((tmp_path / "policy.json").read_text())["inputs"] == {"depth": [36], "joint": [1]}
+    assert policy(raw) == expected.item() and policy({k: np.stack([v, v]) for k, v in raw.items()}).shape == (2,)
+    assert is_image(spaces.Box(0, 255, (6, 6), np.uint8)) and is_image(spaces.Box(0, 1, (6, 6, 4), bool))
+    assert is_image(spaces.Box(0, 9, (6, 6), np.int64)) and not is_image(spaces.Box(-1, 9, (6, 6), np.int64))
 
 
 def test_small_images_get_the_small_encoder():

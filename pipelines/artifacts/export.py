@@ -257,6 +257,16 @@ def _check_same_actions(module: nn.Module, onnx_model: bytes,
 # --- loading -----------------------------------------------------------------------------------------
 
 
+def _trailing(shape: tuple[int, ...], size: int) -> tuple[int, ...]:
+    """The trailing axes of a vector entry's ``shape`` that hold its ``size`` values (a matrix Box's two, a vector's
+    one); what comes before them is the batch."""
+    held, axes = 1, 0
+    while axes < len(shape) and (held < size or axes == 0):
+        axes += 1
+        held *= shape[-axes]
+    return tuple(shape[len(shape) - axes:])
+
+
 class ExportedPolicy(nn.Module):
     """An exported policy as a module: observations ``[D]`` or ``[..., D]`` -> actions, without grad.
 
@@ -295,13 +305,14 @@ class ExportedPolicy(nn.Module):
         first = observation[next(iter(self.entry_sizes))]
         as_numpy = not isinstance(first, torch.Tensor)
         parts, batch = [], None
-        for name in self.entry_sizes:
+        for name, size in self.entry_sizes.items():
+            image = name in self.entry_images
             part = observation[name]
-            part = torch.as_tensor(np.asarray(part) if as_numpy else part)
-            shape = self.entry_images[name][0] if name in self.entry_images else (part.shape[-1],)
+            part = torch.as_tensor(np.asarray(part, dtype=np.uint8 if image else np.float32) if as_numpy else part)
+            shape = self.entry_images[name][0] if image else _trailing(part.shape, size)
             if batch is None:
                 batch = part.shape[:part.ndim - len(shape)]
-            parts.append(part.reshape(-1, *shape).to(torch.uint8 if name in self.entry_images else torch.float32).cpu())
+            parts.append(part.reshape(-1, *(shape if image else (size,))).to(torch.uint8 if image else torch.float32).cpu())
         with torch.no_grad():
             action = self.act_entries(parts)
         action = action.reshape((*batch, *action.shape[1:])).to(first.device if not as_numpy else "cpu")
