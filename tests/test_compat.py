@@ -1,9 +1,11 @@
 """The version workarounds in ``pipelines/compat/`` still do their job on the installed versions: each
 check fails when an upgrade changes what a workaround relies on (then delete or adapt that workaround)."""
 
+import inspect
 import os
 import signal
 import socket
+from datetime import timedelta
 
 import pytest
 import torch
@@ -13,7 +15,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from rlpipe.pipelines.artifacts.checkpoint import load_replay_buffer, replay_buffer_state
 from rlpipe.pipelines.compat.ray import check_reachable, stop_signals_kept
 from rlpipe.pipelines.compat.torch import stderr_kept_on_success
-from rlpipe.pipelines.compat.torchrl import write_cursor
+from rlpipe.pipelines.compat.torchrl import ray_weight_sync_deadline, write_cursor
 
 
 def test_a_full_replay_buffer_saves_oldest_first_so_fifo_eviction_resumes_in_order():
@@ -58,3 +60,22 @@ def test_an_address_where_nothing_listens_is_refused_at_once():
         port = s.getsockname()[1]
     with pytest.raises(ConnectionError, match="nothing listens"):
         check_reachable(f"127.0.0.1:{port}")
+
+
+def test_the_ray_weight_sync_waits_as_long_as_a_workers_start_up_may():
+    """TorchRL 0.14's RayWeightSyncScheme gives the learner and each collector actor 60 s to join its Gloo group
+    (``_DIST_TIMEOUT``, read when each side connects): an actor still importing TorchRL a minute in, on a machine
+    whose cores another job holds, would end the run with ``DistStoreError``. ``ray_weight_sync_deadline`` (called
+    by the Ray backend in the learner and by each actor with the run's start-up deadline, at least 300 s) sets
+    it; this fails when an upgrade moves that deadline."""
+    from torchrl.weight_update import _ray
+
+    source = inspect.getsource(_ray)
+    assert source.count("timeout=_DIST_TIMEOUT") >= 2  # the learner's store and each actor's, read at connect time
+    assert source.count("ProcessGroupGloo(") == source.count("world_size, _DIST_TIMEOUT")  # and each Gloo group
+    before = _ray._DIST_TIMEOUT
+    try:
+        ray_weight_sync_deadline(300)
+        assert _ray._DIST_TIMEOUT == timedelta(seconds=300)
+    finally:
+        _ray._DIST_TIMEOUT = before

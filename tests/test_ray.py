@@ -7,7 +7,6 @@ started can be found (and must be gone) after it exits.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import csv
 import json
@@ -133,31 +132,6 @@ def test_default_starts_a_local_ray_instance_and_a_killed_evaluator_actor_is_rep
 
 
 @pytest.mark.slow
-def test_an_actor_that_joins_the_weight_sync_more_than_a_minute_late_does_not_end_the_run(tmp_path):
-    """On a machine whose cores another job holds, a Ray actor can take more than a minute to join the learner's
-    weight sync, where TorchRL 0.14 waits 60 s and raises ``DistStoreError``; the run waits as long as any start-up
-    of workers may (at least 300 s). Each actor is held (SIGSTOP) where it is about to join, and let go 75 s
-    later: the run finishes as usual."""
-    held: dict[int, float] = {}  # pid -> when the actor was first seen held
-
-    def watch(sid: int) -> None:
-        now = time.monotonic()
-        for p in Path("/proc").glob("[0-9]*"):
-            if _session(p) == sid and _cmdline(p).startswith("ray::WorkerSnapshotCollector") and _state(p) == "T":
-                held.setdefault(int(p.name), now)
-        for pid, since in held.items():
-            if now - since > 75:
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, signal.SIGCONT)
-
-    proc, sid = train(["td3", *TINY, "collector.sync=true", "ray.address=", "--out", "run"], tmp_path,
-                      env={"RLPIPE_FAULT": "ray_weight_connect@0:SIGSTOP:self"}, watch=watch)
-    assert_finished(tmp_path / "run", proc)
-    assert len(held) == 2, held  # both actors were held there
-    assert_no_leftovers(sid)
-
-
-@pytest.mark.slow
 def test_ctrl_c_with_an_evaluation_on_the_ray_actor_saves_it_as_owed(tmp_path):
     """Ctrl-C to the whole process group of a run on a local Ray instance, just after the evaluation at 150 was
     sent to the actor: exit 130 saying how to resume, and the local Ray stopped with the run; the actor, deaf
@@ -261,13 +235,6 @@ def _parent(proc_dir: Path) -> int | None:
         return int((proc_dir / "stat").read_text().rsplit(")", 1)[1].split()[1])
     except (OSError, IndexError, ValueError):
         return None
-
-
-def _state(proc_dir: Path) -> str:
-    try:
-        return (proc_dir / "stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return ""
 
 
 def _session(proc_dir: Path) -> int | None:

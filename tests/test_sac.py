@@ -201,50 +201,6 @@ def test_discrete_env_is_rejected():
     assert "continuous" in message and "Box" in message and "CartPole-v1" in message
 
 
-# --- it learns ---------------------------------------------------------------------------------------
-
-
-LEARN = [
-    "env=Pendulum-v1", "seed=0", "num_iterations=3000", "initial_collect_steps=1000",
-    "replay_buffer_capacity=100000", "actor_fc_layer_params=[64,64]", "critic_joint_fc_layer_params=[64,64]",
-    "actor_learning_rate=1e-3", "critic_learning_rate=1e-3", "alpha_learning_rate=1e-3",
-    "collector.workers=1", "collector.sync=true", "eval_in_background=false",
-    "eval_interval=0", "num_eval_episodes=5", "log_interval=1000",
-    "checkpoint_interval=100000", "policy_save_interval=100000",
-]
-
-
-@pytest.mark.slow
-def test_sac_learns_pendulum(run_dir):
-    # Tried on seeds 0-3: after 3000 updates every one evaluated between -100 and -260 (random and
-    # the untrained policy: -1100 to -1700); the threshold leaves room for another CPU's numerics.
-    cfg = apply_overrides(sac.preset("sac"), LEARN)
-    result = sac.SAC(cfg).train(run_dir, progress=False)
-    first, last = result.evaluations[0], result.evaluations[-1]
-    assert first["step"] == 0 and first["average_return"] < -900, first
-    assert last["step"] == 3000
-    assert last["average_return"] > -500, f"SAC did not learn Pendulum-v1: {last['average_return']:.0f}"
-    # the temperature was learned: it moved from its initial 1
-    alphas = [float(r["loss_alpha_value"]) for r in result.metrics if r.get("loss_alpha_value")]
-    assert alphas and alphas[-1] < 0.9
-    # the exported (deterministic) policy acts as well in gymnasium's own env
-    policy = torch.export.load(run_dir / "policy" / "policy.pt2").module()
-    env = gymnasium.make("Pendulum-v1")
-    returns = []
-    for episode in range(3):
-        obs, _ = env.reset(seed=200 + episode)
-        total, done = 0.0, False
-        while not done:
-            with torch.no_grad():
-                action = policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0].numpy()
-            assert -2.0 <= action[0] <= 2.0
-            obs, reward, terminated, truncated, _ = env.step(action)
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
-    assert np.mean(returns) > -500, returns
-
-
 # --- Ctrl-C during an update ------------------------------------------------------------------------
 
 

@@ -110,8 +110,10 @@ def ray_weight_sync_deadline(seconds: float) -> None:
 
     from torchrl.weight_update import _ray
 
-    if getattr(_ray, "_DIST_TIMEOUT", None) is not None:
-        _ray._DIST_TIMEOUT = timedelta(seconds=seconds)
+    if not isinstance(getattr(_ray, "_DIST_TIMEOUT", None), timedelta):  # tests/test_compat.py checks it too
+        raise RuntimeError("torchrl.weight_update._ray._DIST_TIMEOUT is gone in this TorchRL: adapt "
+                           "rlpipe.pipelines.compat.torchrl.ray_weight_sync_deadline to its weight sync's timeout")
+    _ray._DIST_TIMEOUT = timedelta(seconds=seconds)
 
 
 def set_model_version(scheme, version: int) -> None:

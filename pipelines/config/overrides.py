@@ -22,7 +22,8 @@ __all__ = ["apply_mapping", "apply_overrides", "config_from_dict", "config_to_di
 def apply_overrides(cfg, overrides: list[str]):
     """Return a copy of ``cfg`` with ``key=value`` overrides applied, type-checked and validated."""
     keys = flat_keys(type(cfg))
-    conf = OmegaConf.structured(cfg)
+    base = OmegaConf.structured(cfg)
+    items = []
     for item in overrides:
         key, sep, value = item.partition("=")
         key = key.strip()
@@ -33,11 +34,16 @@ def apply_overrides(cfg, overrides: list[str]):
             raise _unknown_key(key, keys)
         if not entry and not value.strip() and _describe_type(cfg, key) == "a string":
             value = "''"  # `ray.address=`: the empty string (OmegaConf reads an empty value as null)
-        try:
-            conf = OmegaConf.merge(conf, OmegaConf.from_dotlist([f"{key}={value}"]))
-        except OmegaConfBaseException as exc:
-            expected = _describe_type(cfg, key)
-            raise InputError(f"{key}={value!r}: expected {expected}") from exc
+        items.append((key, value))
+    try:  # in one merge: each merge copies the whole config (~15 ms a merge here)
+        conf = OmegaConf.merge(base, OmegaConf.from_dotlist([f"{key}={value}" for key, value in items]))
+    except OmegaConfBaseException as exc:
+        conf = base
+        for key, value in items:  # one at a time: the first override whose value does not fit, for its line
+            try:
+                conf = OmegaConf.merge(conf, OmegaConf.from_dotlist([f"{key}={value}"]))
+            except OmegaConfBaseException:
+                raise InputError(f"{key}={value!r}: expected {_describe_type(cfg, key)}") from exc
     result = OmegaConf.to_object(conf)
     validate(result)
     return result
