@@ -167,3 +167,29 @@ def pytest_runtest_teardown(item, nextitem):
                                  or "ray_cluster" not in nextitem.fixturenames):
         cluster, _cluster = _cluster, None
         cluster.shutdown()
+
+
+@pytest.fixture
+def play():
+    """``play(policy_pt2, env_id, episodes, seed)``: each episode's return of an exported ``policy.pt2`` acting
+    greedily in gymnasium's own env (episode ``i`` reset with ``seed + i``); every action is checked to lie in the
+    env's action space."""
+    def run(policy_path, env_id: str, episodes: int, seed: int) -> list[float]:
+        import gymnasium
+
+        policy = torch.export.load(str(policy_path)).module()
+        env, returns = gymnasium.make(env_id), []
+        for episode in range(episodes):
+            obs, _ = env.reset(seed=seed + episode)
+            total, done = 0.0, False
+            while not done:
+                with torch.no_grad():
+                    action = policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0].numpy()
+                assert env.action_space.contains(action), action
+                obs, reward, terminated, truncated, _ = env.step(action)
+                total, done = total + float(reward), terminated or truncated
+            returns.append(total)
+        env.close()
+        return returns
+
+    return run

@@ -10,7 +10,6 @@ import json
 import subprocess
 import sys
 
-import gymnasium
 import numpy as np
 import pytest
 import torch
@@ -292,24 +291,6 @@ def test_cli_trains_crossq_and_lists_its_keys(tmp_path):
 # --- it learns ---------------------------------------------------------------------------------------------
 
 
-def _play(policy_path, env_id: str, episodes: int) -> float:
-    policy = torch.export.load(str(policy_path)).module()
-    env = gymnasium.make(env_id)
-    returns = []
-    for episode in range(episodes):
-        obs, _ = env.reset(seed=300 + episode)
-        total, done = 0.0, False
-        while not done:
-            with torch.no_grad():
-                action = policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0].numpy()
-            obs, reward, terminated, truncated, _ = env.step(action)
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
-    env.close()
-    return float(np.mean(returns))
-
-
 LEARN = ["initial_eval=true", "eval_interval=500", "num_eval_episodes=5", "log_interval=500", "checkpoint_interval=100000",
          "policy_save_interval=100000", "num_threads=1"]
 
@@ -326,7 +307,7 @@ def stop_past(bar: float) -> IntervalTrigger:
 
 
 @pytest.mark.slow
-def test_crossq_learns_pendulum(run_dir):
+def test_crossq_learns_pendulum(run_dir, play):
     # Its evaluations swing between updates (as SAC's do on Pendulum): the check is that it got well past
     # random (-1200 to -1600) and that the policy it ends with is too. Tried with the preset's 64x64 networks
     # and LeanCrossQLoss (evaluations every 500, 2026-11-27): the best evaluation by 5000 updates on seeds
@@ -339,4 +320,4 @@ def test_crossq_learns_pendulum(run_dir):
     returns = [e["average_return"] for e in result.evaluations]
     assert result.evaluations[0]["step"] == 0 and returns[0] < -900, returns
     assert max(returns[1:]) >= -600, f"CrossQ did not learn Pendulum-v1 by 5,000 updates: {returns}"
-    assert _play(run_dir / "policy" / "policy.pt2", "Pendulum-v1", 3) > -1100
+    assert np.mean(play(run_dir / "policy" / "policy.pt2", "Pendulum-v1", 3, seed=300)) > -1100

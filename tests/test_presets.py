@@ -12,9 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import gymnasium
 import pytest
-import torch
 import yaml
 
 import rlpipe.envs  # noqa: F401  (registers MinitaurBulletEnv-v0)
@@ -191,7 +189,7 @@ def test_a_sized_preset_starts_training_without_the_untrained_evaluation(tmp_pat
 
 
 @pytest.mark.slow
-def test_sac_pendulum_learns_within_a_few_thousand_steps(tmp_path):
+def test_sac_pendulum_learns_within_a_few_thousand_steps(tmp_path, play):
     # ~3,400-4,200 env steps reach -200 in the tries (BENCHMARKS.md); -400 on a 10-episode greedy
     # evaluation at 4,000 updates (9,000 env steps: 2 a update) leaves room for seeds that are slower.
     # Also SAC's own checks: the temperature is learned, and the exported (deterministic) policy acts as well
@@ -202,18 +200,7 @@ def test_sac_pendulum_learns_within_a_few_thousand_steps(tmp_path):
     assert result.summary["final_average_return"] > -400, result.summary
     alphas = [float(r["loss_alpha_value"]) for r in result.metrics if r.get("loss_alpha_value")]
     assert alphas and abs(alphas[-1] - cfg.initial_alpha) > 0.1 * cfg.initial_alpha, (cfg.initial_alpha, alphas[-3:])
-    policy = torch.export.load(tmp_path / "run" / "policy" / "policy.pt2").module()
-    env, returns = gymnasium.make("Pendulum-v1"), []
-    for episode in range(3):
-        obs, _ = env.reset(seed=200 + episode)
-        total, done = 0.0, False
-        while not done:
-            with torch.no_grad():
-                action = policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0].numpy()
-            assert -2.0 <= action[0] <= 2.0
-            obs, reward, terminated, truncated, _ = env.step(action)
-            total, done = total + reward, terminated or truncated
-        returns.append(total)
+    returns = play(tmp_path / "run" / "policy" / "policy.pt2", "Pendulum-v1", 3, seed=200)  # actions within [-2, 2]
     assert sum(returns) / 3 > -600, returns
 
 

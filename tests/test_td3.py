@@ -12,7 +12,6 @@ import subprocess
 import sys
 import textwrap
 
-import gymnasium
 import numpy as np
 import pytest
 import torch
@@ -263,7 +262,7 @@ LEARN = [
 
 
 @pytest.mark.slow
-def test_td3_learns_pendulum_and_exports_a_torch_only_policy(run_dir):
+def test_td3_learns_pendulum_and_exports_a_torch_only_policy(run_dir, play):
     # The td3-pendulum preset to its target (-200), seed 0 on this 2-core machine: evaluations -663 at 500
     # updates, -117 at 1,000, the target's recheck at 1,800 (~20 s); the untrained policy's first: < -900.
     cfg = apply_overrides(td3.preset("td3-pendulum"), LEARN)
@@ -300,19 +299,6 @@ def test_td3_learns_pendulum_and_exports_a_torch_only_policy(run_dir):
     assert info["shape"] == [1000, 1]
     assert -2.0 <= info["min"] and info["max"] <= 2.0
 
-    policy = torch.export.load(run_dir / "policy" / "policy.pt2").module()
-    env = gymnasium.make("Pendulum-v1")
-    returns = []
-    for episode in range(3):
-        obs, _ = env.reset(seed=100 + episode)
-        total, done = 0.0, False
-        while not done:
-            with torch.no_grad():
-                action = policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0].numpy()
-            assert action.shape == (1,) and -2.0 <= action[0] <= 2.0
-            obs, reward, terminated, truncated, _ = env.step(action)
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
+    returns = play(run_dir / "policy" / "policy.pt2", "Pendulum-v1", 3, seed=100)  # each action of shape (1,) in [-2, 2]
     assert np.mean(returns) > -400, returns
     assert json.loads((run_dir / "policy" / "policy.json").read_text())["action"] == "continuous"
