@@ -45,6 +45,7 @@ from rlpipe.envs.observations import (
     observation_images,
     observation_layout,
     register_optional_families,
+    wrapper_of,
 )
 
 __all__ = [
@@ -324,12 +325,8 @@ def gym_env_under(env: EnvBase) -> gymnasium.Env | None:
 def image_scale(env: EnvBase) -> float | None:
     """What one unit of ``env``'s image observation is as a fraction of full brightness (1/255 for uint8
     pictures, 1 for 0/1 channels), or None where ``env`` does not observe an image (``ImageObservation``)."""
-    gym_env = gym_env_under(env)
-    while isinstance(gym_env, gymnasium.Wrapper):
-        if isinstance(gym_env, ImageObservation):
-            return gym_env.scale
-        gym_env = gym_env.env
-    return None
+    image = wrapper_of(gym_env_under(env), ImageObservation)
+    return image.scale if image is not None else None
 
 
 def _action_spec(env_or_spec: EnvBase | TensorSpec) -> TensorSpec:

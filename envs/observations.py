@@ -28,7 +28,7 @@ import contextlib
 import io
 from collections import deque
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import gymnasium
 import numpy as np
@@ -36,8 +36,8 @@ from gymnasium import spaces
 
 __all__ = [
     "DictObservation", "EpisodicLife", "FireOnLifeStart", "ImageObservation", "GOAL_KEYS", "atari_preprocessed",
-    "ImageEntry", "goal_env", "image_space", "is_atari", "is_image", "observation_images", "observation_layout",
-    "register_optional_families",
+    "ImageEntry", "discrete_entries", "goal_env", "image_frame", "image_space", "is_atari", "is_image",
+    "observation_images", "observation_layout", "register_optional_families", "wrapper_of",
 ]
 
 GOAL_KEYS = ("achieved_goal", "desired_goal")
@@ -45,6 +45,8 @@ GOAL_KEYS = ("achieved_goal", "desired_goal")
 
 ROBOTICS_PREFIXES = ("Fetch", "Hand", "PointMaze", "AntMaze", "Adroit", "FrankaKitchen")
 """the env names gymnasium-robotics registers (rlpipe[robotics]): imported only for an id that may be one"""
+
+W = TypeVar("W", bound=gymnasium.Wrapper)
 
 _VECTOR_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
 
@@ -205,24 +207,49 @@ def dict_keys(space: spaces.Dict, wanted: Sequence[str] | None, label: str, erro
     return names
 
 
-def observation_layout(gym_env: gymnasium.Env) -> dict[str, tuple[int, int]] | None:
-    """Where each Dict entry lies in the observation vector (``DictObservation.layout``), or None."""
+def wrapper_of(gym_env: gymnasium.Env, kind: type[W]) -> W | None:
+    """The outermost wrapper of ``kind`` around ``gym_env``'s env, or None."""
     env = gym_env
     while isinstance(env, gymnasium.Wrapper):
-        if isinstance(env, DictObservation):
-            return dict(env.layout)
+        if isinstance(env, kind):
+            return env
         env = env.env
     return None
 
 
+def observation_layout(gym_env: gymnasium.Env) -> dict[str, tuple[int, int]] | None:
+    """Where each Dict entry lies in the observation vector (``DictObservation.layout``), or None."""
+    joined = wrapper_of(gym_env, DictObservation)
+    return dict(joined.layout) if joined is not None else None
+
+
 def observation_images(gym_env: gymnasium.Env) -> dict[str, ImageEntry]:
     """The images among a Dict env's entries (``DictObservation.images``); empty where there are none."""
-    env = gym_env
-    while isinstance(env, gymnasium.Wrapper):
-        if isinstance(env, DictObservation):
-            return dict(env.images)
-        env = env.env
-    return {}
+    joined = wrapper_of(gym_env, DictObservation)
+    return dict(joined.images) if joined is not None else {}
+
+
+def discrete_entries(gym_env: gymnasium.Env) -> dict[str, tuple[tuple[int, ...], list[int], list[int]]]:
+    """The discrete entries (Discrete, MultiDiscrete) among a Dict env's, read one-hot: each one's shape as the env
+    gives it (() for a Discrete), and the sizes and starts of its values, flattened; empty where there are none."""
+    joined = wrapper_of(gym_env, DictObservation)
+    found = {}
+    for key, space in (joined.entry_spaces if joined is not None else {}).items():
+        if isinstance(space, spaces.Discrete):
+            found[key] = ((), [int(space.n)], [int(space.start)])
+        elif isinstance(space, spaces.MultiDiscrete):
+            found[key] = (tuple(space.shape), np.asarray(space.nvec).reshape(-1).tolist(),
+                          np.asarray(space.start).reshape(-1).tolist())
+    return found
+
+
+def image_frame(gym_env: gymnasium.Env) -> tuple[tuple[int, ...], bool] | None:
+    """An image observation of one frame (``ImageObservation`` with ``frames=1``): the shape the env gives it
+    (HxW, HxWxC or CxHxW) and whether its channels come last; else None (no image, or frames stacked)."""
+    image = wrapper_of(gym_env, ImageObservation)
+    if image is None or image.frames != 1:
+        return None
+    return tuple(image.env.observation_space.shape), image.channels_last
 
 
 def goal_env(gym_env: gymnasium.Env) -> bool:

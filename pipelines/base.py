@@ -48,7 +48,7 @@ from rlpipe.envs import (
     observation_rescaling,
     resolve_env_id,
 )
-from rlpipe.envs.observations import GOAL_KEYS, goal_env, is_atari
+from rlpipe.envs.observations import GOAL_KEYS, discrete_entries, goal_env, image_frame, is_atari
 from rlpipe.modules import fast as fast_parts
 from rlpipe.modules.encoders import DictEncoder, make_image_encoder
 from rlpipe.modules.fast.optim import LeanAdam, clip_gradient_norms
@@ -360,6 +360,19 @@ class OffPolicyPipeline:
         """The images among a Dict env's entries, each as the env gives it: (its shape, whether channels come
         last). The exported policy takes them so, as uint8."""
         return {key: (entry.env_shape, entry.channels_last) for key, entry in self.image_entries.items()}
+
+    def export_inputs(self) -> dict[str, Any]:
+        """``export_policy``'s keywords for the env's own observation, where rlpipe's wrappers changed it: a Dict
+        env's entries by name (its images as uint8, its discrete entries as their integers), or an image's own
+        frame where frames are not stacked."""
+        gym_env = gym_env_under(self.env)
+        if gym_env is None:
+            return {}
+        if self.image_shape is not None:
+            frame = image_frame(gym_env)
+            return {"frame": frame} if frame is not None else {}
+        return {"entries": self.observation_entries(), "images": self.observation_entry_images(),
+                "discrete": discrete_entries(gym_env)}
 
     def export_info(self) -> dict[str, Any]:
         spec = self.action_spec

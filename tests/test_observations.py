@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import os
 import re
 import sys
@@ -174,6 +175,38 @@ class Depth(gymnasium.Env):
 class DepthBeside(Depth):
     def __init__(self):
         super().__init__(beside=True)
+
+
+class Cells(gymnasium.Env):
+    """MinAtar's form: a 10x10 grid of 4 bool channels (channels last), 3 actions."""
+
+    def __init__(self):
+        self.observation_space = spaces.Box(0, 1, (10, 10, 4), np.bool_)
+        self.action_space = spaces.Discrete(3)
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, True, {}
+
+
+class Counter(gymnasium.Env):
+    """A Dict of a vector, a Discrete that starts at 1 and a MultiDiscrete (read one-hot), continuous actions."""
+
+    def __init__(self):
+        self.observation_space = spaces.Dict(position=spaces.Box(-1.0, 1.0, (2,), np.float32),
+                                             heading=spaces.Discrete(4, start=1), keys=spaces.MultiDiscrete([2, 3]))
+        self.action_space = spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.observation_space.seed(seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, True, {}
 
 
 class Lives:
@@ -542,6 +575,73 @@ def test_an_image_beside_vectors_is_read_by_a_cnn_and_exported_as_the_env_gives_
     assert [(i.name, i.type) for i in session.get_inputs()] == [("joints", "tensor(float)"), ("camera", "tensor(uint8)")]
     action = session.run(None, {k: v[None] for k, v in raw.items()})[0][0]
     np.testing.assert_allclose(action, expected.numpy(), rtol=1e-4, atol=1e-5)
+
+
+def test_the_exported_policy_takes_the_envs_own_frame_and_discrete_values(envs_module, tmp_path):
+    """An image of one frame: the exported policy takes it as the env gives it (HxWxC uint8, MinAtar's bool grid), and
+    rlpipe's channels-first stack too; a Dict's Discrete and MultiDiscrete entries go in as the env's integers. A
+    wrong shape is one line naming the one expected."""
+    import onnxruntime
+
+    from rlpipe.pipelines.artifacts.export import export_policy
+
+    class Probe(torch.nn.Module):  # a linear map of every pixel: a channel put in the wrong place changes its output
+        def __init__(self, size):
+            super().__init__()
+            self.linear = torch.nn.Linear(size, 4)
+
+        def forward(self, stacks):
+            return self.linear(stacks.flatten(1).to(torch.float32) / 255)
+
+    for name, shape in (("PixPoint", [48, 48, 3]), ("Cells", [10, 10, 4])):
+        cfg = dqn.preset("dqn")
+        cfg.env = f"{envs_module}:{name}"
+        pipeline = dqn.DQN(cfg)
+        assert pipeline.export_inputs() == {"frame": (tuple(shape), True)}
+        env = getattr(sys.modules[envs_module], name)()
+        env.observation_space.seed(0)  # the env's own frames, each drawn from its space
+        frames = np.stack([env.observation_space.sample() for _ in range(6)])
+        stacks = torch.as_tensor(frames).permute(0, 3, 1, 2).to(torch.uint8)  # channels first, as rlpipe's env gives
+        torch.manual_seed(0)
+        probe = Probe(math.prod(shape))
+        with torch.no_grad():
+            expected = probe(stacks)
+        export_policy(probe, pipeline.observation_shape, tmp_path / name, pipeline.export_info(),
+                      dtype=pipeline.observation_dtype, **pipeline.export_inputs())
+        policy, info = load_policy(tmp_path / name)
+        assert info["inputs"] == {"observation": shape} and info["image_input"]["channels_last"]
+        torch.testing.assert_close(policy(frames), expected.numpy(), rtol=1e-4, atol=1e-5, check_dtype=False)
+        torch.testing.assert_close(policy(frames[3]), expected[3].numpy(), rtol=1e-4, atol=1e-5, check_dtype=False)
+        torch.testing.assert_close(policy(stacks), expected, rtol=1e-4, atol=1e-5)
+        session = onnxruntime.InferenceSession(str(tmp_path / name / "policy.onnx"))
+        np.testing.assert_allclose(session.run(None, {"observation": frames.astype(np.uint8)})[0], expected.numpy(),
+                                   rtol=1e-4, atol=1e-5)
+        with pytest.raises(ValueError, match=re.escape(f"takes {shape}")):
+            policy(frames[:, :5])
+        export_policy(pipeline.exported_policy(), pipeline.observation_shape, tmp_path / name, pipeline.export_info(),
+                      dtype=pipeline.observation_dtype, **pipeline.export_inputs())  # the DQN's own: its greedy action
+        assert load_policy(tmp_path / name)[0](frames[0]).shape == ()
+
+    cfg = sac.preset("sac-pendulum")
+    cfg.env = f"{envs_module}:Counter"
+    pipeline = sac.SAC(cfg)
+    export_policy(pipeline.exported_policy(), pipeline.observation_shape, tmp_path / "counter", pipeline.export_info(),
+                  **pipeline.export_inputs())
+    policy, info = load_policy(tmp_path / "counter")
+    assert info["inputs"] == {"position": [2], "heading": [], "keys": [2]}
+    env = make_env(f"{envs_module}:Counter", seed=0)
+    own = [gym_env_under(env).unwrapped.reset(seed=seed)[0] for seed in range(8)]
+    joined = torch.as_tensor(np.stack([gym_env_under(env).observation(o) for o in own]))
+    with torch.no_grad():
+        expected = pipeline.exported_policy()(joined)
+    for o, action in zip(own, expected):
+        torch.testing.assert_close(policy(o), action.numpy(), rtol=1e-4, atol=1e-5, check_dtype=False)
+    torch.testing.assert_close(policy(joined), expected, rtol=1e-4, atol=1e-5)
+    session = onnxruntime.InferenceSession(str(tmp_path / "counter" / "policy.onnx"))
+    raw = session.run(None, {k: np.asarray(v, np.float32 if k == "position" else np.int64)[None] for k, v in own[0].items()})
+    np.testing.assert_allclose(raw[0][0], expected[0].numpy(), rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="without 'keys'"):
+        policy({"position": own[0]["position"], "heading": 1})
 
 
 @pytest.mark.parametrize("override, expected", [

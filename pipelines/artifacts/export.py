@@ -31,6 +31,7 @@ import copy
 import io
 import json
 import logging
+import math
 import re
 import warnings
 from collections.abc import Mapping
@@ -84,34 +85,80 @@ def available_steps(folder: Path) -> list[int]:
 ImageInputs = dict[str, tuple[tuple[int, ...], bool]]
 """the images among a Dict env's entries: each one's shape as the env gives it, and whether its channels come last"""
 
+DiscreteInputs = dict[str, tuple[tuple[int, ...], list[int], list[int]]]
+"""the discrete entries (Discrete, MultiDiscrete) among a Dict env's: each one's shape as the env gives it (() for a
+Discrete), and the sizes and starts of its values, flattened (``envs.observations.discrete_entries``)"""
+
+ImageFrame = tuple[tuple[int, ...], bool]
+"""an image observation's frame as the env gives it (HxW, HxWxC or CxHxW), and whether its channels come last"""
+
+
+class OneHot(nn.Module):
+    """A discrete entry's integers ``[B, *shape]`` to the one-hot vector ``[B, sum(nvec)]`` the networks read, as
+    ``gymnasium.spaces.flatten`` makes it: each value less its start, one-hot in its own span."""
+
+    def __init__(self, nvec: list[int], start: list[int]):
+        super().__init__()
+        offsets = torch.tensor([0, *nvec[:-1]]).cumsum(0)
+        self.register_buffer("shift", offsets - torch.tensor(start), persistent=False)
+        self.register_buffer("slots", torch.arange(sum(nvec)), persistent=False)
+
+    def forward(self, entry: torch.Tensor) -> torch.Tensor:
+        index = entry.reshape(entry.shape[0], -1).to(torch.int64) + self.shift
+        return (index.unsqueeze(-1) == self.slots).to(torch.float32).sum(1)
+
 
 class NamedEntries(nn.Module):
     """``module`` on a Dict env's entries given one by one, by name: ``forward(*entries)`` joins them in the env's
     order (``DictObservation``'s) into the vector ``module`` reads. A vector entry is a float32 ``[B, size]``; an
-    image entry (``images``) a uint8 ``[B, *shape]`` as the env gives it, put channels first and flattened."""
+    image entry (``images``) a uint8 ``[B, *shape]`` as the env gives it, put channels first and flattened; a
+    discrete entry (``discrete``) its int64 values ``[B, *shape]``, made one-hot."""
 
-    def __init__(self, module: nn.Module, sizes: dict[str, int], images: ImageInputs | None = None):
+    def __init__(self, module: nn.Module, sizes: dict[str, int], images: ImageInputs | None = None,
+                 discrete: DiscreteInputs | None = None):
         super().__init__()
         self.module, self.sizes = module, dict(sizes)
-        images = dict(images or {})
-        self.inputs = {name: (tuple(images[name][0]), torch.uint8) if name in images else ((size,), torch.float32)
-                       for name, size in self.sizes.items()}
+        images, discrete = dict(images or {}), dict(discrete or {})
+        self.inputs = {name: (tuple(images[name][0]), torch.uint8) if name in images
+                       else (tuple(discrete[name][0]), torch.int64) if name in discrete
+                       else ((size,), torch.float32) for name, size in self.sizes.items()}
         self._channels_last = [name in images and images[name][1] for name in self.sizes]
+        # entry names are the env's (a Dict may call one "keys"): the one-hot maps go by position
+        self.one_hot = nn.ModuleList(OneHot(*discrete[name][1:]) for name in self.sizes if name in discrete)
+        slots = iter(range(len(self.one_hot)))
+        self._one_hot_of = [next(slots) if name in discrete else None for name in self.sizes]
 
     def forward(self, *entries: torch.Tensor) -> torch.Tensor:
-        joined = [(entry.permute(0, 3, 1, 2) if last else entry).flatten(1).to(torch.float32)
-                  for entry, last in zip(entries, self._channels_last)]
+        joined = [self.one_hot[slot](entry) if slot is not None
+                  else (entry.permute(0, 3, 1, 2) if last else entry).flatten(1).to(torch.float32)
+                  for entry, last, slot in zip(entries, self._channels_last, self._one_hot_of)]
         return self.module(torch.cat(joined, -1))
+
+
+class OnEnvFrames(nn.Module):
+    """``module`` (on rlpipe's image stacks, ``uint8 [B, C, H, W]``) on the env's own frames, ``uint8 [B, *shape]``
+    as the env gives them: one frame (``frame_stack=1``), put channels first as ``ImageObservation`` does."""
+
+    def __init__(self, module: nn.Module, frame: ImageFrame):
+        super().__init__()
+        self.module, self.shape, self.channels_last = module, tuple(frame[0]), frame[1]
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        if len(self.shape) == 2:
+            return self.module(frames.unsqueeze(1))
+        return self.module(frames.permute(0, 3, 1, 2) if self.channels_last else frames)
 
 
 def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], folder: Path, info: dict, *,
                   step: int | None = None, keep: int = 0, dtype: torch.dtype = torch.float32,
-                  entries: dict[str, tuple[int, int]] | None = None, images: ImageInputs | None = None) -> Path:
+                  entries: dict[str, tuple[int, int]] | None = None, images: ImageInputs | None = None,
+                  discrete: DiscreteInputs | None = None, frame: ImageFrame | None = None) -> Path:
     """Export ``module`` (observations ``[B, observation_dim]``, or ``[B, *shape]`` of ``dtype`` for a tuple:
     an image stack ``uint8 [B, C, H, W]`` -> actions ``[B, ...]``) to ``folder``. ``entries``: a Dict env's
     entries and where each lies in the observation vector: the exported programs then take them as inputs of
     those names (``NamedEntries``), the env's own observation; ``images``: the images among them, taken as uint8
-    in the env's own shape.
+    in the env's own shape; ``discrete``: its discrete entries, taken as their integers. ``frame``: an image
+    observation of one frame (no stack), taken as the env gives it (``OnEnvFrames``) rather than channels first.
 
     Writes ``policy.onnx`` (unless ONNX cannot express the module: then a warning), ``policy.pt2``
     and ``policy.json``, each atomically; with ``step``, also ``step_NNNNNNN.onnx/.pt2``, keeping the
@@ -125,9 +172,13 @@ def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], fol
     for parameter in module.parameters():
         parameter.requires_grad_(False)
     shape = (observation_dim,) if isinstance(observation_dim, int) else tuple(observation_dim)
+    stack = shape
     if entries:
-        module = NamedEntries(module, {name: stop - start for name, (start, stop) in entries.items()}, images)
+        module = NamedEntries(module, {name: stop - start for name, (start, stop) in entries.items()}, images, discrete)
         inputs = module.inputs
+    elif frame is not None:
+        module, shape = OnEnvFrames(module, frame), tuple(frame[0])
+        inputs = {"observation": (shape, dtype)}
     else:
         inputs = {"observation": (shape, dtype)}
     examples = tuple(torch.zeros(2, *size, dtype=kind) for size, kind in inputs.values())
@@ -157,23 +208,33 @@ def export_policy(module: nn.Module, observation_dim: int | tuple[int, ...], fol
         "inputs": {name: list(size) for name, (size, _) in inputs.items()},
         **({"image_inputs": {name: {"shape": list(size), "channels_last": last} for name, (size, last) in images.items()}}
            if entries and images else {}),
+        **({"discrete_inputs": {name: {"shape": list(size), "nvec": list(nvec), "start": list(start)}
+                                for name, (size, nvec, start) in discrete.items()}} if entries and discrete else {}),
+        **({"image_input": {"shape": list(shape), "channels_last": frame[1], "stack_shape": list(stack)}}
+           if frame is not None and not entries else {}),
         **info, "step": step, "steps": steps,
-        "env_recipe": _env_recipe(info.get("env"), info.get("env_kwargs") or {}, _observations_said(inputs, shape, info)),
+        "env_recipe": _env_recipe(info.get("env"), info.get("env_kwargs") or {},
+                                  _observations_said(inputs, shape, info, frame if not entries else None)),
         "files": {name: text for name, text in FILES.items() if (folder / name).exists() or name.startswith("step_") and steps},
     })
     return folder / ("policy.pt2" if onnx_model is None else "policy.onnx")
 
 
 def _observations_said(inputs: dict[str, tuple[tuple[int, ...], torch.dtype]], shape: tuple[int, ...],
-                       info: dict) -> str:
+                       info: dict, frame: ImageFrame | None = None) -> str:
     """What the exported policy takes, in words, for ``policy.json``."""
     dtype = inputs[next(iter(inputs))][1]
     if len(inputs) > 1:
         images = [name for name, (_, kind) in inputs.items() if kind == torch.uint8]
+        counts = [name for name, (_, kind) in inputs.items() if kind == torch.int64]
         return (f"the env's own Dict observation: its entries {', '.join(inputs)} as inputs of those names, float32"
                 + (f" (the image{'s' if len(images) > 1 else ''} {', '.join(images)} uint8, as the env gives "
                    f"{'them' if len(images) > 1 else 'it'})" if images else "")
+                + (f" (the discrete {', '.join(counts)} int64, the env's own values)" if counts else "")
                 + " (rlpipe's loader also takes them joined in that order, as the networks read them)")
+    if frame is not None:
+        return (f"the env's own image, one frame as the env gives it: uint8 {list(shape)}"
+                + (", channels last" if frame[1] else "") + " (bool frames as 0/1)")
     if len(shape) == 3:
         stack = info.get("frame_stack", 1)
         return (f"the env's image as {str(dtype).removeprefix('torch.')} [C, H, W] = {list(shape)}, channels first"
@@ -280,9 +341,16 @@ class ExportedPolicy(nn.Module):
     vector (None: one observation input)"""
     entry_images: ImageInputs = {}
     """the images among those entries: each one's shape as the env gives it, and whether its channels come last"""
+    entry_discrete: DiscreteInputs = {}
+    """the discrete entries among them: each one's shape, and the sizes and starts of its values"""
     observation_ndim: int = 1
     """dimensions of one observation: 1 for a vector, 3 for an image stack [C, H, W]"""
+    observation_shape: tuple[int, ...] | None = None
+    """one observation's shape, where ``policy.json`` says it"""
     observation_dtype: torch.dtype = torch.float32
+    frame: tuple[tuple[int, ...], bool, tuple[int, ...]] | None = None
+    """an image policy on the env's own frames: their shape, whether channels come last, and the shape of the
+    channels-first stack rlpipe's env gives (taken as well)"""
 
     def forward(self, observation):
         """Actions for ``observation``: one observation or a batch, the env's own (a Dict env's as a mapping of its
@@ -291,12 +359,35 @@ class ExportedPolicy(nn.Module):
             return self._on_entries(observation)
         as_numpy = not isinstance(observation, torch.Tensor)
         obs = torch.as_tensor(np.asarray(observation) if as_numpy else observation, dtype=self.observation_dtype)
+        if self.frame is not None:
+            obs = self._as_frames(obs)
         ndim = self.observation_ndim
+        self._check_shape("an observation", obs.shape, self.observation_shape)
         with torch.no_grad():
             batch = obs.reshape(-1, *obs.shape[obs.ndim - ndim:])
             action = self.act(batch.cpu())
         action = action.reshape((*obs.shape[:obs.ndim - ndim], *action.shape[1:])).to(obs.device)
         return action.numpy() if as_numpy else action
+
+    def _as_frames(self, obs: torch.Tensor) -> torch.Tensor:
+        """The env's own frames: as given, or from rlpipe's channels-first stacks ``[..., C, H, W]``."""
+        shape, last, stack = self.frame
+        own = tuple(obs.shape[obs.ndim - len(shape):]) == shape
+        if own and not (len(shape) == 2 and tuple(obs.shape) == stack):  # [1, H, W]: one stack of an HxW frame
+            return obs
+        if tuple(obs.shape[-3:]) != stack:
+            return obs  # _check_shape names what is expected
+        if len(shape) == 2:
+            return obs.squeeze(-3)
+        return obs.movedim(-3, -1) if last else obs
+
+    def _check_shape(self, what: str, got: torch.Size, expected: tuple[int, ...] | None) -> None:
+        """ValueError, one line, where ``got`` does not end with ``expected`` (one observation's shape)."""
+        if expected is None or tuple(got[len(got) - len(expected):]) == tuple(expected) and len(got) >= len(expected):
+            return
+        also = f", or rlpipe's channels-first stack {list(self.frame[2])}" if self.frame is not None else ""
+        raise ValueError(f"{what} of shape {list(got)}: this policy takes {list(expected)}{also} (one observation, "
+                         f"or a batch of them on leading axes), as policy.json's inputs say")
 
     def _on_entries(self, observation: Mapping):
         """Actions for a Dict env's own observation (one, or a batch): each entry as the env gives it."""
@@ -304,15 +395,24 @@ class ExportedPolicy(nn.Module):
             raise ValueError("this policy takes one observation, not a mapping of entries")
         first = observation[next(iter(self.entry_sizes))]
         as_numpy = not isinstance(first, torch.Tensor)
+        missing = [name for name in self.entry_sizes if name not in observation]
+        if missing:
+            raise ValueError(f"an observation without {', '.join(map(repr, missing))}: this policy takes the entries "
+                             f"{', '.join(map(repr, self.entry_sizes))}, as policy.json's inputs say")
         parts, batch = [], None
         for name, size in self.entry_sizes.items():
-            image = name in self.entry_images
+            image, discrete = name in self.entry_images, name in self.entry_discrete
+            dtype = torch.uint8 if image else torch.int64 if discrete else torch.float32
             part = observation[name]
-            part = torch.as_tensor(np.asarray(part, dtype=np.uint8 if image else np.float32) if as_numpy else part)
-            shape = self.entry_images[name][0] if image else _trailing(part.shape, size)
+            part = torch.as_tensor(np.asarray(part, dtype=_NUMPY[dtype]) if as_numpy else part)
+            shape = (self.entry_images[name][0] if image else self.entry_discrete[name][0] if discrete
+                     else _trailing(part.shape, size))
+            if not (image or discrete) and math.prod(shape) != size:
+                shape = (size,)  # not this entry's: _check_shape names it
+            self._check_shape(f"entry {name!r}", part.shape, shape)
             if batch is None:
                 batch = part.shape[:part.ndim - len(shape)]
-            parts.append(part.reshape(-1, *(shape if image else (size,))).to(torch.uint8 if image else torch.float32).cpu())
+            parts.append(part.reshape(-1, *(shape if image or discrete else (size,))).to(dtype).cpu())
         with torch.no_grad():
             action = self.act_entries(parts)
         action = action.reshape((*batch, *action.shape[1:])).to(first.device if not as_numpy else "cpu")
@@ -329,6 +429,10 @@ class ExportedPolicy(nn.Module):
                 first = (shape[-1], *shape[:-1]) if last else shape
                 part = part.reshape(-1, *first)
                 part = (part.movedim(1, -1) if last else part).round().to(torch.uint8)
+            elif name in self.entry_discrete:  # back to the env's own values, from their one-hot spans
+                shape, nvec, start = self.entry_discrete[name]
+                values = [span.argmax(-1) for span in part.split(nvec, -1)]
+                part = (torch.stack(values, -1) + torch.tensor(start)).reshape(-1, *shape)
             parts.append(part)
         return self.act_entries(parts)
 
@@ -347,6 +451,7 @@ class ExportedPolicy(nn.Module):
 
 
 _ONNX_DTYPES = {"tensor(float)": torch.float32, "tensor(uint8)": torch.uint8}
+_NUMPY = {torch.float32: np.float32, torch.uint8: np.uint8, torch.int64: np.int64}
 
 
 class OnnxPolicy(ExportedPolicy):
@@ -449,8 +554,13 @@ def _load(path: Path, make, shape: list[int] | None, dtype: torch.dtype, info: d
                                   for name, size in inputs.items()}
             policy.entry_images = {name: (tuple(image["shape"]), bool(image["channels_last"]))
                                    for name, image in ((info or {}).get("image_inputs") or {}).items()}
+            policy.entry_discrete = {name: (tuple(entry["shape"]), list(entry["nvec"]), list(entry["start"]))
+                                     for name, entry in ((info or {}).get("discrete_inputs") or {}).items()}
+        frame = (info or {}).get("image_input")
+        if frame:
+            policy.frame = (tuple(frame["shape"]), bool(frame["channels_last"]), tuple(frame["stack_shape"]))
         if shape:  # a file that loads but is not this run's policy fails here, not mid-episode
-            policy.observation_ndim = len(shape)
+            policy.observation_ndim, policy.observation_shape = len(shape), tuple(shape)
             policy(torch.zeros(1, *shape, dtype=dtype))
         return policy
     except Exception as exc:  # onnxruntime and torch.export raise many kinds on a damaged file

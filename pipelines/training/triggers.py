@@ -217,8 +217,7 @@ class ExportTrigger(Trigger):
         with loop.clock.paused():
             export_policy(pipeline.exported_policy(), pipeline.observation_shape, loop.run_dir.policy_dir,
                           pipeline.export_info(), step=loop.state.iteration, keep=loop.config.policy_keep,
-                          dtype=pipeline.observation_dtype, entries=pipeline.observation_entries(),
-                          images=pipeline.observation_entry_images())
+                          dtype=pipeline.observation_dtype, **pipeline.export_inputs())
         self.exported_at = loop.state.iteration
 
     def final(self, loop: Loop) -> None:
@@ -244,8 +243,7 @@ class ExportTrigger(Trigger):
             "last_step": loop.state.iteration, "last_average_return": loop.last_return}}
         with loop.clock.paused():
             export_policy(module, pipeline.observation_shape, loop.run_dir.policy_dir, info,
-                          dtype=pipeline.observation_dtype, entries=pipeline.observation_entries(),
-                          images=pipeline.observation_entry_images())
+                          dtype=pipeline.observation_dtype, **pipeline.export_inputs())
         loop.echo(f"policy: the best greedy evaluation's (step {best['at']['step']}, AverageReturn "
                   f"{best['return']:.6g}; the last, {loop.last_return:.6g}, is "
                   f"policy/{step_name(loop.state.iteration, '.onnx')})")
