@@ -83,38 +83,53 @@ def score_matrices(records: pd.DataFrame, random_scores: Mapping[str, float], re
 def iqm(scores: np.ndarray) -> float:
     """Interquartile mean of every finite score (all runs of all envs pooled, as rliable's
     ``aggregate_iqm``); NaN when none is finite."""
-    x = np.asarray(scores, dtype=float).ravel()
-    x = x[np.isfinite(x)]
+    return float(_iqm_batch(np.asarray(scores, dtype=float)[None])[0])
+
+
+def _iqm_batch(draws: np.ndarray) -> np.ndarray:
+    """``iqm`` of each of ``draws`` ``(reps, runs, envs)``, whose NaNs lie in the same places in each (a stratified
+    resample keeps each env's count of finite runs)."""
     from scipy import stats
 
-    return float(stats.trim_mean(x, 0.25)) if x.size else float("nan")
+    finite = np.isfinite(draws[0])
+    if not finite.any():
+        return np.full(len(draws), np.nan)
+    return stats.trim_mean(draws[:, finite], 0.25, axis=1)
 
 
-def _resample(scores: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One stratified resample: the runs of each env (column) drawn with replacement among that
-    env's finite runs."""
-    cols = []
-    for j in range(scores.shape[1]):
-        col = scores[:, j][np.isfinite(scores[:, j])]
-        cols.append(col[rng.integers(0, col.size, col.size)] if col.size else col)
-    rows = max((c.size for c in cols), default=0)
-    return np.stack([np.pad(c, (0, rows - c.size), constant_values=np.nan) for c in cols], axis=1)
+def _resamples(scores: np.ndarray, rng: np.random.Generator, reps: int) -> np.ndarray:
+    """``reps`` stratified resamples at once, ``(reps, runs, envs)``: the runs of each env (column) drawn with
+    replacement among that env's finite runs, NaN below them."""
+    columns = [scores[:, j][np.isfinite(scores[:, j])] for j in range(scores.shape[1])]
+    rows = max((c.size for c in columns), default=0)
+    out = np.full((reps, rows, len(columns)), np.nan)
+    for j, col in enumerate(columns):
+        if col.size:
+            out[:, :col.size, j] = col[rng.integers(0, col.size, (reps, col.size))]
+    return out
 
 
 def stratified_bootstrap_ci(scores: np.ndarray | tuple[np.ndarray, ...], statistic: Callable[..., float | np.ndarray],
-                            reps: int = AGG_RESAMPLES, confidence: float = CONFIDENCE, seed: int = SEED,
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                            reps: int = AGG_RESAMPLES, confidence: float = CONFIDENCE, seed: int = SEED, *,
+                            batched: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``statistic`` of ``scores`` with its stratified-bootstrap percentile interval.
 
     ``scores``: one ``(runs, envs)`` array, or a tuple of them (each resampled on its own, as for
-    P(X > Y)); ``statistic`` takes as many arrays and returns a number or an array.
+    P(X > Y)); ``statistic`` takes as many arrays and returns a number or an array; with ``batched``, it takes
+    them with a leading axis of resamples, ``(reps, runs, envs)``, and returns one result per resample (the point
+    estimate is then its result on a batch of one).
     Returns ``(point, low, high)`` as arrays (0-d for a number).
     """
     arrays = scores if isinstance(scores, tuple) else (scores,)
     arrays = tuple(np.asarray(a, dtype=float) for a in arrays)
-    point = np.asarray(statistic(*arrays), dtype=float)
     rng = np.random.default_rng(seed)
-    draws = np.stack([np.asarray(statistic(*(_resample(a, rng) for a in arrays)), dtype=float) for _ in range(reps)])
+    resamples = [_resamples(a, rng, reps) for a in arrays]
+    if batched:
+        point = np.asarray(statistic(*(a[None] for a in arrays)), dtype=float)[0]
+        draws = np.asarray(statistic(*resamples), dtype=float)
+    else:
+        point = np.asarray(statistic(*arrays), dtype=float)
+        draws = np.stack([np.asarray(statistic(*(r[i] for r in resamples)), dtype=float) for i in range(reps)])
     tail = (1 - confidence) / 2 * 100
     low, high = np.nanpercentile(draws, [tail, 100 - tail], axis=0)
     return point, low, high
@@ -125,20 +140,21 @@ def aggregate_iqm(matrices: Mapping[str, np.ndarray], reps: int = AGG_RESAMPLES)
     95%) and ``n`` (finite scores), best first."""
     rows = []
     for variant, scores in matrices.items():
-        point, low, high = stratified_bootstrap_ci(scores, iqm, reps)
+        point, low, high = stratified_bootstrap_ci(scores, _iqm_batch, reps, batched=True)
         rows.append({"variant": variant, "n": int(np.isfinite(scores).sum()), "iqm": float(point),
                      "ci_low": float(low), "ci_high": float(high)})
     out = pd.DataFrame(rows, columns=["variant", "n", "iqm", "ci_low", "ci_high"])
     return out.sort_values(["iqm", "variant"], ascending=[False, True], na_position="last").reset_index(drop=True)
 
 
-def _profile(scores: np.ndarray, taus: np.ndarray) -> np.ndarray:
+def _profile_batch(draws: np.ndarray, taus: np.ndarray) -> np.ndarray:
+    """The fraction of each env's finite runs above each of ``taus``, averaged over envs: ``(reps, taus)``."""
     fractions = []
-    for j in range(scores.shape[1]):
-        col = scores[:, j][np.isfinite(scores[:, j])]
-        if col.size:
-            fractions.append((col[None, :] > taus[:, None]).mean(axis=1))
-    return np.mean(fractions, axis=0) if fractions else np.full(taus.shape, np.nan)
+    for j in range(draws.shape[2]):
+        finite = np.isfinite(draws[0, :, j])
+        if finite.any():
+            fractions.append((draws[:, finite, j][:, None, :] > taus[None, :, None]).mean(axis=2))
+    return np.mean(fractions, axis=0) if fractions else np.full((len(draws), taus.size), np.nan)
 
 
 def performance_profile(scores: np.ndarray, taus: np.ndarray, reps: int = 1000,
@@ -146,24 +162,27 @@ def performance_profile(scores: np.ndarray, taus: np.ndarray, reps: int = 1000,
     """Fraction of runs with a normalised score above each ``tau`` (averaged over envs), with its
     stratified-bootstrap 95% band: ``(profile, low, high)``, each of ``taus``' shape."""
     taus = np.asarray(taus, dtype=float)
-    return stratified_bootstrap_ci(scores, lambda s: _profile(s, taus), reps)
+    return stratified_bootstrap_ci(scores, lambda s: _profile_batch(s, taus), reps, batched=True)
 
 
-def _p_improvement(x: np.ndarray, y: np.ndarray) -> float:
+def _p_improvement_batch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """P(X > Y) of each resample pair ``(reps, runs, envs)``: per env the Mann-Whitney U over ``n m`` (a tie counts
+    half), averaged over the envs both have finite runs on."""
     per_env = []
-    for j in range(x.shape[1]):
-        a, b = x[:, j][np.isfinite(x[:, j])], y[:, j][np.isfinite(y[:, j])]
-        if a.size and b.size:
-            # Mann-Whitney U / (n m): the chance a run of X beats a run of Y on this env, ties half.
-            per_env.append(((a[:, None] > b[None, :]).sum() + 0.5 * (a[:, None] == b[None, :]).sum()) / (a.size * b.size))
-    return float(np.mean(per_env)) if per_env else float("nan")
+    for j in range(x.shape[2]):
+        a, b = x[:, np.isfinite(x[0, :, j]), j], y[:, np.isfinite(y[0, :, j]), j]
+        if a.shape[1] and b.shape[1]:
+            wins = (a[:, :, None] > b[:, None, :]).sum((1, 2)) + 0.5 * (a[:, :, None] == b[:, None, :]).sum((1, 2))
+            per_env.append(wins / (a.shape[1] * b.shape[1]))
+    return np.mean(per_env, axis=0) if per_env else np.full(len(x), np.nan)
 
 
 def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 1000) -> tuple[float, float, float]:
     """P(X > Y): the probability that a run of X scores above a run of Y on an env, averaged over
     envs, with the 95% stratified-bootstrap interval (X and Y resampled independently):
     ``(p, low, high)``. Works on raw or normalised scores alike (it only compares within an env)."""
-    point, low, high = stratified_bootstrap_ci((np.asarray(x, float), np.asarray(y, float)), _p_improvement, reps)
+    point, low, high = stratified_bootstrap_ci((np.asarray(x, float), np.asarray(y, float)), _p_improvement_batch,
+                                               reps, batched=True)
     return float(point), float(low), float(high)
 
 
