@@ -220,14 +220,12 @@ def plot_training_returns(
 def plot_ecdf(returns: Iterable[float], out_png: str | os.PathLike, title: str = "") -> Path:
     """ECDF of the episode returns of one trained policy (``rlpipe eval RUN --ecdf``).
 
-    Drawn with :func:`seaborn.ecdfplot`; the mean return is marked by a dashed vertical line.
+    Drawn with matplotlib's ``Axes.ecdf``; the mean return is marked by a dashed vertical line.
     Non-finite returns are dropped.
 
     Raises:
         ValueError: if there is no finite return.
     """
-    import seaborn as sns  # lazy: seaborn is slow to import and only needed here
-
     x = np.asarray(list(returns) if not isinstance(returns, np.ndarray) else returns, float)
     x = x.ravel()
     x = x[np.isfinite(x)]
@@ -235,7 +233,7 @@ def plot_ecdf(returns: Iterable[float], out_png: str | os.PathLike, title: str =
         raise ValueError("plot_ecdf: no finite episode returns to plot")
     fig = _new_figure((6.4, 4.2))
     ax = fig.add_subplot()
-    sns.ecdfplot(x=x, ax=ax, linewidth=2.0, color="tab:blue", label=f"episodes (n={x.size})")
+    ax.ecdf(x, linewidth=2.0, color="tab:blue", label=f"episodes (n={x.size})")
     ax.axvline(x.mean(), color="tab:red", linestyle="--", linewidth=1.2,
                label=f"mean = {_fmt(float(x.mean()))}")
     ax.set_xlabel("Episode return")
@@ -308,8 +306,6 @@ def _final_ecdfs_figure(
     reference: str | None,
 ) -> Figure:
     """One panel per env: the ECDF of final returns over seeds, one line per variant."""
-    import seaborn as sns  # lazy, see plot_ecdf
-
     ncols = min(len(envs), 3)
     nrows = math.ceil(len(envs) / ncols)
     fig = _new_figure((4.8 * ncols + 2.2, 3.8 * nrows))
@@ -324,8 +320,7 @@ def _final_ecdfs_figure(
             if vals.size == 0:
                 continue
             label = variant + (" ★" if variant == reference else "")
-            sns.ecdfplot(x=vals, ax=ax, label=label, **styles[variant])
-            handles.setdefault(label, ax.get_lines()[-1])
+            handles.setdefault(label, ax.ecdf(vals, label=label, **styles[variant]))
         ax.set_title(env)
         ax.set_xlabel("Final return")
         ax.set_ylabel("Proportion of seeds")
