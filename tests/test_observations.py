@@ -642,6 +642,8 @@ def test_the_exported_policy_takes_the_envs_own_frame_and_discrete_values(envs_m
     np.testing.assert_allclose(raw[0][0], expected[0].numpy(), rtol=1e-4, atol=1e-5)
     with pytest.raises(ValueError, match="without 'keys'"):
         policy({"position": own[0]["position"], "heading": 1})
+    with pytest.raises(ValueError, match=r"entry 'heading' of shape \[4\]: a batch of \[4\]"):  # one-hot, not its value
+        policy({**own[0], "heading": np.eye(4)[0]})
 
 
 @pytest.mark.parametrize("override, expected", [

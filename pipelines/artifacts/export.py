@@ -383,7 +383,7 @@ class ExportedPolicy(nn.Module):
 
     def _check_shape(self, what: str, got: torch.Size, expected: tuple[int, ...] | None) -> None:
         """ValueError, one line, where ``got`` does not end with ``expected`` (one observation's shape)."""
-        if expected is None or tuple(got[len(got) - len(expected):]) == tuple(expected) and len(got) >= len(expected):
+        if expected is None or (len(got) >= len(expected) and tuple(got[len(got) - len(expected):]) == tuple(expected)):
             return
         also = f", or rlpipe's channels-first stack {list(self.frame[2])}" if self.frame is not None else ""
         raise ValueError(f"{what} of shape {list(got)}: this policy takes {list(expected)}{also} (one observation, "
@@ -410,8 +410,12 @@ class ExportedPolicy(nn.Module):
             if not (image or discrete) and math.prod(shape) != size:
                 shape = (size,)  # not this entry's: _check_shape names it
             self._check_shape(f"entry {name!r}", part.shape, shape)
-            if batch is None:
-                batch = part.shape[:part.ndim - len(shape)]
+            leading = part.shape[:part.ndim - len(shape)]
+            if batch is not None and leading != batch:
+                raise ValueError(f"entry {name!r} of shape {list(part.shape)}: a batch of {list(leading)} where the "
+                                 f"entries before it have {list(batch)}; this policy takes {name!r} as "
+                                 f"{list(shape)} per observation, as policy.json's inputs say")
+            batch = leading
             parts.append(part.reshape(-1, *(shape if image or discrete else (size,))).to(dtype).cpu())
         with torch.no_grad():
             action = self.act_entries(parts)
