@@ -20,6 +20,7 @@ __all__ = [
     "TanhBoundedMLP",
     "make_deterministic_actor",
     "make_tanh_normal_actor",
+    "tanh_normal_head",
     "make_gaussian_actor",
     "make_exploration_policy",
     "TanhNormalMode",
@@ -143,6 +144,28 @@ def make_tanh_normal_actor(
         distribution_kwargs={"low": low, "high": high, "tanh_loc": False},
         default_interaction_type=ExplorationType.RANDOM,
         return_log_prob=return_log_prob,
+    )
+
+
+def tanh_normal_head(actor: ProbabilisticActor, features_key: str, action_spec) -> ProbabilisticActor:
+    """The part of ``make_tanh_normal_actor``'s actor past its encoder, reading the encoder's features from
+    ``features_key``: the same MLP and ``NormalParamExtractor`` modules (their parameters are the actor's own, so
+    training one trains the other) and the same distribution. What a loss holds when the features come from an
+    encoder the critics share (SAC from pixels, ``share_encoder``)."""
+    net = actor.module[0]
+    layers = list(net.module)
+    if len(layers) != 3:
+        raise ValueError(f"expected an actor of make_tanh_normal_actor with an encoder, got {net.module}")
+    dist = actor.module[1]
+    head = TensorDictModule(nn.Sequential(*layers[1:]), in_keys=[features_key], out_keys=list(net.out_keys))
+    return ProbabilisticActor(
+        head,
+        in_keys=list(dist.in_keys),
+        spec=action_spec,
+        distribution_class=dist.distribution_class,
+        distribution_kwargs=dict(dist.distribution_kwargs),
+        default_interaction_type=dist.default_interaction_type,
+        return_log_prob=dist.return_log_prob,
     )
 
 

@@ -20,7 +20,11 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["DictEncoder", "ImageEncoder", "NATURE_MIN_SIZE", "make_image_encoder"]
+__all__ = ["DictEncoder", "FEATURES_KEY", "ImageEncoder", "NATURE_MIN_SIZE", "make_image_encoder"]
+
+FEATURES_KEY = "encoded_observation"
+"""where an update puts the features of an encoder it runs itself, for the heads in its loss to read (an
+encoder shared by actor and critics: ``share_encoder``); never stored, never collected"""
 
 NATURE_MIN_SIZE = 36
 """the smallest side the Nature DQN network takes (its three convolutions leave a 1x1 map at 36 px)"""

@@ -50,7 +50,7 @@ from rlpipe.envs import (
 )
 from rlpipe.envs.observations import GOAL_KEYS, discrete_entries, goal_env, image_frame, is_atari
 from rlpipe.modules import fast as fast_parts
-from rlpipe.modules.encoders import DictEncoder, make_image_encoder
+from rlpipe.modules.encoders import FEATURES_KEY, DictEncoder, make_image_encoder
 from rlpipe.modules.fast.optim import LeanAdam, clip_gradient_norms
 from rlpipe.modules.fast.sampling import sample
 from rlpipe.modules.fast.target_updates import make_target_updater
@@ -241,6 +241,35 @@ class OffPolicyPipeline:
             return self.normalizer
         return make_image_encoder(self.image_shape, self.image_scale)
 
+    shared_encoder: nn.Module | None = None
+    """the encoder the actor and critics share (SAC's and TD3's ``share_encoder``), set where the pipeline makes
+    them; the update runs it (``encode``) and steps it with the critics"""
+
+    def shares_encoder(self) -> bool:
+        """Whether the actor and critics the pipeline makes share one encoder: ``share_encoder`` and an image
+        among the observations."""
+        return bool(getattr(self.config, "share_encoder", False)) and self.encodes_images
+
+    def critic_input(self) -> tuple[str, nn.Module | None]:
+        """(the key a critic made here reads, the encoder in front of its head): the shared encoder's features
+        and none, or the observation and an encoder of its own (``make_encoder``)."""
+        if self.shared_encoder is not None:
+            return FEATURES_KEY, None
+        return self.observation_key, self.make_encoder()
+
+    def encode(self, batch: TensorDictBase) -> tuple[TensorDictBase, torch.Tensor]:
+        """A shallow copy of ``batch`` with the shared encoder's features of its observations (with gradients:
+        the critics' loss trains the encoder) and of its next observations (without: the critics' targets) under
+        ``FEATURES_KEY``; and the features (an actor's loss reads them detached, DrQ's choice)."""
+        key = self.observation_key
+        features = self.shared_encoder(batch.get(key))
+        with torch.no_grad():
+            next_features = self.shared_encoder(batch.get(("next", key)))
+        batch = batch.clone(False)
+        batch.set(FEATURES_KEY, features)
+        batch.set(("next", FEATURES_KEY), next_features)
+        return batch, features
+
     def on_block(self, batch: TensorDictBase) -> None:
         """Called with each collected block before it is stored: the running normaliser learns its observations."""
         if self.normalizer is not None:
@@ -333,7 +362,9 @@ class OffPolicyPipeline:
         if self.hindsight is not None or self._stacks_frames():  # the buffer chains each episode's steps by id
             steps += [TRAJ_IDS]
         if hasattr(self, "loss_module"):
-            return [*self.loss_module.in_keys, *steps]
+            # the features of a shared encoder are computed from the observations at each update (FEATURES_KEY)
+            stored = {FEATURES_KEY: self.observation_key, ("next", FEATURES_KEY): ("next", self.observation_key)}
+            return list(dict.fromkeys([stored.get(key, key) for key in self.loss_module.in_keys] + steps))
         obs = self.observation_key
         return [obs, "action", ("next", obs), ("next", "reward"), ("next", "done"), ("next", "terminated"), *steps]
 

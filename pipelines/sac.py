@@ -19,6 +19,7 @@ from torch import nn
 from torchrl.objectives import SACLoss
 
 from rlpipe.modules.critics import INITIALIZERS, make_qvalue_critic
+from rlpipe.modules.encoders import FEATURES_KEY
 from rlpipe.modules.fast.sac_loss import LeanSACLoss
 from rlpipe.pipelines.config import LAYER_SIZES, ClippedGradientKeys, checked, config_class, one_of
 from rlpipe.pipelines.sac_family import SACFamilyConfig, SACFamilyPipeline, scale_rewards
@@ -67,10 +68,11 @@ class SAC(SACFamilyPipeline):
 
     def make_qvalue(self) -> nn.Module:
         cfg = self.config
+        key, encoder = self.critic_input()
         return make_qvalue_critic(self.observation_dim, int(self.action_spec.shape[-1]),
-                                  cfg.critic_joint_fc_layer_params, observation_key=self.observation_key,
+                                  cfg.critic_joint_fc_layer_params, observation_key=key,
                                   init=cfg.critic_kernel_initializer, layer_norm=cfg.critic_layer_norm,
-                                  encoder=self.make_encoder())
+                                  encoder=encoder)
 
     def make_loss(self, actor: nn.Module, qvalue: nn.Module) -> SACLoss:
         cfg = self.config
@@ -86,6 +88,9 @@ class SAC(SACFamilyPipeline):
             "actor": self.adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.actor_learning_rate),
             "qvalue": self.adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.critic_learning_rate),
             "alpha": self.adam([loss.log_alpha], lr=cfg.alpha_learning_rate),
+            # the shared encoder learns with the critics, at their rate
+            **({"encoder": self.adam(self.shared_encoder.parameters(), lr=cfg.critic_learning_rate)}
+               if self.shared_encoder is not None else {}),
         }
 
     def make_target_updater(self):
@@ -96,25 +101,37 @@ class SAC(SACFamilyPipeline):
 
     def update(self, batch: TensorDictBase, update_index: int) -> dict[str, torch.Tensor]:
         """The critics on every update, the actor and the temperature on every ``policy_delay``-th (on the
-        others only the critics' loss is computed), then the target critics every ``target_update_period``."""
+        others only the critics' loss is computed), then the target critics every ``target_update_period``.
+        With a shared encoder (``share_encoder``), its features first (``encode``); it steps with the critics."""
         cfg, loss = self.config, self.loss_module
         batch = scale_rewards(batch, cfg.reward_scale_factor)
         # update_index is a Python int: under torch.compile the delay picks one of two graphs
         actor_step = update_index % cfg.policy_delay == 0
-        if actor_step:
+        extras = {}
+        if self.shared_encoder is not None:
+            batch, features = self.encode(batch)
+            losses = {"qvalue": loss.qvalue_v2_loss(batch)[0]}
+            if actor_step:
+                # the actor's loss reads the features detached: only the critics' loss trains the encoder (DrQ)
+                losses["actor"], actor_out = loss.actor_loss(batch.clone(False).set(FEATURES_KEY, features.detach()))
+                losses["alpha"] = loss.alpha_loss(actor_out["log_prob"]).mean()
+                extras = {"alpha_value": loss.log_alpha.exp(), "entropy": -actor_out["log_prob"].mean()}
+        elif actor_step:
             out = loss(batch)
             losses = {"actor": out["loss_actor"], "qvalue": out["loss_qvalue"], "alpha": out["loss_alpha"]}
+            extras = {"alpha_value": out["alpha"], "entropy": out["entropy"]}
         else:
             losses = {"qvalue": loss.qvalue_v2_loss(batch)[0]}
         sum(losses.values()).backward()
-        for name in losses:  # each gradient tensor clipped (gradient_clipping), then each optimiser's step
+        stepping = [*losses, "encoder"] if self.shared_encoder is not None else list(losses)
+        for name in stepping:  # each gradient tensor clipped (gradient_clipping), then each optimiser's step
             self.clip_gradients(name, cfg.gradient_clipping, stacked=name == "qvalue")
             self.optimizers[name].step()
             self.optimizers[name].zero_grad(set_to_none=True)
         stepped = {name: value.detach() for name, value in losses.items()}
         if actor_step:
             self.average_policy()
-            stepped.update(alpha_value=out["alpha"].detach(), entropy=out["entropy"].detach())
+            stepped.update({name: value.detach() for name, value in extras.items()})
         if update_index % cfg.target_update_period == 0:
             self.target_updater.step()
         return stepped

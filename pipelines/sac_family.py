@@ -17,7 +17,8 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
-from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor
+from rlpipe.modules.actors import TanhNormalMode, make_tanh_normal_actor, tanh_normal_head
+from rlpipe.modules.encoders import FEATURES_KEY
 from rlpipe.modules.fast.target_updates import lerp_
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline
@@ -118,7 +119,8 @@ class SACFamilyPipeline(OffPolicyPipeline):
     # --- what an algorithm of the family supplies -----------------------------------------------------
 
     def make_qvalue(self) -> nn.Module:
-        """One critic, ``(observation, action) -> "state_action_value"``."""
+        """One critic, ``(observation, action) -> "state_action_value"``; with a shared encoder, ``(features,
+        action)``, the features under ``FEATURES_KEY`` (``critic_input``)."""
         raise NotImplementedError
 
     def make_loss(self, actor: nn.Module, qvalue: nn.Module) -> LossModule:
@@ -137,10 +139,16 @@ class SACFamilyPipeline(OffPolicyPipeline):
                 raise InputError("qvalue is unused when loss_module is given (the loss holds its critics); pass one of them")
             actor = actor if actor is not None else loss_module.actor_network
         else:
+            loss_actor = actor
             if actor is None:
-                actor = make_tanh_normal_actor(self.observation_dim, self.action_spec, cfg.actor_fc_layer_params,
-                                               observation_key=self.observation_key, encoder=self.make_encoder())
-            loss_module = self.make_loss(actor, qvalue if qvalue is not None else self.make_qvalue())
+                encoder = self.make_encoder()
+                actor = loss_actor = make_tanh_normal_actor(self.observation_dim, self.action_spec,
+                                                            cfg.actor_fc_layer_params,
+                                                            observation_key=self.observation_key, encoder=encoder)
+                if qvalue is None and self.shares_encoder():
+                    # the loss holds the actor's head on the features the update computes (update)
+                    self.shared_encoder, loss_actor = encoder, tanh_normal_head(actor, FEATURES_KEY, self.action_spec)
+            loss_module = self.make_loss(loss_actor, qvalue if qvalue is not None else self.make_qvalue())
             loss_module.make_value_estimator(gamma=cfg.gamma)
         greedy = actor if cfg.policy_average_tau is None else copy.deepcopy(actor)
         return Agent(policy=greedy, collect_policy=actor, loss_module=loss_module)

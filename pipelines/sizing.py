@@ -279,11 +279,13 @@ def _until(ceiling: int, time_budget: str | None) -> str:
             f"{ceiling:,} env steps, the best evaluation's policy exported")
 
 
-def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None) -> tuple[TrainConfig, str]:
+def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None,
+                 share_encoder: bool = True) -> tuple[TrainConfig, str]:
     """The config the rule gives ``algo`` on the env of ``facts``, and one line saying what and why.
 
     ``time_budget`` (the command's ``time_budget=``, e.g. ``10m``): the user's time is the run's length, so no
-    plateau ends it sooner (the best evaluation's policy is still the one exported)."""
+    plateau ends it sooner (the best evaluation's policy is still the one exported). ``share_encoder`` (the
+    command's, SAC's default true): what the line says of an image's encoder."""
     from rlpipe.pipelines import pipeline_class
 
     if algo not in SIZED_ALGOS:
@@ -322,6 +324,9 @@ def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None) -> 
         chosen = [f"a CNN then {net[0]}"]
     if algo == "sac":
         keys.update(actor_fc_layer_params=net, critic_joint_fc_layer_params=list(net))
+        if facts.image or facts.entry_images:
+            chosen[0] = (f"one CNN for the actor and critics, trained by the critics, then {chosen[0]}" if share_encoder
+                         else f"a CNN for the actor and each critic, then {chosen[0]}")
         if not one_actuator:
             rate, tau = 1e-3, 0.005
             keys.update(target_entropy=-float(facts.action_size))
@@ -444,7 +449,7 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
         first = []
     if resume:
         return Resolved(algo, resolve_preset(algo)[1], overrides, [], f"preset {algo}")
-    budget = next((o.partition("=")[2].strip() for o in reversed(overrides) if _key(o) == "time_budget"), None)
+    budget = _last_value(overrides, "time_budget", None)
     budget = budget if budget is not None and duration_seconds(budget) else None  # null; a bad one: its own line
     fits = [p for p in presets.names() if _same_env(getattr(presets.info(p), "env", None) or "", wanted.env)
             and preset_info(p).sized and resolve_preset(p)[0] == algo]
@@ -465,8 +470,17 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
     kind = kind or measure(wanted, play=False)
     if kind.discrete != (pipeline_class(algo).action_space == "discrete"):
         return None  # the pipeline says, in its own line, which action space the algorithm needs
-    cfg, line = sized_config(algo, measure(wanted), time_budget=budget)
+    cfg, line = sized_config(algo, measure(wanted), time_budget=budget,
+                             share_encoder=_last_value(overrides, "share_encoder", "true").lower() not in _FALSE)
     return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"], f"sized for {wanted.env} (pipelines/sizing.py)")
+
+
+_FALSE = ("false", "no", "off", "0")
+
+
+def _last_value(overrides: list[str], key: str, default: str | None) -> str | None:
+    """The value the last ``key=value`` of ``overrides`` gives ``key``, as written (``default`` if none)."""
+    return next((o.partition("=")[2].strip() for o in reversed(overrides) if _key(o) == key), default)
 
 
 def _same_env(a: str, b: str) -> bool:

@@ -30,7 +30,7 @@ import copy
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import ProbabilisticTensorDictSequential
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.objectives import TD3Loss
@@ -41,8 +41,10 @@ from rlpipe.modules.actors import (
     make_deterministic_actor,
     make_exploration_policy,
     make_gaussian_actor,
+    tanh_normal_head,
 )
 from rlpipe.modules.critics import make_qvalue_critic
+from rlpipe.modules.encoders import FEATURES_KEY
 from rlpipe.modules.plain_policy import TensorDictPolicy
 from rlpipe.modules.td3_loss import TD3AblationLoss
 from rlpipe.pipelines.base import Agent, OffPolicyPipeline, observation_key_of
@@ -140,11 +142,18 @@ class TD3(OffPolicyPipeline):
             if qvalue is not None:
                 raise InputError("qvalue is unused when loss_module is given (the loss holds its critics); pass one of them")
             actor = actor if actor is not None else loss_module.actor_network
-        elif actor is None:
+        loss_actor = actor
+        if loss_module is None and actor is None:
             make = make_deterministic_actor if cfg.deterministic_policy else make_gaussian_actor
-            actor = make(self.observation_dim, spec, cfg.actor_fc_layer_params, observation_key=key,
-                         encoder=self.make_encoder())
+            encoder = self.make_encoder()
+            actor = loss_actor = make(self.observation_dim, spec, cfg.actor_fc_layer_params, observation_key=key,
+                                      encoder=encoder)
             self._gaussian_actor_made = not cfg.deterministic_policy  # exported as TanhNormalMode of its MLP
+            if qvalue is None and self.shares_encoder():
+                # the loss holds the actor's head on the features the update computes (update)
+                self.shared_encoder = encoder
+                loss_actor = (TensorDictModule(actor.module[1], in_keys=[FEATURES_KEY], out_keys=list(actor.out_keys))
+                              if cfg.deterministic_policy else tanh_normal_head(actor, FEATURES_KEY, spec))
         stochastic = isinstance(actor, ProbabilisticTensorDictSequential)
         if cfg.deterministic_policy and stochastic:
             raise InputError("actor is stochastic (a ProbabilisticActor); expected a deterministic one, "
@@ -153,10 +162,11 @@ class TD3(OffPolicyPipeline):
         collect_policy = actor if stochastic else make_exploration_policy(actor, spec, sigma=cfg.exploration_noise)
         if loss_module is None:
             if qvalue is None:
+                critic_key, critic_encoder = self.critic_input()
                 qvalue = make_qvalue_critic(self.observation_dim, int(spec.shape[-1]), cfg.critic_fc_layer_params,
-                                            observation_key=key, encoder=self.make_encoder())
+                                            observation_key=critic_key, encoder=critic_encoder)
             loss_module = TD3AblationLoss(
-                actor, qvalue, action_spec=spec,
+                loss_actor, qvalue, action_spec=spec,
                 deterministic_policy=cfg.deterministic_policy,
                 target_policy_smoothing=cfg.target_policy_smoothing,
                 clipped_double_q=cfg.clipped_double_q,
@@ -170,7 +180,10 @@ class TD3(OffPolicyPipeline):
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         lr, loss = self.config.learning_rate, self.loss_module
         return {"actor": self.adam(loss.actor_network_params.parameters(), lr=lr),
-                "qvalue": self.adam(loss.qvalue_network_params.parameters(), lr=lr)}
+                "qvalue": self.adam(loss.qvalue_network_params.parameters(), lr=lr),
+                # the shared encoder learns with the critics
+                **({"encoder": self.adam(self.shared_encoder.parameters(), lr=lr)}
+                   if self.shared_encoder is not None else {})}
 
     def make_target_updater(self):
         return self.soft_update(self.config.target_update_tau, self.config.target_networks)
@@ -190,14 +203,19 @@ class TD3(OffPolicyPipeline):
         ``policy_delay``-th (every one with ``delayed_policy_updates`` off), its loss read from the critics
         just stepped; the targets on every ``target_update_period``-th actor step."""
         cfg, loss, optimizers = self.config, self.loss_module, self.optimizers
+        actor_batch = batch
+        if self.shared_encoder is not None:  # its features; the actor's loss reads them detached (DrQ)
+            batch, features = self.encode(batch)
+            actor_batch = batch.clone(False).set(FEATURES_KEY, features.detach())
         critic_loss = loss.value_loss(batch)[0]
         critic_loss.backward()
-        optimizers["qvalue"].step()
-        optimizers["qvalue"].zero_grad(set_to_none=True)
+        for name in ("qvalue", "encoder") if self.shared_encoder is not None else ("qvalue",):
+            optimizers[name].step()
+            optimizers[name].zero_grad(set_to_none=True)
         stepped = {"qvalue": critic_loss.detach()}
         actor_every = cfg.policy_delay if cfg.delayed_policy_updates else 1
         if update_index % actor_every == 0:  # a Python int: a compiled update picks one of two graphs
-            actor_loss = loss.actor_loss(batch)[0]
+            actor_loss = loss.actor_loss(actor_batch)[0]
             actor_loss.backward()
             optimizers["actor"].step()
             optimizers["actor"].zero_grad(set_to_none=True)

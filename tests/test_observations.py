@@ -22,7 +22,7 @@ from tensordict import TensorDict
 from rlpipe.envs import EnvError, gym_env_under, make_env
 from rlpipe.envs.observations import EpisodicLife, FireOnLifeStart
 from rlpipe.modules.hindsight import STEPS_LEFT, TRAJ_IDS, HindsightReplayBuffer
-from rlpipe.pipelines import dqn, sac
+from rlpipe.pipelines import dqn, sac, td3
 from rlpipe.pipelines.artifacts.export import load_policy
 from rlpipe.scripts.cli import main
 
@@ -190,6 +190,34 @@ class Cells(gymnasium.Env):
 
     def step(self, action):
         return self.observation_space.sample(), 0.0, False, True, {}
+
+
+class Dot(gymnasium.Env):
+    """A 12x12 grey picture of a point to be driven to its centre: continuous actions, the position in the picture
+    alone; reward minus the distance to the centre, 30 steps."""
+
+    SIZE = 12
+
+    def __init__(self):
+        self.observation_space = spaces.Box(0, 255, (self.SIZE, self.SIZE), np.uint8)
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+    def observe(self, position):
+        image = np.zeros((self.SIZE, self.SIZE), np.uint8)
+        i, j = np.round((np.asarray(position) + 1) / 2 * (self.SIZE - 2)).astype(int)
+        image[i:i + 2, j:j + 2] = 255
+        return image
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.position = self.np_random.uniform(-1, 1, 2)
+        self.t = 0
+        return self.observe(self.position), {}
+
+    def step(self, action):
+        self.position = np.clip(self.position + 0.15 * np.clip(action, -1, 1), -1, 1)
+        self.t += 1
+        return self.observe(self.position), -float(np.linalg.norm(self.position)), False, self.t >= 30, {}
 
 
 class Counter(gymnasium.Env):
@@ -553,9 +581,7 @@ def test_an_image_beside_vectors_is_read_by_a_cnn_and_exported_as_the_env_gives_
     pipeline = sac.SAC(cfg)
     assert pipeline.observation_dim == 3 + 64 * 1 * 1  # joints, then the Nature convolutions' maps (40 px: 1x1)
     assert any(isinstance(m, DictEncoder) for m in pipeline.policy.modules())
-    critic = [".".join(k) for k in pipeline.loss_module.qvalue_network_params.keys(True, True)]
-    assert any("encoders" in k for k in critic)  # the critics' own CNN
-    assert not pipeline.loss_module.lean  # TorchRL's own loss code runs networks with encoders
+    assert pipeline.shared_encoder is not None  # actor and critics read one (test_sac_from_pixels_shares_...)
     raw, _ = gym_env_under(env).unwrapped.reset(seed=1)
     joined = torch.as_tensor(gym_env_under(env).observation(raw))
     torch.testing.assert_close(joined[3:].reshape(3, 40, 40), torch.as_tensor(raw["camera"]).permute(2, 0, 1).float())
@@ -575,6 +601,92 @@ def test_an_image_beside_vectors_is_read_by_a_cnn_and_exported_as_the_env_gives_
     assert [(i.name, i.type) for i in session.get_inputs()] == [("joints", "tensor(float)"), ("camera", "tensor(uint8)")]
     action = session.run(None, {k: v[None] for k, v in raw.items()})[0][0]
     np.testing.assert_allclose(action, expected.numpy(), rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_from_pixels_actor_and_critics_share_one_encoder_that_the_critics_loss_alone_trains(envs_module, algo):
+    """SAC and TD3 on an image (a Dict with a camera among its entries): one encoder in front of the actor and both
+    critics, run once per update on the observations (DrQ's choice). The gradient it steps on is the critics' loss's
+    alone (the actor's loss reads its features detached); the stock TorchRL path (fast=false) gives the lean path's
+    numbers; a checkpoint carries it. share_encoder=false: each network an encoder of its own."""
+    module = {"sac": sac, "td3": td3}[algo]
+
+    def pipeline(**keys):
+        cfg = module.preset(f"{algo}-pendulum")
+        cfg.env = f"{envs_module}:Camera"
+        for key, value in keys.items():
+            setattr(cfg, key, value)
+        return module.SAC(cfg) if algo == "sac" else module.TD3(cfg)
+
+    lean, stock = pipeline(), pipeline(fast=False)
+    encoder = lean.shared_encoder
+    assert encoder is not None and getattr(lean.loss_module, "lean", True)
+    assert any(m is encoder for m in lean.collect_policy.modules()) and any(m is encoder for m in lean.policy.modules())
+    critic = [".".join(k) for k in lean.loss_module.qvalue_network_params.keys(True, True)]
+    assert not any("encoder" in k for k in critic) and "encoder" in lean.optimizers
+    assert set(lean.replay_keys) >= {"observation", ("next", "observation")}  # features are never stored
+    torch.manual_seed(0)
+    batch = lean.env.rollout(32, break_when_any_done=False)
+    cfg = lean.config
+    actor_step = cfg.policy_delay * getattr(cfg, "target_update_period", 1)  # the actor and the critics step
+    outs = []
+    for pipe in (lean, stock):
+        torch.manual_seed(1)
+        outs.append(pipe.update(batch.clone(), actor_step))
+    assert set(outs[0]) == ({"actor", "qvalue", "alpha", "alpha_value", "entropy"} if algo == "sac" else {"actor", "qvalue"})
+    for key in outs[0]:
+        torch.testing.assert_close(outs[0][key], outs[1][key], rtol=1e-4, atol=1e-5)
+    # Adam's first step moves a weight by about the learning rate whatever its gradient's size: a gradient within
+    # float noise of zero may move it by less on one side, so the weights agree to a tenth of a step
+    step = cfg.critic_learning_rate if algo == "sac" else cfg.learning_rate
+    for mine, theirs in zip(lean.shared_encoder.parameters(), stock.shared_encoder.parameters(), strict=True):
+        torch.testing.assert_close(mine, theirs, rtol=0, atol=0.1 * step)
+
+    torch.manual_seed(2)
+    features_batch, _ = lean.encode(batch.clone())
+    critics_loss = (lean.loss_module.qvalue_v2_loss if algo == "sac" else lean.loss_module.value_loss)(features_batch)[0]
+    params = list(encoder.parameters())
+    expected = torch.autograd.grad(critics_loss, params)
+    seen = {}
+    hooks = [p.register_hook(lambda grad, i=i: seen.__setitem__(i, seen.get(i, 0) + grad)) for i, p in enumerate(params)]
+    torch.manual_seed(2)
+    lean.update(batch.clone(), actor_step)
+    for hook in hooks:
+        hook.remove()
+    for i, grad in enumerate(expected):
+        torch.testing.assert_close(seen[i], grad, rtol=1e-4, atol=1e-7)
+
+    resumed = pipeline()  # a checkpoint carries the encoder (in the policy's state) and its optimiser
+    resumed.load_state_dict(lean.state_dict())
+    for mine, theirs in zip(lean.shared_encoder.parameters(), resumed.shared_encoder.parameters(), strict=True):
+        assert torch.equal(mine, theirs)
+    moments = [state["exp_avg"] for state in resumed.optimizers["encoder"].state_dict()["state"].values()]
+    assert moments and all(torch.equal(a, b["exp_avg"]) for a, b in
+                           zip(moments, lean.optimizers["encoder"].state_dict()["state"].values(), strict=True))
+
+    own = pipeline(share_encoder=False)
+    assert own.shared_encoder is None and "encoder" not in own.optimizers
+    assert algo != "sac" or not own.loss_module.lean  # TorchRL's own loss code runs networks with encoders
+    critic = [".".join(k) for k in own.loss_module.qvalue_network_params.keys(True, True)]
+    assert any("encoder" in k for k in critic)
+
+
+@pytest.mark.slow
+def test_sac_learns_from_pixels_through_the_shared_encoder(envs_module, tmp_path):
+    """The sized default on Dot (a picture of a point, continuous actions; SAC, one encoder shared by the actor and
+    the critics): the exported policy, given the env's own pictures, drives the point from each corner to the
+    centre."""
+    assert main(["train", f"env={envs_module}:Dot", "num_iterations=1500", "batch_size=64",
+                 "--out", str(tmp_path / "run")]) == 0
+    config = json.loads((tmp_path / "run" / "config.json").read_text())["config"]
+    assert config["share_encoder"] is True
+    policy, _ = load_policy(tmp_path / "run" / "policy")
+    dot = sys.modules[envs_module].Dot()
+    for corner in [(-0.9, -0.9), (-0.9, 0.9), (0.9, -0.9), (0.9, 0.9)]:
+        position = np.array(corner)
+        for _ in range(15):
+            position = np.clip(position + 0.15 * np.clip(policy(dot.observe(position)), -1, 1), -1, 1)
+        assert np.linalg.norm(position) < 0.3, f"from {corner} the policy left the point at {position}"
 
 
 def test_the_exported_policy_takes_the_envs_own_frame_and_discrete_values(envs_module, tmp_path):

@@ -167,8 +167,9 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
     """TorchRL's ``SACLoss`` whose losses are computed on tensors when the networks allow it.
 
     Same arguments as ``SACLoss``; ``lean`` says whether the fast path is taken. Its TorchRL entry points
-    are ``forward`` (every loss) and ``qvalue_v2_loss`` (the critics' loss alone, what a delayed policy
-    update's other steps need); on the fast path each computes its terms itself with ``losses``, the
+    are ``forward`` (every loss), ``qvalue_v2_loss`` (the critics' loss alone, what a delayed policy
+    update's other steps need) and ``actor_loss`` (the actor's alone: an encoder shared with the critics
+    gives it features of its own, detached); on the fast path each computes its terms itself with ``losses``, the
     tensor-level entry point, and off it each is ``SACLoss``'s own.
     """
 
@@ -277,3 +278,13 @@ class LeanSACLoss(LeanTanhNormalActor, SACLoss):
             return super().qvalue_v2_loss(tensordict)
         out = self.losses_of(tensordict, actor=False)
         return out["loss_qvalue"], {"td_error": out["td_error"]}
+
+    def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``SACLoss.actor_loss``: the actor's loss and its samples' log-probabilities (detached)."""
+        if not self.lean:
+            return super().actor_loss(tensordict)
+        observation = tensordict.get(self._actor_parts[3])
+        action, log_prob = self.sample_action(observation)
+        min_q = self.qvalues(cached_detached_params(self, "qvalue_network_params"), observation, action).amin(0)
+        weights = self._maybe_get_priority_weight(tensordict)
+        return self._reduce_loss(self._alpha * log_prob - min_q, weights=weights), {"log_prob": log_prob.detach()}

@@ -406,6 +406,8 @@ class ActorKeys:
     """hidden layer sizes of the actor"""
     policy_delay: int = checked(1, POSITIVE)
     """update the actor (and with it the temperature, the averaged greedy policy or the target networks, as the algorithm has them) on every policy_delay-th update only, the critics on every one (TD3's delayed policy updates, CrossQ's policy_delay); 1: every update"""
+    share_encoder: bool = True
+    """an image observation (or a Dict with images among its entries), SAC and TD3: one encoder for the actor and the critics, trained by the critics' loss alone; the actor's loss reads its features detached, the critics' targets read them at the next observation without gradients (DrQ's choice for learning from pixels; SAC: two forward passes and one backward through the encoder an update, where an encoder per network makes eight and three). false: the actor and each critic an encoder of its own, each trained by its own loss (SB3's default for SAC and TD3). Nothing for a vector observation"""
 
 
 @dataclass
