@@ -195,7 +195,8 @@ class TD3AblationLoss(TD3Loss):
         # Stochastic actors sample (rsample: differentiable) unless the policy is deterministic.
         deterministic = self.deterministic_policy
         mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-        td = TensorDict({self._observation_key: observation}, batch_size=observation.shape[:-1])
+        # no batch size: an observation may be a picture ([*batch, C, H, W]), whose batch its last dim does not end
+        td = TensorDict({self._observation_key: observation}, batch_size=[])
         # preserve_module_state=False as in TD3Loss: otherwise to_module turns the target
         # buffers into grad-requiring parameters, which SoftUpdate then refuses.
         params = getattr(self, params_name)
@@ -227,7 +228,7 @@ class TD3AblationLoss(TD3Loss):
         net = self.qvalue_network
         td = TensorDict(
             {self._observation_key: observation, self.tensor_keys.action: action},
-            batch_size=observation.shape[:-1],
+            batch_size=action.shape[:-1],  # an observation may be a picture: the action's batch is the batch
         )
         params = getattr(self, params_name)
         outputs = []

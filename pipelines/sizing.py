@@ -285,7 +285,7 @@ def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None,
 
     ``time_budget`` (the command's ``time_budget=``, e.g. ``10m``): the user's time is the run's length, so no
     plateau ends it sooner (the best evaluation's policy is still the one exported). ``share_encoder`` (the
-    command's, SAC's default true): what the line says of an image's encoder."""
+    command's; true by default): what the line says of an image's encoder."""
     from rlpipe.pipelines import pipeline_class
 
     if algo not in SIZED_ALGOS:
@@ -322,11 +322,11 @@ def sized_config(algo: str, facts: EnvFacts, time_budget: str | None = None,
     if facts.image and algo == "dqn":  # after the encoder's convolutions: the Nature DQN's 512, the MinAtar paper's 128
         net = [512] if min(facts.observation_shape[1:]) >= NATURE_MIN_SIZE else [128]
         chosen = [f"a CNN then {net[0]}"]
+    if algo in ("sac", "td3") and (facts.image or facts.entry_images):
+        chosen[0] = (f"one CNN for the actor and critics, trained by the critics, then {chosen[0]}" if share_encoder
+                     else f"a CNN for the actor and each critic, then {chosen[0]}")
     if algo == "sac":
         keys.update(actor_fc_layer_params=net, critic_joint_fc_layer_params=list(net))
-        if facts.image or facts.entry_images:
-            chosen[0] = (f"one CNN for the actor and critics, trained by the critics, then {chosen[0]}" if share_encoder
-                         else f"a CNN for the actor and each critic, then {chosen[0]}")
         if not one_actuator:
             rate, tau = 1e-3, 0.005
             keys.update(target_entropy=-float(facts.action_size))

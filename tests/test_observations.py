@@ -671,6 +671,24 @@ def test_from_pixels_actor_and_critics_share_one_encoder_that_the_critics_loss_a
     assert any("encoder" in k for k in critic)
 
 
+@pytest.mark.parametrize("algo,keys", [("sac", {}), ("td3", {}), ("td3", {"deterministic_policy": False})])
+def test_a_picture_alone_updates_with_a_shared_encoder_and_with_one_per_network(envs_module, algo, keys):
+    """A picture not joined into a vector (Dot, 12x12): the update runs on it with the shared encoder and with an
+    encoder in each network (the loss then calls the networks on the picture itself), fast path or TorchRL's."""
+    module = {"sac": sac, "td3": td3}[algo]
+    for share, fast in [(True, True), (False, True), (False, False)]:
+        cfg = module.preset(f"{algo}-pendulum")
+        cfg.env = f"{envs_module}:Dot"
+        for key, value in {**keys, "share_encoder": share, "fast": fast}.items():
+            setattr(cfg, key, value)
+        pipeline = module.SAC(cfg) if algo == "sac" else module.TD3(cfg)
+        assert (pipeline.shared_encoder is not None) == share
+        torch.manual_seed(0)
+        batch = pipeline.env.rollout(16, break_when_any_done=False)
+        out = pipeline.update(batch, cfg.policy_delay * getattr(cfg, "target_update_period", 1))
+        assert "actor" in out and all(torch.isfinite(value).all() for value in out.values()), (share, fast, out)
+
+
 @pytest.mark.slow
 def test_sac_learns_from_pixels_through_the_shared_encoder(envs_module, tmp_path):
     """The sized default on Dot (a picture of a point, continuous actions; SAC, one encoder shared by the actor and
