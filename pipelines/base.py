@@ -1,7 +1,7 @@
 """What every pipeline is: the algorithm contract, the plug-in surface, and the parts they share.
 
 A pipeline (``dqn.DQN``, ``td3.TD3``, ``sac.SAC``, ``crossq.CrossQ``) subclasses ``OffPolicyPipeline``
-(SAC and CrossQ through ``sac_family.SACFamilyPipeline``) and declares:
+(CrossQ through ``sac.SAC``, whose actor and schedules it keeps) and declares:
 
 * ``algo``, ``Config`` (its typed config), ``action_space`` (``"discrete"`` or ``"continuous"``) and
   ``loss_names`` (the losses ``update`` returns); its presets are files (``presets/``, whose ``algo`` names it);

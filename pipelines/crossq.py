@@ -9,7 +9,9 @@ networks: the critics judge (s, a) and (s', a') in one joint forward pass, so bo
 normalised with the same batch statistics, which is what lets the target come from the online
 critics. TorchRL's ``CrossQLoss`` computes exactly that; this pipeline adds sb3-contrib's settings
 (Adam betas (0.5, 0.999), learning rates 1e-3, the actor and temperature updated every
-``policy_delay`` critic updates, one update per env step) and critics sized for a CPU.
+``policy_delay`` critic updates, one update per env step) and critics sized for a CPU. The pipeline is
+``sac.SAC`` (its actor, schedules and averaged greedy policy) with the critics, the loss, the optimisers and
+the update replaced.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from rlpipe.modules.critics import make_batchrenorm_critic
 from rlpipe.modules.fast.crossq_loss import LeanCrossQLoss
 from rlpipe.pipelines.config import NON_NEGATIVE, Check, CriticKeys, checked, config_class
 from rlpipe.pipelines.errors import InputError
-from rlpipe.pipelines.sac_family import SACFamilyConfig, SACFamilyPipeline, scale_rewards
+from rlpipe.pipelines.sac import SAC, SACFamilyConfig, scale_rewards
 
 __all__ = ["CrossQConfig", "CrossQ", "preset"]
 
@@ -52,7 +54,7 @@ class CrossQConfig(CriticKeys, SACFamilyConfig):
     """critic updates during which BatchRenorm1d normalises as plain batch norm, before its running statistics take over (sb3-contrib's 100,000; 0: from the start)"""
 
 
-class CrossQ(SACFamilyPipeline):
+class CrossQ(SAC):
     """CrossQ: TorchRL's ``CrossQLoss`` (TanhNormal actor, twin batch-renormalised critics, learned
     temperature, no target networks), the actor and temperature updated every ``policy_delay`` updates.
 
@@ -75,7 +77,7 @@ class CrossQ(SACFamilyPipeline):
     Config = CrossQConfig
     action_space = "continuous"
     loss_names = ("qvalue", "actor", "alpha", "alpha_value", "entropy")
-    config: CrossQConfig
+    config: CrossQConfig  # type: ignore[assignment]  # SAC's shape, CrossQ's keys
     loss_module: CrossQLoss
 
     def make_qvalue(self) -> nn.Module:
@@ -105,6 +107,9 @@ class CrossQ(SACFamilyPipeline):
                                betas=betas),
             "alpha": self.adam([loss.log_alpha], lr=cfg.alpha_learning_rate, betas=betas),
         }
+
+    def make_target_updater(self):
+        return None  # no target networks
 
     def update_periods(self) -> list[int]:
         return [self.config.policy_delay]

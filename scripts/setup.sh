@@ -11,8 +11,8 @@ fi
 .venv/bin/python -m pip install -q torch==2.13.0
 # ray: collector.backend=ray and its tests (tests/test_ray.py); bench: py-spy for `rlpipe bench profile`;
 # tune: Optuna for `rlpipe tune` (tests/test_tune.py); docs: mkdocs for the documentation site (tests/test_docs.py);
-# wandb, mlflow: logger=wandb|mlflow (tests/test_loggers.py)
-.venv/bin/python -m pip install -q -e ".[test,ray,bench,tune,docs,wandb,mlflow]"
+# wandb, mlflow: logger=wandb|mlflow (tests/test_loggers.py); box2d: LunarLander and BipedalWalker (tests/test_envs.py)
+.venv/bin/python -m pip install -q -e ".[test,ray,bench,tune,docs,wandb,mlflow,box2d]"
 # The report page's browser test drives Debian's chromium through Playwright (Playwright's own browser
 # download is not reachable here). Installed where apt-get and root are at hand; elsewhere the test
 # says it skipped and why.

@@ -507,7 +507,7 @@ def test_every_key_is_declared_once_and_an_algorithms_default_says_why_in_its_he
 
     from rlpipe.pipelines import pipeline_class
     from rlpipe.pipelines.config import ActorKeys, ClippedGradientKeys, CriticKeys, OneRateKeys, RayConfig, config_class
-    from rlpipe.pipelines.sac_family import SACFamilyConfig
+    from rlpipe.pipelines.sac import SACFamilyConfig
 
     classes = [TrainConfig, CollectorConfig, RayConfig, ActorKeys, CriticKeys, OneRateKeys, ClippedGradientKeys,
                SACFamilyConfig, *(pipeline_class(algo).Config for algo in ("sac", "crossq", "td3", "dqn"))]

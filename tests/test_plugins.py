@@ -36,7 +36,7 @@ from rlpipe.pipelines.training.triggers import EVAL, IntervalTrigger, Trigger
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 ALGOS = ["dqn", "td3", "sac", "crossq"]
-# The env, trigger, logger and thread plumbing: crossq's is sac's (both are SACFamilyPipelines); what crossq
+# The env, trigger, logger and thread plumbing: crossq's is sac's (CrossQ subclasses SAC); what crossq
 # has of its own (networks, loss, update, export) is checked with ALGOS.
 PLUMBING = ["dqn", "td3", "sac"]
 ENV = {"dqn": "CartPole-v1", "td3": "Pendulum-v1", "sac": "Pendulum-v1", "crossq": "Pendulum-v1"}

@@ -8,7 +8,7 @@ Each key has one home. ``TrainConfig`` declares the keys every algorithm has, wi
 several algorithms (not all) have are declared in the small dataclasses below it (``ActorKeys``,
 ``CriticKeys``, ``OneRateKeys``, ``ClippedGradientKeys``), which an algorithm's config inherits; an
 algorithm's own keys are declared in its config (``DQN.Config``, ``TD3.Config``, ``SAC.Config``,
-``CrossQ.Config``; the last two on the SAC family's ``sac_family.SACFamilyConfig``). Where an algorithm's
+``CrossQ.Config``; the last two on the keys they share, ``sac.SACFamilyConfig``). Where an algorithm's
 default differs from the declared one (its tutorial's), its config says so in one place, ``@config_class(key=value)``
 (or ``key=(value, "why")``, the why added to the key's help), without declaring the key again.
 
