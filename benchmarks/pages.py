@@ -331,22 +331,30 @@ def gpu() -> tuple[list[str], dict]:
     return lines, {case: [rate[case, mode] for mode in GPU_MODES] for case in cases}
 
 
-ANYTIME = ("2026-12-06-41bb2df-hopper-sbx.json",)
-"""``rlpipe bench anytime``'s files under benchmarks/results/anytime/: the return each side had at each wall-clock mark"""
-ANYTIME_HEADING = "The best agent in ten minutes: Hopper-v5, return against wall-clock (`rlpipe bench anytime`)"
+ANYTIME = {
+    "2026-12-06-41bb2df-hopper-sbx.json": (
+        "The best agent in ten minutes: Hopper-v5, return against wall-clock (`rlpipe bench anytime`)", "anytime.png"),
+    "2026-12-07-aa73372-halfcheetah-sbx.json": (
+        "The best agent in ten minutes: HalfCheetah-v5 (`rlpipe bench anytime`)", "anytime-halfcheetah.png"),
+    "2026-12-08-dd3816a-ant-sbx.json": (
+        "The best agent in ten minutes: Ant-v5 (`rlpipe bench anytime`)", "anytime-ant.png"),
+}
+"""``rlpipe bench anytime``'s files under benchmarks/results/anytime/ (the return each side had at each wall-clock
+mark): each file's heading in BENCHMARKS.md and its figure on the site's page"""
 
 
 def anytime(link: str) -> list[str]:
-    """Per env of each ANYTIME file: every curve's mean greedy return and its 95% interval at five of its marks."""
+    """Per env of each ANYTIME file: every curve's mean greedy return and its 95% interval at five of its marks,
+    then the file's figure."""
     lines = []
-    for name in ANYTIME:
+    for name, (heading, png) in ANYTIME.items():
         data = _load("anytime", name)
         marks = data["marks_s"]
         shown = sorted({round(i * (len(marks) - 1) / 4) for i in range(5)})
         seeds = data["seeds"]
         for env in data["envs"]:
             lines += [f"{env}, {len(seeds)} seeds ({seeds[0]}-{seeds[-1]}), {_when(name)} "
-                      f"([the command and every seed]({link}#{slug(ANYTIME_HEADING)})):", "",
+                      f"([the command and every seed]({link}#{slug(heading)})):", "",
                       "| curve (mean [95% CI]) | " + " | ".join(f"{marks[i]:.0f} s" for i in shown) + " |",
                       "|---|" + "---|" * len(shown)]
             for curve, c in data["curves"][env].items():
@@ -356,6 +364,8 @@ def anytime(link: str) -> list[str]:
                 label = {"rlpipe": "rlpipe, exported (the kept best)", "rlpipe (last)": "rlpipe, the last policy"}
                 lines.append(f"| {label.get(curve, PEER_NAMES.get(curve, curve))} | " + " | ".join(cells) + " |")
             lines.append("")
+        lines += [f"![{', '.join(data['envs'])}: greedy return against wall-clock time, mean and 95% band over seeds]"
+                  f"({png})", ""]
     return lines
 
 
@@ -396,7 +406,6 @@ def index_page() -> str:
         "times of its own clock (from its launch, imports counted, the benchmark's evaluations left out) on the same "
         "10 episodes; rlpipe's exported policy is what `policy/` would hold had the run ended there.", "",
         *anytime("log.md"),
-        "![Greedy return against wall-clock time, mean and 95% band over seeds](anytime.png)", "",
         "## The training loop on a GPU", "",
         *gpu_lines, "",
         "![The training loop on a GPU](gpu.png)", "",
@@ -476,7 +485,8 @@ def draw(out: Path) -> list[Path]:
 
     from rlpipe.scripts.bench import anytime as anytime_bench
 
-    written.append(anytime_bench.plot(_load("anytime", ANYTIME[-1]), out / "anytime.png"))
+    for name, (_, png) in ANYTIME.items():
+        written.append(anytime_bench.plot(_load("anytime", name), out / png))
     return written
 
 
