@@ -471,16 +471,34 @@ def resolve_for_env(name: str, overrides: list[str], *, resume: bool = False) ->
     if kind.discrete != (pipeline_class(algo).action_space == "discrete"):
         return None  # the pipeline says, in its own line, which action space the algorithm needs
     cfg, line = sized_config(algo, measure(wanted), time_budget=budget,
-                             share_encoder=_last_value(overrides, "share_encoder", "true").lower() not in _FALSE)
+                             share_encoder=_last_bool(overrides, "share_encoder", True))
     return Resolved(algo, cfg, overrides, [*first, f"rlpipe: {line}"], f"sized for {wanted.env} (pipelines/sizing.py)")
-
-
-_FALSE = ("false", "no", "off", "0")
 
 
 def _last_value(overrides: list[str], key: str, default: str | None) -> str | None:
     """The value the last ``key=value`` of ``overrides`` gives ``key``, as written (``default`` if none)."""
     return next((o.partition("=")[2].strip() for o in reversed(overrides) if _key(o) == key), default)
+
+
+@dataclass
+class _Flag:
+    value: bool = True
+
+
+def _last_bool(overrides: list[str], key: str, default: bool) -> bool:
+    """The bool the last ``key=value`` of ``overrides`` gives ``key``, read as the config reads a bool (OmegaConf:
+    true/false, yes/no, on/off, 1/0); ``default`` if none or not a bool (``apply_overrides`` then says so in its own
+    line)."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    value = _last_value(overrides, key, None)
+    if value is None:
+        return default
+    try:
+        return OmegaConf.merge(OmegaConf.structured(_Flag), OmegaConf.from_dotlist([f"value={value}"])).value
+    except OmegaConfBaseException:
+        return default
 
 
 def _same_env(a: str, b: str) -> bool:

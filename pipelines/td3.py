@@ -203,10 +203,9 @@ class TD3(OffPolicyPipeline):
         ``policy_delay``-th (every one with ``delayed_policy_updates`` off), its loss read from the critics
         just stepped; the targets on every ``target_update_period``-th actor step."""
         cfg, loss, optimizers = self.config, self.loss_module, self.optimizers
-        actor_batch = batch
+        features = None
         if self.shared_encoder is not None:  # its features; the actor's loss reads them detached (DrQ)
             batch, features = self.encode(batch)
-            actor_batch = batch.clone(False).set(FEATURES_KEY, features.detach())
         critic_loss = loss.value_loss(batch)[0]
         critic_loss.backward()
         for name in ("qvalue", "encoder") if self.shared_encoder is not None else ("qvalue",):
@@ -215,6 +214,7 @@ class TD3(OffPolicyPipeline):
         stepped = {"qvalue": critic_loss.detach()}
         actor_every = cfg.policy_delay if cfg.delayed_policy_updates else 1
         if update_index % actor_every == 0:  # a Python int: a compiled update picks one of two graphs
+            actor_batch = batch if features is None else batch.clone(False).set(FEATURES_KEY, features.detach())
             actor_loss = loss.actor_loss(actor_batch)[0]
             actor_loss.backward()
             optimizers["actor"].step()
